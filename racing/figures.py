@@ -1,0 +1,57 @@
+"""Figures of tracks with matplotlib (``pip install racing-rl[render]``)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from racing.config import PAPER_TRACK_SEEDS, RacingConfig
+from racing.track import Track, track_from_seed
+
+
+def import_pyplot():
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as exc:  # pragma: no cover - depends on the installation
+        raise ImportError("figures need matplotlib: pip install 'racing-rl[render]'") from exc
+    return plt
+
+
+def draw_track(ax, track: Track, trail: np.ndarray | None = None) -> None:
+    """Fill the track's checkpoints, outline its walls, mark start and finish."""
+    for i in range(track.num_checkpoints):
+        ax.fill(*track.checkpoint(i).T, color="0.55", linewidth=0)
+    for wall in (track.left_wall, track.right_wall):
+        ax.plot(*wall.T, color="black", linewidth=0.8)
+    ax.plot(*np.stack([track.left_wall[0], track.right_wall[0]]).T, color="tab:green", linewidth=2)
+    ax.plot(*np.stack([track.left_wall[-1], track.right_wall[-1]]).T, color="tab:red", linewidth=2)
+    if trail is not None and len(trail):
+        ax.plot(*np.asarray(trail).T, color="tab:blue", linewidth=1)
+    ax.set_aspect("equal")
+    ax.axis("off")
+
+
+def tracks_figure(path: str | Path, seeds: Sequence[int] = PAPER_TRACK_SEEDS,
+                  config: RacingConfig = RacingConfig(), width: float = 14.0) -> Path:
+    """One panel per track seed, side by side, each as wide as its track (the paper's Figure 1)."""
+    plt = import_pyplot()
+    tracks = [track_from_seed(s, config) for s in seeds]
+    spans = [np.subtract(*reversed(t.bounds())) for t in tracks]
+    widths = [max(w / h, 0.2) for w, h in spans]
+    height = min(max(width / sum(widths), 2.0), 6.0)
+    fig, axes = plt.subplots(1, len(tracks), figsize=(width, height),
+                             gridspec_kw={"width_ratios": widths}, squeeze=False)
+    for ax, track, seed in zip(axes[0], tracks, seeds):
+        draw_track(ax, track)
+        ax.set_title(str(seed), fontsize=9)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

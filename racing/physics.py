@@ -1,0 +1,159 @@
+"""The racing physics, batched over cars: the one implementation both environments use.
+
+Everything here is NumPy float64 and branch-free across cars. Per track, the geometry
+each step needs is precomputed into tables with one row per checkpoint, so that a step
+gathers one row per car (by its track slot and checkpoint) instead of looping:
+
+* ``edges``: the four edges of checkpoint ``c`` and of ``c + 1``, ready for the even-odd
+  point-in-polygon test;
+* ``respawn``: where a car that leaves the track from checkpoint ``c`` is put back;
+* ``rays``: the wall segments a ray can reach from checkpoint ``c``, in the reference's
+  scan order. Culling is exact: a segment is dropped only when it lies farther than the
+  ray length from every point a car with that checkpoint can occupy, so it can never
+  be crossed within range and the readings are unchanged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from racing.config import RacingConfig
+from racing.track import Track, deg_to_rad
+
+# Columns of an edge row of the point-in-polygon test.
+_YMIN, _YMAX, _XMAX, _P1X, _P1Y, _DX, _DY = range(7)
+# An edge that can never toggle the test (pads the missing checkpoint after the last).
+_NEUTRAL_EDGE = (np.inf, -np.inf, 0.0, 0.0, 0.0, 0.0, 1.0)
+
+
+@dataclass(frozen=True, eq=False)
+class TrackTables:
+    """Per-checkpoint lookup tables of one track (see the module docstring)."""
+
+    # The checkpoint is the last axis, so that gathering one row per car gives car-last arrays.
+    edges: np.ndarray  # (7, 2, 4, N): edge columns of checkpoint c (polygon 0) and c + 1 (1)
+    respawn: np.ndarray  # (4, N): checkpoint, x, y, theta after leaving the track from c
+    finish: np.ndarray  # (4,): the far edge of the last checkpoint, left[N] -> right[N]
+    rays: np.ndarray  # (4, W, N): p1x, p1y, v2x, v2y of the wall segments reachable from c
+
+    @property
+    def width(self) -> int:
+        return self.rays.shape[1]
+
+
+def build_tables(track: Track, config: RacingConfig) -> TrackTables:
+    n = track.num_checkpoints
+    if n != config.num_segments:
+        raise ValueError(f"track has {n} checkpoints but config.num_segments is {config.num_segments}")
+    quads = np.stack([track.checkpoint(i) for i in range(n)])  # (N, 4, 2)
+
+    # Edges p1 -> p2 in the reference's order (0-1, 1-2, 2-3, 3-0).
+    p1, p2 = quads, np.roll(quads, -1, axis=1)
+    dx, dy = p2[..., 0] - p1[..., 0], p2[..., 1] - p1[..., 1]
+    edges = np.stack([np.minimum(p1[..., 1], p2[..., 1]), np.maximum(p1[..., 1], p2[..., 1]),
+                      np.maximum(p1[..., 0], p2[..., 0]), p1[..., 0], p1[..., 1], dx,
+                      np.where(dy == 0.0, 1.0, dy)], axis=-1)  # a flat edge never toggles
+    neutral = np.broadcast_to(np.array(_NEUTRAL_EDGE), (1, 4, 7))
+    edges = np.stack([edges, np.concatenate([edges[1:], neutral])], axis=1)  # (N, 2, 4, 7)
+
+    back = np.maximum(np.arange(n) - 1, 0)  # leaving the track costs one checkpoint
+    centres = track.centres
+    toward = centres[back + 1] - centres[back]
+    respawn = np.stack([back, centres[back, 0], centres[back, 1],
+                        np.pi / 2 - np.arctan2(toward[:, 1], toward[:, 0])])
+    finish = np.concatenate([track.left_wall[-1], track.right_wall[-1]])
+    return TrackTables(np.ascontiguousarray(edges.transpose(3, 1, 2, 0)),
+                       respawn, finish, _ray_table(track, quads, config))
+
+
+def _ray_table(track: Track, quads: np.ndarray, config: RacingConfig) -> np.ndarray:
+    """Reachable wall segments per checkpoint, in scan order (checkpoint, then left, right)."""
+    n = track.num_checkpoints
+    # Segment 2i is the left wall of checkpoint i, 2i + 1 its right wall.
+    p1 = np.stack([track.left_wall[:-1], track.right_wall[:-1]], axis=1).reshape(2 * n, 2)
+    p2 = np.stack([track.left_wall[1:], track.right_wall[1:]], axis=1).reshape(2 * n, 2)
+    # A car with checkpoint c is inside that checkpoint (hence within its corners' circle),
+    # or at most one step beyond it when it has just finished; at reset it is near the origin.
+    centres = track.centres
+    radius = np.linalg.norm(quads - centres[:, None], axis=-1).max(axis=1) + config.max_speed
+    start_box = np.array([[-0.5, -0.5], [-0.5, 0.5], [0.5, -0.5], [0.5, 0.5]])
+    radius[0] = max(radius[0], np.linalg.norm(start_box - centres[0], axis=-1).max())
+    reach = radius + config.ray_length * (1 + 1e-9) + 1e-6
+    distance = _point_segment_distance(centres[:, None], p1[None], p2[None])  # (N, 2N)
+    scan_from = np.arange(2 * n)[None] >= 2 * np.arange(n)[:, None]  # walls of c, c+1, ... only
+    reachable = (distance <= reach[:, None]) & scan_from
+    width = max(int(reachable.sum(axis=1).max()), 1)
+    table = np.full((4, width, n), np.nan)  # NaN pads never cross a ray
+    for c in range(n):
+        segments = np.flatnonzero(reachable[c])
+        table[:2, : len(segments), c] = p1[segments].T
+        table[2:, : len(segments), c] = (p2[segments] - p1[segments]).T
+    return table
+
+
+def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    ab, ap = b - a, p - a
+    along = np.clip((ap * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-300), 0.0, 1.0)
+    return np.linalg.norm(ap - along[..., None] * ab, axis=-1)
+
+
+def inside_parity(x: np.ndarray, y: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Even-odd test of points (x, y), shape (B,), against polygons given as edge columns.
+
+    ``edges`` has shape (7, P, E, B): for each of B cars, P polygons of E edges. An edge
+    toggles when ``ymin < y <= ymax`` and ``x <= xmax`` and ``x`` is left of the edge at
+    height ``y``; returns (P, B) booleans. Cars are the innermost axis throughout.
+    """
+    ymin, ymax, xmax, p1x, p1y, dx, dy = edges
+    crossing = (y - p1y) * dx / dy + p1x
+    toggles = (y > ymin) & (y <= ymax) & (x <= xmax) & (x <= crossing)
+    return np.logical_xor.reduce(toggles, axis=1)
+
+
+def ray_distances(x: np.ndarray, y: np.ndarray, theta: np.ndarray, rays: np.ndarray,
+                  config: RacingConfig, nearest: bool = False) -> np.ndarray:
+    """Distance along each ray to the wall, capped at the ray length: shape (num_rays, B).
+
+    ``rays`` (4, W, B) holds p1x, p1y, v2x, v2y of each car's reachable wall segments in
+    scan order. As in the reference, a ray reads the first segment in scan order that it
+    crosses within range; ``nearest=True`` takes the closest crossing instead (the two
+    differ only where a track crosses itself within sensor range).
+    """
+    phi = deg_to_rad(_ray_offsets(config) - theta / np.pi * 180.0)  # (R, B)
+    ux, uy = np.cos(phi)[:, None], np.sin(phi)[:, None]  # (R, 1, B)
+    p1x, p1y, v2x, v2y = rays  # (W, B)
+    v1x, v1y = x - p1x, y - p1y
+    length = config.ray_length
+    with np.errstate(divide="ignore", invalid="ignore"):  # parallel rays and NaN pads: no crossing
+        denom = v2x * -uy + v2y * ux  # (R, W, B)
+        t1 = (v2x * v1y - v2y * v1x) / denom
+        t2 = (v1x * -uy + v1y * ux) / denom
+    valid = (t1 >= 0.0) & (t1 <= length) & (t2 >= 0.0) & (t2 <= 1.0)
+    if nearest:
+        return np.where(valid, t1, length).min(axis=1)
+    first = valid.argmax(axis=1)  # (R, B): the first crossing in scan order
+    r, b = t1.shape[0], t1.shape[2]
+    flat = (np.arange(r)[:, None] * t1.shape[1] + first) * b + np.arange(b)
+    return np.where(valid.any(axis=1), t1.take(flat), length)
+
+
+_OFFSETS: dict[tuple[float, ...], np.ndarray] = {}
+
+
+def _ray_offsets(config: RacingConfig) -> np.ndarray:
+    """90 + a_k (degrees) per ray: the world angle of ray k for a car heading along +y."""
+    offsets = _OFFSETS.get(config.ray_angles_deg)
+    if offsets is None:
+        offsets = _OFFSETS[config.ray_angles_deg] = 90.0 + np.array(config.ray_angles_deg)[:, None]
+    return offsets
+
+
+def crosses_segment(ax, ay, bx, by, px, py, qx, qy) -> np.ndarray:
+    """Whether the step p -> q crosses segment a -> b (touching counts), elementwise."""
+    d1 = (bx - ax) * (py - ay) - (by - ay) * (px - ax)
+    d2 = (bx - ax) * (qy - ay) - (by - ay) * (qx - ax)
+    d3 = (qx - px) * (ay - py) - (qy - py) * (ax - px)
+    d4 = (qx - px) * (by - py) - (qy - py) * (bx - px)
+    return (d1 * d2 <= 0) & (d3 * d4 <= 0) & (d1 != d2)

@@ -1,0 +1,285 @@
+"""``RacingSim``: N cars, each on its own track, stepped together.
+
+This class owns the cars' state, their tracks and their random streams; the Gymnasium env
+(one car) and the TorchRL env (N cars) are thin adapters over it.
+
+Random streams follow the reference simulator. Car ``i`` has its own
+``numpy.random.RandomState``. A freshly seeded stream first lays out a track
+(``num_segments`` draws), as the reference did when it was constructed; each reset then
+draws the start state (3 draws). Which track the car drives on is, in order of precedence:
+a per-reset override, the car's fixed ``track_seed``, or (``track_seed=None``) the track its
+stream lays out anew at every reset. So ``RandomState(S)`` on the track of seed ``S``
+reproduces the reference exactly.
+"""
+
+from __future__ import annotations
+
+import functools
+import weakref
+from collections.abc import Sequence
+
+import numpy as np
+
+from racing.config import RacingConfig
+from racing.physics import TrackTables, build_tables, crosses_segment, inside_parity, ray_distances
+from racing.track import Track, deg_to_rad, layout_track, track_from_seed
+
+
+@functools.lru_cache(maxsize=256)
+def cached_track(seed: int, config: RacingConfig) -> Track:
+    """The track of ``seed`` (cached: tracks are immutable)."""
+    return track_from_seed(seed, config)
+
+
+_TABLES: weakref.WeakKeyDictionary[Track, TrackTables] = weakref.WeakKeyDictionary()
+
+
+def tables_of(track: Track, config: RacingConfig) -> TrackTables:
+    tables = _TABLES.get(track)
+    if tables is None:
+        tables = _TABLES[track] = build_tables(track, config)
+    return tables
+
+
+def check_seed(seed, what: str = "seed") -> int:
+    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)):
+        raise TypeError(f"{what} must be an integer in [0, 2**32), got {seed!r}")
+    if not 0 <= int(seed) < 2**32:
+        raise ValueError(f"{what} must be in [0, 2**32) (a numpy RandomState seed), got {seed}")
+    return int(seed)
+
+
+class TrackBank:
+    """Tables of the tracks in use, side by side: a car's rows are ``slot * N + checkpoint``."""
+
+    def __init__(self, config: RacingConfig):
+        self.config = config
+        self.tracks: list[Track | None] = []
+        self.users: list[int] = []
+        self.slot_of: dict[int, int] = {}
+        self.edges = np.zeros((7, 2, 4, 0))
+        self.respawn = np.zeros((4, 0))
+        self.finish = np.zeros((4, 0))
+        self.rays = np.zeros((4, 1, 0))
+
+    def acquire(self, track: Track) -> int:
+        slot = self.slot_of.get(id(track))
+        if slot is None:
+            slot = self._store(track)
+        self.users[slot] += 1
+        return slot
+
+    def release(self, slot: int) -> None:
+        self.users[slot] -= 1
+        if self.users[slot] == 0:
+            del self.slot_of[id(self.tracks[slot])]
+            self.tracks[slot] = None
+
+    def _store(self, track: Track) -> int:
+        tables = tables_of(track, self.config)
+        if None in self.tracks:
+            slot = self.tracks.index(None)
+        else:
+            slot = len(self.tracks)
+            self.tracks.append(None)
+            self.users.append(0)
+            if slot >= self.finish.shape[-1]:
+                self._grow(2 * slot + 1)
+        if tables.width > self.rays.shape[1]:
+            more = tables.width - self.rays.shape[1]
+            self.rays = np.concatenate([self.rays, np.full((4, more, self.rays.shape[2]), np.nan)], axis=1)
+        n = self.config.num_segments
+        rows = slice(slot * n, (slot + 1) * n)
+        self.edges[..., rows] = tables.edges
+        self.respawn[:, rows] = tables.respawn
+        self.finish[:, slot] = tables.finish
+        self.rays[:, :, rows] = np.nan
+        self.rays[:, : tables.width, rows] = tables.rays
+        self.tracks[slot] = track
+        self.slot_of[id(track)] = slot
+        return slot
+
+    def _grow(self, capacity: int) -> None:
+        def grow(a: np.ndarray, size: int) -> np.ndarray:
+            return np.concatenate([a, np.zeros(a.shape[:-1] + (size - a.shape[-1],))], axis=-1)
+
+        n = self.config.num_segments
+        self.edges = grow(self.edges, capacity * n)
+        self.respawn = grow(self.respawn, capacity * n)
+        self.rays = grow(self.rays, capacity * n)
+        self.finish = grow(self.finish, capacity)
+
+
+class RacingSim:
+    """A batch of cars on race tracks (see the module docstring for the random streams).
+
+    Args:
+        num_cars: batch size N.
+        track_seeds: one per car, or one for all: an int fixes the car's track, ``None``
+            gives it a fresh random track at every reset.
+        config: constants of the task.
+        nearest_ray: take the nearest ray crossing instead of the reference's first in
+            scan order (they differ only where a track crosses itself within sensor range).
+    """
+
+    CHUNK = 1024  # cars per block of the ray computation (see observe)
+
+    def __init__(self, num_cars: int = 1, track_seeds: int | None | Sequence[int | None] = None,
+                 config: RacingConfig = RacingConfig(), nearest_ray: bool = False):
+        if isinstance(num_cars, bool) or not isinstance(num_cars, (int, np.integer)) or num_cars < 1:
+            raise ValueError(f"num_cars must be a positive integer, got {num_cars!r}")
+        if not isinstance(config, RacingConfig):
+            raise TypeError(f"config must be a RacingConfig, got {type(config).__name__}")
+        self.num_cars = n = int(num_cars)
+        self.config = config
+        self.nearest_ray = bool(nearest_ray)
+        if track_seeds is None or isinstance(track_seeds, (int, np.integer)):
+            track_seeds = [track_seeds] * n
+        track_seeds = list(track_seeds)
+        if len(track_seeds) != n:
+            raise ValueError(f"got {len(track_seeds)} track seeds for {n} cars")
+        self.track_seeds = [None if s is None else check_seed(s, "track seed") for s in track_seeds]
+        self.bank = TrackBank(config)
+        self.tracks: list[Track | None] = [None] * n
+        self.slot = np.zeros(n, dtype=np.int64)
+        self.x = np.zeros(n)
+        self.y = np.zeros(n)
+        self.theta = np.zeros(n)
+        self.speed = np.zeros(n)
+        self.checkpoint = np.zeros(n, dtype=np.int64)
+        self.t = np.zeros(n, dtype=np.int64)
+        self.finished = np.zeros(n, dtype=bool)
+        self._streams: list[np.random.RandomState | None] = [None] * n
+        self._fresh = [True] * n
+
+    # ----------------------------------------------------------------------------- seeding
+    def seed(self, seeds: int | Sequence[int], cars: Sequence[int] | None = None) -> None:
+        """Re-seed the cars' streams: one seed each, or ``seed + k`` for the k-th car given."""
+        cars = range(self.num_cars) if cars is None else list(cars)
+        if isinstance(seeds, (int, np.integer)) and not isinstance(seeds, bool):
+            base = check_seed(seeds)
+            seeds = [(base + k) % 2**32 for k in range(len(cars))]
+        seeds = [check_seed(s) for s in seeds]
+        if len(seeds) != len(cars):
+            raise ValueError(f"got {len(seeds)} seeds for {len(cars)} cars")
+        for car, s in zip(cars, seeds):
+            self._streams[car] = np.random.RandomState(s)
+            self._fresh[car] = True
+
+    def _stream(self, car: int) -> np.random.RandomState:
+        stream = self._streams[car]
+        if stream is None:  # never seeded: a fixed track's own seed (as the reference), else entropy
+            seed = self.track_seeds[car]
+            if seed is None:
+                seed = int(np.random.SeedSequence().generate_state(1)[0])
+            stream = self._streams[car] = np.random.RandomState(seed)
+            self._fresh[car] = True
+        return stream
+
+    # ------------------------------------------------------------------------------- reset
+    def reset(self, cars: Sequence[int] | np.ndarray | None = None,
+              track_seed: int | None = None) -> None:
+        """Put the given cars (default: all) at the start of their tracks.
+
+        ``track_seed`` overrides the track of these cars for this episode only.
+        """
+        cfg = self.config
+        cars = range(self.num_cars) if cars is None else np.asarray(cars, dtype=np.int64).ravel()
+        override = None if track_seed is None else cached_track(check_seed(track_seed, "track_seed"), cfg)
+        for car in cars:
+            car = int(car)
+            stream = self._stream(car)
+            fixed = self.track_seeds[car]
+            track = None
+            if self._fresh[car] or fixed is None:
+                if fixed is None and override is None:
+                    track = layout_track(stream, cfg)
+                else:  # the stream lays out a track that is not used: draw and drop it
+                    stream.random_sample(cfg.num_segments)
+                self._fresh[car] = False
+            track = override or track or cached_track(fixed, cfg)
+            self._use_track(car, track)
+            u = stream.random_sample(3)
+            self.x[car] = u[0] - 0.5
+            self.y[car] = u[1] - 0.5
+            self.theta[car] = deg_to_rad((u[2] - 0.5) * cfg.start_heading_deg)
+        self.speed[cars] = 0.0
+        self.checkpoint[cars] = 0
+        self.t[cars] = 0
+        self.finished[cars] = False
+
+    def _use_track(self, car: int, track: Track) -> None:
+        if self.tracks[car] is track:
+            return
+        if self.tracks[car] is not None:
+            self.bank.release(int(self.slot[car]))
+        self.slot[car] = self.bank.acquire(track)
+        self.tracks[car] = track
+
+    # -------------------------------------------------------------------------------- step
+    def step(self, throttle: np.ndarray, steer: np.ndarray):
+        """Advance every car one frame. Actions are float64 arrays of shape (N,), clipped to [-1, 1].
+
+        Returns ``(reward, terminated, truncated, crashed)``, each of shape (N,).
+        """
+        cfg = self.config
+        if self.tracks[0] is None:
+            raise RuntimeError("RacingSim.step() called before reset()")
+        throttle = np.minimum(np.maximum(throttle, -1.0), 1.0)
+        steer = np.minimum(np.maximum(steer, -1.0), 1.0)
+        speed = self.speed + ((throttle / 2 + 0.5) * cfg.max_speed - self.speed) * cfg.accel
+        theta = self.theta - steer * speed / np.maximum(speed**2 / cfg.turn_rate, cfg.min_turn_radius)
+        old_x, old_y = self.x, self.y
+        x = old_x + np.sin(theta) * speed
+        y = old_y + np.cos(theta) * speed
+        reward = speed / cfg.max_speed
+
+        rows = self.slot * cfg.num_segments + self.checkpoint
+        in_current, in_next = inside_parity(x, y, self.bank.edges.take(rows, axis=-1))
+        advanced = ~in_current & in_next
+        off_track = ~(in_current | in_next)
+        finished = np.zeros(self.num_cars, dtype=bool)
+        if off_track.any():
+            last = off_track & (self.checkpoint == cfg.num_segments - 1)
+            if last.any():
+                f = self.bank.finish[:, self.slot[last]]
+                finished[last] = crosses_segment(*f, old_x[last], old_y[last], x[last], y[last])
+                off_track &= ~finished
+            if off_track.any():
+                back = self.bank.respawn[:, rows[off_track]]
+                reward[off_track] -= cfg.crash_penalty
+                self.checkpoint[off_track] = back[0].astype(np.int64)
+                x[off_track], y[off_track], theta[off_track] = back[1], back[2], back[3]
+                speed[off_track] = 0.0
+        self.checkpoint += advanced
+        self.x, self.y, self.theta, self.speed = x, y, theta, speed
+        self.t += 1
+        self.finished = finished
+        return reward, finished, self.t >= cfg.max_steps, off_track
+
+    # ---------------------------------------------------------------------------- observe
+    def observe(self) -> np.ndarray:
+        """Ray readings (divided by the ray length) and speed / max_speed: (N, num_rays + 1) float64."""
+        cfg = self.config
+        rows = self.slot * cfg.num_segments + self.checkpoint
+        obs = np.empty((cfg.obs_size, self.num_cars))
+        # In chunks of cars: the temporaries stay in cache and off the page-faulting allocator.
+        for start in range(0, self.num_cars, self.CHUNK):
+            cars = slice(start, start + self.CHUNK)
+            rays = self.bank.rays.take(rows[cars], axis=-1)
+            obs[:-1, cars] = ray_distances(self.x[cars], self.y[cars], self.theta[cars], rays,
+                                           cfg, self.nearest_ray)
+        obs[:-1] /= cfg.ray_length
+        obs[-1] = self.speed / cfg.max_speed
+        return obs.T
+
+    def car_state(self, car: int = 0) -> dict:
+        """The state of one car as plain Python values."""
+        track = self.tracks[car]
+        n = self.config.num_segments
+        return {
+            "x": float(self.x[car]), "y": float(self.y[car]), "theta": float(self.theta[car]),
+            "speed": float(self.speed[car]), "checkpoint": int(self.checkpoint[car]),
+            "step": int(self.t[car]), "track_seed": None if track is None else track.seed,
+            "progress": (int(self.checkpoint[car]) + bool(self.finished[car])) / n,
+        }

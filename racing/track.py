@@ -1,0 +1,100 @@
+"""Random race tracks: a chain of quadrilateral checkpoints between two walls.
+
+A track is laid out from NumPy's legacy Mersenne Twister (``numpy.random.RandomState``),
+one uniform draw per segment, which is what makes the paper's tracks reproducible from
+their seeds. The same stream then goes on to draw the car's start states.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from racing.config import RacingConfig
+
+
+@dataclass(frozen=True, eq=False)
+class Track:
+    """The walls of one track and the geometry derived from them.
+
+    Checkpoint ``i`` (``0 <= i < num_segments``) is the quadrilateral
+    ``[left_wall[i], left_wall[i + 1], right_wall[i + 1], right_wall[i]]``.
+    """
+
+    left_wall: np.ndarray  # (num_segments + 1, 2) float64
+    right_wall: np.ndarray  # (num_segments + 1, 2) float64
+    seed: int | None = None
+    centres: np.ndarray = field(init=False, repr=False)  # (num_segments, 2)
+
+    def __post_init__(self) -> None:
+        left = np.ascontiguousarray(self.left_wall, dtype=np.float64)
+        right = np.ascontiguousarray(self.right_wall, dtype=np.float64)
+        if left.ndim != 2 or left.shape[1] != 2 or left.shape != right.shape or len(left) < 3:
+            raise ValueError(
+                "left_wall and right_wall must both have shape (N + 1, 2) with N >= 2 checkpoints, "
+                f"got {left.shape} and {right.shape}"
+            )
+        if not (np.isfinite(left).all() and np.isfinite(right).all()):
+            raise ValueError("track walls must be finite")
+        left.flags.writeable = False
+        right.flags.writeable = False
+        centres = (left[:-1] + left[1:] + right[1:] + right[:-1]) / 4.0
+        centres.flags.writeable = False
+        object.__setattr__(self, "left_wall", left)
+        object.__setattr__(self, "right_wall", right)
+        object.__setattr__(self, "centres", centres)
+
+    @property
+    def num_checkpoints(self) -> int:
+        return len(self.left_wall) - 1
+
+    def checkpoint(self, i: int) -> np.ndarray:
+        """Corners of checkpoint ``i`` in polygon order, shape (4, 2)."""
+        return np.stack(
+            [self.left_wall[i], self.left_wall[i + 1], self.right_wall[i + 1], self.right_wall[i]]
+        )
+
+    def respawn_heading(self, i: int) -> float:
+        """Heading (radians, 0 = +y) of a car put back at the centre of checkpoint ``i``."""
+        dx, dy = self.centres[i + 1] - self.centres[i]
+        return float(np.pi / 2 - np.arctan2(dy, dx))
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower-left and upper-right corners of the box that holds both walls."""
+        walls = np.concatenate([self.left_wall, self.right_wall])
+        return walls.min(axis=0), walls.max(axis=0)
+
+
+def layout_track(rng: np.random.RandomState, config: RacingConfig = RacingConfig(),
+                 seed: int | None = None) -> Track:
+    """Lay out a track with ``config.num_segments`` draws from ``rng``.
+
+    Starting at the origin heading along +y, each segment turns by
+    ``(U - 0.5) * max_turn_deg`` degrees and advances ``segment_length``; the walls lie
+    ``half_width`` to each side of the centre line.
+    """
+    n = config.num_segments
+    turns = (rng.random_sample(n) - 0.5) * config.max_turn_deg
+    # Headings in degrees; np.cumsum adds in sequence, exactly as the reference's loop did.
+    headings = np.cumsum(np.concatenate([[90.0], turns]))[1:]
+    centre_line = np.cumsum(config.segment_length * _unit(headings), axis=0)
+    hw, y0 = config.half_width, config.start_line_y
+    left = np.concatenate([[[-hw, y0]], centre_line + hw * _unit(headings + 90.0)])
+    right = np.concatenate([[[hw, y0]], centre_line + hw * _unit(headings - 90.0)])
+    return Track(left, right, seed=seed)
+
+
+def deg_to_rad(degrees):
+    """Degrees to radians, rounded as the reference simulator rounded them (bit-exact tracks)."""
+    return degrees / 180.0 * np.pi
+
+
+def _unit(degrees: np.ndarray) -> np.ndarray:
+    radians = deg_to_rad(degrees)
+    return np.stack([np.cos(radians), np.sin(radians)], axis=-1)
+
+
+def track_from_seed(seed: int, config: RacingConfig = RacingConfig()) -> Track:
+    """The track that ``RandomState(seed)`` lays out (the paper's tracks by their seeds)."""
+    return layout_track(np.random.RandomState(seed), config, seed=seed)
