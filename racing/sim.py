@@ -156,7 +156,7 @@ class RacingSim:
     def seed(self, seeds: int | Sequence[int], cars: Sequence[int] | None = None) -> None:
         """Re-seed the cars' streams: one seed each, or ``seed + k`` for the k-th car given."""
         cars = range(self.num_cars) if cars is None else list(cars)
-        if isinstance(seeds, (int, np.integer)) and not isinstance(seeds, bool):
+        if not isinstance(seeds, (Sequence, np.ndarray)):
             base = check_seed(seeds)
             seeds = [(base + k) % 2**32 for k in range(len(cars))]
         seeds = [check_seed(s) for s in seeds]

@@ -87,7 +87,8 @@ class RacingTorchEnv(EnvBase):
 
     def _pack(self, **entries: torch.Tensor) -> TensorDictBase:
         entries["observation"] = torch.from_numpy(self.sim.observe().astype(np.float32))
-        entries["checkpoint"] = torch.from_numpy(self.sim.checkpoint).unsqueeze(-1)
+        # A copy: the simulator updates its state arrays in place.
+        entries["checkpoint"] = torch.from_numpy(self.sim.checkpoint.copy()).unsqueeze(-1)
         td = TensorDict(entries, batch_size=self.batch_size)
         return td if self.device == torch.device("cpu") else td.to(self.device)
 

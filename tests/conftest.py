@@ -1,0 +1,29 @@
+"""Shared fixtures: the reference data in ../shared (skipped with a reason when absent)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # rendering tests run without a screen
+os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
+os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("RACING_SHARED_DIR", ROOT.parent / "shared"))
+CONFORMANCE = SHARED / "reference" / "env_conformance.json"
+
+
+def load_conformance() -> dict:
+    if not CONFORMANCE.is_file():
+        pytest.skip(f"conformance vectors not found at {CONFORMANCE} "
+                    "(set RACING_SHARED_DIR to the folder holding reference/env_conformance.json)")
+    return json.loads(CONFORMANCE.read_text())
+
+
+@pytest.fixture(scope="session")
+def conformance() -> dict:
+    return load_conformance()

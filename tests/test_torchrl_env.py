@@ -1,0 +1,130 @@
+"""The batched TorchRL environment: specs, lockstep with Gymnasium, resets, seeding, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from torchrl.envs import check_env_specs
+
+from racing import RacingEnv, RacingTorchEnv
+
+TRACKS = [2067791, None, 5412436, 773203, None]
+
+
+@pytest.mark.parametrize("num_envs, track_seeds", [(1, 2067791), (4, None), (5, TRACKS)])
+def test_passes_torchrls_spec_check(num_envs, track_seeds):
+    env = RacingTorchEnv(num_envs, track_seeds)
+    env.set_seed(0)
+    check_env_specs(env)
+
+
+@pytest.mark.parametrize("track_seeds", [[5468063], TRACKS])
+def test_lockstep_with_the_gymnasium_env(track_seeds):
+    """Same tracks, seeds and actions: identical observations, rewards and flags, through
+    crashes, time-limit resets and fresh random tracks."""
+    n, seed, steps = len(track_seeds), 11, 450
+    torch_env = RacingTorchEnv(n, track_seeds, max_steps=150)
+    torch_env.set_seed(seed)
+    gym_envs = [RacingEnv(track_seed=s, max_steps=150) for s in track_seeds]
+    gym_obs = [env.reset(seed=seed + i)[0] for i, env in enumerate(gym_envs)]
+    td = torch_env.reset()
+    np.testing.assert_array_equal(td["observation"].numpy(), np.stack(gym_obs))
+    rng = np.random.default_rng(0)
+    for _ in range(steps):
+        actions = rng.uniform(-1.1, 1.1, (n, 2)).astype(np.float32)
+        td["action"] = torch.from_numpy(actions)
+        stepped, td = torch_env.step_and_maybe_reset(td)
+        nxt = stepped["next"]
+        for i, env in enumerate(gym_envs):
+            obs, reward, terminated, truncated, info = env.step(actions[i])
+            np.testing.assert_array_equal(nxt["observation"][i].numpy(), obs)
+            assert nxt["reward"][i].item() == np.float32(reward)
+            assert nxt["terminated"][i].item() == terminated
+            assert nxt["truncated"][i].item() == truncated
+            assert nxt["done"][i].item() == (terminated or truncated)
+            assert nxt["crashed"][i].item() == info["crashed"]
+            assert nxt["checkpoint"][i].item() == info["checkpoint"]
+            gym_obs[i] = env.reset()[0] if terminated or truncated else obs
+        np.testing.assert_array_equal(td["observation"].numpy(), np.stack(gym_obs))
+
+
+def test_partial_reset_leaves_other_cars_alone():
+    env = RacingTorchEnv(3, 2067791)
+    env.set_seed(0)
+    td = env.reset()
+    td["action"] = torch.tensor([[1.0, 0.1]] * 3)
+    for _ in range(5):
+        td = env.step(td)["next"].set("action", td["action"])
+    before = env.sim.x.copy(), env.sim.t.copy()
+    reset = torch.tensor([[False], [True], [False]])
+    env.reset(td.clone().set("_reset", reset))
+    assert env.sim.t.tolist() == [5, 0, 5]
+    assert env.sim.x[0] == before[0][0] and env.sim.x[2] == before[0][2]
+    assert env.sim.x[1] != before[0][1]
+
+
+def test_time_limit_is_truncation_and_done():
+    env = RacingTorchEnv(2, 1, max_steps=3)
+    env.set_seed(0)
+    td = env.rollout(3, break_when_any_done=False)
+    assert td["next", "truncated"][:, -1].all() and td["next", "done"][:, -1].all()
+    assert not td["next", "terminated"].any()
+    assert not td["next", "done"][:, :-1].any()
+
+
+def test_same_seed_same_rollout():
+    def rollout(seed):
+        env = RacingTorchEnv(4, None)
+        env.set_seed(seed)
+        torch.manual_seed(0)
+        return env.rollout(250, break_when_any_done=False)
+
+    a, b, c = rollout(3), rollout(3), rollout(4)
+    assert (a == b).all()
+    assert not torch.equal(a["next", "observation"], c["next", "observation"])
+
+
+def test_collector_yields_one_episode_per_car_per_batch():
+    from torchrl.collectors import Collector
+
+    env = RacingTorchEnv(4, 2067791)
+    env.set_seed(0)
+    collector = Collector(env, policy=None, frames_per_batch=200 * 4, total_frames=2 * 200 * 4,
+                          auto_register_policy_transforms=False)
+    for batch in collector:
+        assert batch.batch_size == torch.Size([4, 200])
+        assert batch["next", "done"].sum().item() == 4
+        assert batch["next", "done"][:, -1].all()
+    collector.shutdown()
+
+
+@pytest.mark.parametrize("action, error, message", [
+    (torch.tensor([[float("nan"), 0.0], [0.0, 0.0]]), ValueError, r"cars \[0\] contain NaN or inf"),
+    (torch.tensor([[0.0, 0.0], [float("inf"), 0.0]]), ValueError, r"cars \[1\] contain NaN or inf"),
+    (torch.tensor([[0.0 + 1j, 0.0], [0.0, 0.0]]), TypeError, "is not a real number type"),
+    (torch.tensor([[True, False], [True, False]]), TypeError, "is not a real number type"),
+])
+def test_bad_actions_get_clear_errors(action, error, message):
+    env = RacingTorchEnv(2, 1)
+    td = env.reset()
+    td["action"] = action
+    with pytest.raises(error, match=message):
+        env.step(td)
+
+
+def test_wrong_action_shape_is_refused():
+    env = RacingTorchEnv(2, 1)
+    td = env.reset()
+    td.set("action", torch.zeros(2, 3))
+    with pytest.raises(ValueError, match=r"action has shape \(2, 3\), expected \(2, 2\)"):
+        env.step(td)
+
+
+def test_set_seed_gives_car_i_the_stream_of_seed_plus_i():
+    env = RacingTorchEnv(3, 2067791)
+    env.set_seed(100)
+    obs = env.reset()["observation"].numpy()
+    for i in range(3):
+        expected, _ = RacingEnv(track_seed=2067791).reset(seed=100 + i)
+        np.testing.assert_array_equal(obs[i], expected)
