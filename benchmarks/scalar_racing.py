@@ -31,10 +31,16 @@ def _inside(x: float, y: float, poly: list[tuple[float, float]]) -> bool:
 
 
 class ScalarRacing:
-    """One car on the track laid out by ``RandomState(seed)``; ``reset`` continues that stream."""
+    """One car on the track laid out by ``RandomState(seed)``; ``reset`` continues that stream.
 
-    def __init__(self, seed: int, config: RacingConfig = RacingConfig()):
+    ``nearest=True`` scans every wall segment ahead and keeps the nearest crossing (the
+    spec's definition taken literally, with no early exit) instead of stopping at the
+    first crossing in scan order as the reference did.
+    """
+
+    def __init__(self, seed: int, config: RacingConfig = RacingConfig(), nearest: bool = False):
         self.config = config
+        self.nearest = nearest
         self.rng = np.random.RandomState(seed)
         left, right = [(-config.half_width, config.start_line_y)], [(config.half_width, config.start_line_y)]
         px = py = 0.0
@@ -109,6 +115,7 @@ class ScalarRacing:
         dx, dy = math.cos(phi), math.sin(phi)
         ox, oy = self.x, self.y
         length = self.config.ray_length
+        best = length
         for i in range(self.checkpoint, self.config.num_segments):
             for wall in (self.left, self.right):
                 (p1x, p1y), (p2x, p2y) = wall[i], wall[i + 1]
@@ -120,5 +127,7 @@ class ScalarRacing:
                 t1 = (v2x * v1y - v2y * v1x) / denom
                 t2 = (v1x * -dy + v1y * dx) / denom
                 if 0.0 <= t1 <= length and 0.0 <= t2 <= 1.0:
-                    return t1
-        return length
+                    if not self.nearest:
+                        return t1
+                    best = min(best, t1)
+        return best

@@ -15,6 +15,7 @@ gathers one row per car (by its track slot and checkpoint) instead of looping:
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -134,9 +135,15 @@ def ray_distances(x: np.ndarray, y: np.ndarray, theta: np.ndarray, rays: np.ndar
     if nearest:
         return np.where(valid, t1, length).min(axis=1)
     first = valid.argmax(axis=1)  # (R, B): the first crossing in scan order
-    r, b = t1.shape[0], t1.shape[2]
-    flat = (np.arange(r)[:, None] * t1.shape[1] + first) * b + np.arange(b)
-    return np.where(valid.any(axis=1), t1.take(flat), length)
+    base, step = _gather_offsets(t1.shape)
+    return np.where(valid.any(axis=1), t1.take(base + first * step), length)
+
+
+@functools.lru_cache(maxsize=64)
+def _gather_offsets(shape: tuple[int, int, int]) -> tuple[np.ndarray, int]:
+    """Flat offsets into an (R, W, B) array of element (r, 0, b), and the stride of W."""
+    r, w, b = shape
+    return np.arange(r)[:, None] * (w * b) + np.arange(b), b
 
 
 _OFFSETS: dict[tuple[float, ...], np.ndarray] = {}

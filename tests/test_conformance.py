@@ -98,10 +98,11 @@ def test_torchrl_env_reproduces_every_rollout(conformance, seed):
 
 
 @pytest.mark.parametrize("seed", PAPER_TRACK_SEEDS)
-def test_scalar_baseline_reproduces_every_rollout(conformance, seed):
+@pytest.mark.parametrize("nearest", [False, True])
+def test_scalar_baseline_reproduces_every_rollout(conformance, seed, nearest):
     expected = _track(conformance, seed)
     for rollout in expected["rollouts"]:
-        car = ScalarRacing(seed)
+        car = ScalarRacing(seed, nearest=nearest)
         obs = car.reset()
         np.testing.assert_allclose(obs, expected["start"]["obs"], atol=OBS_TOL, rtol=0)
         for k, (action, step) in enumerate(zip(rollout["actions"], rollout["steps"])):
