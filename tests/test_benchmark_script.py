@@ -1,0 +1,18 @@
+"""The speed benchmark runs and prints its table (numbers are not asserted: speed is not a test)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_env_speed_benchmark_prints_its_table():
+    result = subprocess.run([sys.executable, "-m", "benchmarks.env_speed", "--seconds", "0.01"],
+                            capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
+    assert len(rows) == 1 + 7  # header and one row per implementation
+    assert "| TorchRL env, step_and_maybe_reset | 4096 |" in result.stdout
