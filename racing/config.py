@@ -64,6 +64,15 @@ class RacingConfig:
         if problems:
             raise ValueError("Invalid RacingConfig: " + "; ".join(problems))
 
+    @classmethod
+    def from_keywords(cls, owner: str, **keywords) -> "RacingConfig":
+        """Build from keyword arguments, naming the valid ones if a keyword is unknown."""
+        unknown = sorted(set(keywords) - set(cls.__dataclass_fields__))
+        if unknown:
+            raise TypeError(f"{owner} got unknown keyword(s) {unknown}; valid RacingConfig "
+                            f"fields: {', '.join(cls.__dataclass_fields__)}")
+        return cls(**keywords)
+
     @property
     def num_rays(self) -> int:
         return len(self.ray_angles_deg)

@@ -131,12 +131,8 @@ class RacingEnv(gym.Env):
                              f"got {render_mode!r}")
         if track_seed is not None:
             track_seed = check_seed(track_seed, "track_seed")
-        try:
-            self.config = RacingConfig(**config)
-        except TypeError as exc:
-            valid = ", ".join(RacingConfig.__dataclass_fields__)
-            raise TypeError(f"{exc}; RacingEnv accepts track_seed, render_mode, nearest_ray "
-                            f"and the RacingConfig fields: {valid}") from None
+        self.config = RacingConfig.from_keywords("RacingEnv (besides track_seed, render_mode, nearest_ray)",
+                                                 **config)
         self.track_seed = track_seed
         self.render_mode = render_mode
         self.sim = RacingSim(1, track_seed, self.config, nearest_ray=nearest_ray)

@@ -39,7 +39,8 @@ class RacingTorchEnv(EnvBase):
 
     def __init__(self, num_envs: int = 1, track_seeds: int | None | Sequence[int | None] = None,
                  device: Any = "cpu", nearest_ray: bool = False, **config: Any):
-        cfg = RacingConfig(**config)
+        cfg = RacingConfig.from_keywords("RacingTorchEnv (besides num_envs, track_seeds, device, nearest_ray)",
+                                         **config)
         self.sim = RacingSim(num_envs, track_seeds, cfg, nearest_ray=nearest_ray)
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
         self.config = cfg

@@ -128,3 +128,8 @@ def test_set_seed_gives_car_i_the_stream_of_seed_plus_i():
     for i in range(3):
         expected, _ = RacingEnv(track_seed=2067791).reset(seed=100 + i)
         np.testing.assert_array_equal(obs[i], expected)
+
+
+def test_unknown_keyword_names_the_valid_ones():
+    with pytest.raises(TypeError, match=r"unknown keyword\(s\) \['num_cars'\]; valid RacingConfig fields"):
+        RacingTorchEnv(num_cars=3)
