@@ -143,17 +143,20 @@ def ray_distances(x: np.ndarray, y: np.ndarray, theta: np.ndarray, rays: np.ndar
 def _gather_offsets(shape: tuple[int, int, int]) -> tuple[np.ndarray, int]:
     """Flat offsets into an (R, W, B) array of element (r, 0, b), and the stride of W."""
     r, w, b = shape
-    return np.arange(r)[:, None] * (w * b) + np.arange(b), b
-
-
-_OFFSETS: dict[tuple[float, ...], np.ndarray] = {}
+    base = np.arange(r)[:, None] * (w * b) + np.arange(b)
+    base.flags.writeable = False  # shared by every caller
+    return base, b
 
 
 def _ray_offsets(config: RacingConfig) -> np.ndarray:
-    """90 + a_k (degrees) per ray: the world angle of ray k for a car heading along +y."""
-    offsets = _OFFSETS.get(config.ray_angles_deg)
-    if offsets is None:
-        offsets = _OFFSETS[config.ray_angles_deg] = 90.0 + np.array(config.ray_angles_deg)[:, None]
+    """90 + a_k (degrees) per ray, shape (R, 1): the world angle of ray k for a car heading along +y."""
+    return _offsets_of(config.ray_angles_deg)
+
+
+@functools.lru_cache(maxsize=16)
+def _offsets_of(ray_angles_deg: tuple[float, ...]) -> np.ndarray:
+    offsets = 90.0 + np.array(ray_angles_deg)[:, None]
+    offsets.flags.writeable = False  # shared by every caller
     return offsets
 
 
