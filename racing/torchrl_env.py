@@ -44,6 +44,7 @@ class RacingTorchEnv(EnvBase):
         self.sim = RacingSim(num_envs, track_seeds, cfg, nearest_ray=nearest_ray)
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
         self.config = cfg
+        self._on_cpu = self.device == torch.device("cpu")
         n = (num_envs,)
         self.observation_spec = Composite(
             observation=Bounded(0.0, 1.0, n + (cfg.obs_size,), dtype=torch.float32, device=self.device),
@@ -59,39 +60,59 @@ class RacingTorchEnv(EnvBase):
             shape=n,
         )
 
+    # A lean path for collectors that step thousands of times per second: the same
+    # simulator calls and checks as ``reset``/``step``, without TensorDict bookkeeping.
+    def reset_tensors(self, cars: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """Reset the cars marked in ``cars`` (bool, shape (N,) or (N, 1); default all).
+
+        Returns the entries of ``reset()`` as a dict of tensors (observation of every car).
+        """
+        rows = None if cars is None else cars.reshape(-1).cpu().numpy().nonzero()[0]
+        self.sim.reset(rows)
+        return self._entries(**{key: torch.zeros(self.batch_size + (1,), dtype=torch.bool)
+                                for key in ("crashed", "done", "terminated", "truncated")})
+
+    def step_tensors(self, action: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Step every car; returns the entries of ``step()["next"]`` as a dict of tensors."""
+        a = self._checked_action(action)
+        reward, terminated, truncated, crashed = self.sim.step(a[:, 0], a[:, 1])
+        return self._entries(reward=_column(reward.astype(np.float32)), crashed=_column(crashed),
+                             done=_column(terminated | truncated),
+                             terminated=_column(terminated.copy()),
+                             truncated=_column(truncated))
+
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         cars = None
         if tensordict is not None and "_reset" in tensordict.keys():
-            cars = tensordict["_reset"].reshape(-1).cpu().numpy().nonzero()[0]
-        self.sim.reset(cars)
-        flags = torch.zeros(self.batch_size + (1,), dtype=torch.bool)
-        return self._pack(crashed=flags, done=flags, terminated=flags, truncated=flags)
+            cars = tensordict["_reset"]
+        return self._pack(self.reset_tensors(cars))
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict["action"]
+        return self._pack(self.step_tensors(tensordict["action"]))
+
+    def _checked_action(self, action: torch.Tensor) -> np.ndarray:
+        if not isinstance(action, torch.Tensor):
+            raise TypeError(f"action must be a torch.Tensor, got {type(action).__name__}: {ACTION_HELP}")
         if action.shape != self.batch_size + (2,):
             raise ValueError(f"action has shape {tuple(action.shape)}, expected "
                              f"{tuple(self.batch_size + (2,))}: {ACTION_HELP}")
         if action.is_complex() or not (action.is_floating_point() or action.dtype in _INTEGER):
             raise TypeError(f"action dtype {action.dtype} is not a real number type: {ACTION_HELP}")
-        a = action.detach().to("cpu", torch.float64).numpy()
+        a = action.detach().cpu().numpy().astype(np.float64)
         if not np.isfinite(a).all():
             bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
             raise ValueError(f"actions of cars {bad[:8].tolist()} contain NaN or inf: {ACTION_HELP}")
-        reward, terminated, truncated, crashed = self.sim.step(a[:, 0], a[:, 1])
-        terminated, truncated = _column(terminated), _column(truncated)
-        return self._pack(
-            reward=torch.from_numpy(reward.astype(np.float32)).unsqueeze(-1),
-            crashed=_column(crashed), done=terminated | truncated,
-            terminated=terminated, truncated=truncated,
-        )
+        return a
 
-    def _pack(self, **entries: torch.Tensor) -> TensorDictBase:
+    def _entries(self, **entries: torch.Tensor) -> dict[str, torch.Tensor]:
         entries["observation"] = torch.from_numpy(self.sim.observe().astype(np.float32))
-        # A copy: the simulator updates its state arrays in place.
-        entries["checkpoint"] = torch.from_numpy(self.sim.checkpoint.copy()).unsqueeze(-1)
-        td = TensorDict(entries, batch_size=self.batch_size)
-        return td if self.device == torch.device("cpu") else td.to(self.device)
+        entries["checkpoint"] = _column(self.sim.checkpoint.copy())  # a copy: updated in place
+        if not self._on_cpu:
+            entries = {key: value.to(self.device) for key, value in entries.items()}
+        return entries
+
+    def _pack(self, entries: dict[str, torch.Tensor]) -> TensorDictBase:
+        return TensorDict(entries, batch_size=self.batch_size, device=self.device)
 
     def _set_seed(self, seed: int | None) -> None:
         if seed is not None:
@@ -101,5 +122,6 @@ class RacingTorchEnv(EnvBase):
 _INTEGER = (torch.int8, torch.int16, torch.int32, torch.int64, torch.uint8)
 
 
-def _column(flags: np.ndarray) -> torch.Tensor:
-    return torch.from_numpy(np.ascontiguousarray(flags)).unsqueeze(-1)
+def _column(values: np.ndarray) -> torch.Tensor:
+    """(N,) array -> (N, 1) tensor sharing its memory (callers pass arrays nobody else holds)."""
+    return torch.from_numpy(np.ascontiguousarray(values).reshape(-1, 1))

@@ -1,0 +1,8 @@
+"""The data path: collecting episodes, Monte-Carlo returns and experience replay."""
+
+from collectors.episodes import BACKENDS, DirectCollector, make_collector
+from collectors.replay import ReplayMemory, ReplaySchedule, sample_minibatch
+from collectors.returns import RETURN_KEY, add_monte_carlo_returns, episode_transitions
+
+__all__ = ["BACKENDS", "DirectCollector", "RETURN_KEY", "ReplayMemory", "ReplaySchedule",
+           "add_monte_carlo_returns", "episode_transitions", "make_collector", "sample_minibatch"]

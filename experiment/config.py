@@ -1,0 +1,258 @@
+"""Typed, validated run configuration, built from the Hydra config before anything else.
+
+The values live in ``conf/`` (one commented YAML per node); these classes hold their types
+and rules. ``RunConfig.from_mapping`` rejects unknown keys, wrong types and values the
+design does not allow, each in one sentence naming what was expected.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import MISSING, dataclass, fields
+from typing import Any, get_type_hints
+
+LOSSES = ("ppo", "spg")
+RATIO_SPACES = ("linear", "log")
+CENTRES = ("mean", "action")
+TRACK_SOURCES = ("fixed", "random")
+COLLECTORS = ("direct", "torchrl")
+LOGGERS = ("csv", "tensorboard", "none")
+ACTIVATIONS = ("tanh", "relu", "elu")
+
+
+class ConfigError(ValueError):
+    """A configuration value or combination that cannot be run."""
+
+
+def _build(cls, where: str, values: Mapping[str, Any]):
+    """Instantiate dataclass ``cls`` from ``values``: every field required, no unknown keys."""
+    names = [f.name for f in fields(cls)]
+    unknown = sorted(set(values) - set(names))
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {unknown}; valid keys are {names}")
+    missing = [f.name for f in fields(cls) if f.name not in values and f.default is MISSING]
+    if missing:
+        raise ConfigError(f"{where}: missing key(s) {missing}")
+    hints = get_type_hints(cls)
+    kwargs = {}
+    for name in names:
+        if name in values:
+            kwargs[name] = _coerce(f"{where}.{name}", values[name], hints[name])
+    return cls(**kwargs)
+
+
+def _coerce(where: str, value: Any, hint: Any) -> Any:
+    text = str(hint)
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where} must be true or false, got {value!r}")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where} must be an integer, got {value!r}")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise ConfigError(f"{where} must be a finite number, got {value!r}")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where} must be a string, got {value!r}")
+        return value
+    if text.startswith("tuple[int"):
+        if isinstance(value, (str, bytes)) or not hasattr(value, "__iter__") or not all(
+                isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value):
+            raise ConfigError(f"{where} must be a list of positive integers, got {value!r}")
+        return tuple(value)
+    if text.startswith("dict"):
+        if value is None and "None" in text:
+            return None
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{where} must be a mapping, got {value!r}")
+        return dict(value)
+    return value
+
+
+def _choice(where: str, value: str, choices: tuple[str, ...]) -> None:
+    if value not in choices:
+        raise ConfigError(f"{where} must be one of {', '.join(choices)}; got {value!r}")
+
+
+def _positive(where: str, value: float) -> None:
+    if not value > 0:
+        raise ConfigError(f"{where} must be > 0, got {value!r}")
+
+
+@dataclass(frozen=True)
+class AlgoConfig:
+    """One algorithm column of the paper's table (``conf/algo/*.yaml``)."""
+
+    name: str
+    loss: str
+    critic_lr: float
+    actor_lr: float
+    adam_eps: float
+    value_epochs: int
+    policy_epochs: int
+    minibatch_size: int
+    entropy_coeff: float
+    joint_log_prob: bool
+    ppo: dict | None = None  # options of the PPO losses (loss: ppo only)
+    spg: dict | None = None  # options of the SPG losses (loss: spg only)
+
+    def __post_init__(self) -> None:
+        w = f"algo {self.name}"
+        _choice(f"{w}: loss", self.loss, LOSSES)
+        for key in ("critic_lr", "actor_lr", "adam_eps"):
+            _positive(f"{w}: {key}", getattr(self, key))
+        for key in ("value_epochs", "policy_epochs"):
+            if getattr(self, key) < 0:
+                raise ConfigError(f"{w}: {key} must be >= 0, got {getattr(self, key)}")
+        if self.minibatch_size < 1:
+            raise ConfigError(f"{w}: minibatch_size must be >= 1, got {self.minibatch_size}")
+        if self.entropy_coeff < 0:
+            raise ConfigError(f"{w}: entropy_coeff must be >= 0, got {self.entropy_coeff}")
+        for kind, options in (("ppo", PPOOptions), ("spg", SPGOptions)):
+            block = getattr(self, kind)
+            if kind == self.loss:
+                if block is None:
+                    raise ConfigError(f"{w}: loss {kind} needs an '{kind}:' block of options")
+                object.__setattr__(self, kind, _build(options, f"{w}: {kind}", block))
+            elif block is not None:
+                raise ConfigError(f"{w}: an '{kind}:' block does not apply to loss {self.loss}; remove it")
+
+
+@dataclass(frozen=True)
+class PPOOptions:
+    ratio_space: str
+    clip_epsilon: float
+
+    def __post_init__(self) -> None:
+        _choice("algo.ppo.ratio_space", self.ratio_space, RATIO_SPACES)
+        if not 0 < self.clip_epsilon < 1:
+            raise ConfigError(f"algo.ppo.clip_epsilon must be in (0, 1), got {self.clip_epsilon}")
+
+
+@dataclass(frozen=True)
+class SPGOptions:
+    prioritised: bool
+    num_samples: int
+    temperature: float
+    temperature_decay: float
+    sample_around: str
+    baseline: str
+
+    def __post_init__(self) -> None:
+        _choice("algo.spg.sample_around", self.sample_around, CENTRES)
+        _choice("algo.spg.baseline", self.baseline, CENTRES)
+        if self.num_samples < 0:
+            raise ConfigError(f"algo.spg.num_samples must be >= 0, got {self.num_samples}")
+        if self.temperature < 0:
+            raise ConfigError(f"algo.spg.temperature must be >= 0, got {self.temperature}")
+        if not 0 <= self.temperature_decay < 1:
+            raise ConfigError(f"algo.spg.temperature_decay must be in [0, 1), got {self.temperature_decay}")
+
+
+@dataclass(frozen=True)
+class ERConfig:
+    """An experience-replay row of the paper's table (``conf/er/*.yaml``)."""
+
+    name: str
+    train_on_memory: bool
+    train_on_recent: bool
+    minibatch_fraction: float
+    buffer_size: int
+
+    def __post_init__(self) -> None:
+        if not (self.train_on_memory or self.train_on_recent):
+            raise ConfigError(f"er {self.name}: at least one of train_on_memory and train_on_recent "
+                              "must be true")
+        if not 0 < self.minibatch_fraction <= 1:
+            raise ConfigError(f"er {self.name}: minibatch_fraction must be in (0, 1], "
+                              f"got {self.minibatch_fraction}")
+        if self.buffer_size < 1:
+            raise ConfigError(f"er {self.name}: buffer_size must be >= 1, got {self.buffer_size}")
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    track: str
+    collector: str
+    nearest_ray: bool
+    options: dict
+
+    def __post_init__(self) -> None:
+        _choice("env.track", self.track, TRACK_SOURCES)
+        _choice("env.collector", self.collector, COLLECTORS)
+        from racing.config import RacingConfig
+
+        try:
+            RacingConfig.from_keywords("env.options", **self.options)
+        except (TypeError, ValueError) as err:
+            raise ConfigError(str(err)) from None
+
+    @property
+    def episode_steps(self) -> int:
+        from racing.config import RacingConfig
+
+        return RacingConfig(**self.options).max_steps
+
+
+@dataclass(frozen=True)
+class NetworkConfig:
+    actor_hidden: tuple[int, ...]
+    critic_hidden: tuple[int, ...]
+    activation: str
+
+    def __post_init__(self) -> None:
+        _choice("network.activation", self.activation, ACTIVATIONS)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Everything one training run needs (``conf/config.yaml`` and its groups)."""
+
+    seed: int
+    episodes: int
+    gamma: float
+    final_window: int
+    threads: int
+    progress: bool
+    logger: str
+    algo: AlgoConfig
+    er: ERConfig
+    env: EnvConfig
+    network: NetworkConfig
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.seed < 2**32:
+            raise ConfigError(f"seed must be in [0, 2**32) (it is also the track seed), got {self.seed}")
+        if self.episodes < 1:
+            raise ConfigError(f"episodes must be >= 1, got {self.episodes}")
+        if not 0 <= self.gamma <= 1:
+            raise ConfigError(f"gamma must be in [0, 1], got {self.gamma}")
+        if self.final_window < 1:
+            raise ConfigError(f"final_window must be >= 1, got {self.final_window}")
+        if self.threads < 1:
+            raise ConfigError(f"threads must be >= 1, got {self.threads}")
+        _choice("logger", self.logger, LOGGERS)
+        minibatch = max(1, round(self.algo.minibatch_size * self.er.minibatch_fraction))
+        steps = self.env.episode_steps
+        if self.er.train_on_recent and minibatch > steps:
+            raise ConfigError(f"a minibatch of {minibatch} is larger than the {steps} transitions of "
+                              f"one episode that er={self.er.name} trains on; use at most {steps}")
+        if self.er.train_on_memory and minibatch > self.er.buffer_size:
+            raise ConfigError(f"a minibatch of {minibatch} is larger than the replay memory "
+                              f"({self.er.buffer_size} transitions) that er={self.er.name} trains on")
+
+    @classmethod
+    def from_mapping(cls, cfg: Mapping[str, Any]) -> "RunConfig":
+        """Validate a plain mapping (e.g. ``OmegaConf.to_container(cfg, resolve=True)``)."""
+        values = {k: v for k, v in cfg.items() if k != "hydra"}
+        nodes = {"algo": AlgoConfig, "er": ERConfig, "env": EnvConfig, "network": NetworkConfig}
+        for key, node in nodes.items():
+            if not isinstance(values.get(key), Mapping):
+                raise ConfigError(f"{key} must be a config node (a mapping), got {values.get(key)!r}")
+            values[key] = _build(node, key, values[key])
+        return _build(cls, "config", values)

@@ -1,0 +1,124 @@
+"""One training run, start to finish: ``train(cfg, out_dir) -> summary``.
+
+Per episode (see ALGO_SPEC's protocol, as ``collectors.replay`` schedules it):
+1. if the schedule trains on memory and the memory is not empty: a phase on the memory;
+2. collect one episode with the stochastic policy; its total reward is the learning curve;
+3. Monte-Carlo returns; the episode's transitions join the replay memory;
+4. if the schedule trains on recent experience: a phase on this episode's transitions.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import torch
+from tensordict import TensorDictBase
+
+from collectors import ReplayMemory, add_monte_carlo_returns, episode_transitions
+from experiment.config import RunConfig
+from experiment.factories import (make_env, make_episode_collector, make_loss, make_models,
+                                  make_optimisers, make_schedule, seed_everything)
+from experiment.outputs import SUMMARY_FILE, MetricsWriter, metric_columns, write_json_atomic
+from experiment.phases import Diverged, MetricTotals, PhaseRunner
+
+
+def train(cfg: RunConfig, out_dir: Path) -> dict:
+    """Train one run of ``cfg`` and write its outputs into ``out_dir``; returns the summary."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    torch.set_num_threads(cfg.threads)
+    seed_everything(cfg.seed)
+
+    env = make_env(cfg)
+    models = make_models(cfg, env)
+    loss = make_loss(cfg, models)
+    optimisers = make_optimisers(cfg, models)
+    collector = make_episode_collector(cfg, env, models)
+    schedule = make_schedule(cfg)
+    memory = ReplayMemory(cfg.er.buffer_size)
+    phases = PhaseRunner(loss, optimisers, cfg.algo.value_epochs, cfg.algo.policy_epochs)
+    minibatch = schedule.minibatch_size(cfg.algo.minibatch_size)
+    metrics = MetricsWriter(out_dir, metric_columns(loss), cfg.logger)
+
+    rewards: list[float] = []
+    timing = {"rollout_s": 0.0, "train_s": 0.0}
+    status, failure = "completed", None
+    progress = _progress_bar(cfg)
+    episodes = iter(collector)
+    try:
+        for episode in range(cfg.episodes):
+            totals = MetricTotals()
+            try:
+                with _timer(timing, "train_s"):
+                    if schedule.train_on_memory and len(memory):
+                        phases.run(memory.contents(), minibatch, totals)
+                with _timer(timing, "rollout_s"):
+                    batch = next(episodes)
+                    add_monte_carlo_returns(batch, cfg.gamma)
+                    recent = episode_transitions(batch)
+                    memory.add(recent)
+                with _timer(timing, "train_s"):
+                    if schedule.train_on_recent:
+                        phases.run(recent.clone(), minibatch, totals)
+            except Diverged as err:
+                status, failure = "diverged", {"episode": episode, "reason": str(err)}
+                break
+            row = {**_episode_results(episode, batch), **totals.means()}
+            metrics.write(row)
+            rewards.append(row["total_reward"])
+            progress.update(1)
+            progress.set_postfix(reward=f"{rewards[-1]:.1f}", last20=f"{_mean(rewards[-20:]):.1f}")
+    finally:
+        progress.close()
+        metrics.close()
+        collector.shutdown()
+
+    torch.save(models.actor_net.state_dict(), out_dir / "actor.pt")
+    torch.save(models.critic_net.state_dict(), out_dir / "critic.pt")
+    window = rewards[-cfg.final_window:]
+    summary = {
+        "algo": cfg.algo.name, "er": cfg.er.name, "seed": cfg.seed,
+        "episodes": len(rewards), "episodes_planned": cfg.episodes,
+        "final_mean": _mean(window) if window else None, "final_window": len(window),
+        "status": status, "diverged": failure,
+        "wall_time_s": round(time.perf_counter() - start, 3),
+        **{f"time/{key}": round(value, 3) for key, value in timing.items()},
+    }
+    write_json_atomic(out_dir / SUMMARY_FILE, summary)
+    return summary
+
+
+def _episode_results(episode: int, batch: TensorDictBase) -> dict:
+    """Learning-curve values of one car's episode (the batch is [1, steps])."""
+    return {
+        "episode": episode,
+        "total_reward": float(batch["next", "reward"].sum(dtype=torch.float64)),
+        "crashes": int(batch["next", "crashed"].sum()) if ("next", "crashed") in batch.keys(True) else None,
+        "final_checkpoint": int(batch["next", "checkpoint"][..., -1, :].sum())
+        if ("next", "checkpoint") in batch.keys(True) else None,
+    }
+
+
+def _mean(values: list[float]) -> float:
+    return math.fsum(values) / len(values)
+
+
+class _timer:
+    def __init__(self, totals: dict, key: str):
+        self.totals, self.key = totals, key
+
+    def __enter__(self):
+        self.start = time.perf_counter()
+
+    def __exit__(self, *exc):
+        self.totals[self.key] += time.perf_counter() - self.start
+
+
+def _progress_bar(cfg: RunConfig):
+    from tqdm import tqdm
+
+    return tqdm(total=cfg.episodes, disable=not cfg.progress, unit="ep", dynamic_ncols=True,
+                desc=f"{cfg.algo.name}/{cfg.er.name}/seed{cfg.seed}")

@@ -1,0 +1,120 @@
+"""``LogClipPPOLoss``: PPO's clipped objective with the ratio in linear or log space."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
+from torchrl.objectives import LossModule
+
+from losses import functional as F
+
+
+class LogClipPPOLoss(LossModule):
+    """PPO with a Monte-Carlo V(s) critic; the probability ratio in linear or log space.
+
+    Linear space: p = exp(logp - logp_old), clipped to [1 - eps, 1 + eps]. Log space:
+    p = logp - logp_old, clipped to [log(1 - eps), log(1 + eps)]. The objective is
+    mean(min(p A, clip(p) A)) + entropy_coeff * mean(entropy), maximised.
+
+    Log-probabilities, ratios and entropies are per action dimension and averaged over batch
+    and dimensions (``joint_log_prob=False``, the reference); ``joint_log_prob=True`` sums them
+    over the dimensions first (then linear space matches torchrl's ``ClipPPOLoss``).
+
+    Args:
+        actor_network: a probabilistic actor whose ``get_dist`` gives the policy (e.g. a
+            ``ProbabilisticActor`` over ``torch.distributions.Normal``).
+        critic_network: writes V(s) to the ``value`` key.
+        clip_epsilon: eps of the clip bounds.
+        ratio_space: ``"linear"`` or ``"log"``.
+        entropy_coeff: beta of the entropy bonus.
+        joint_log_prob: sum log-probabilities and entropies over action dimensions.
+
+    Input keys: ``action``, ``value_target`` (the Monte-Carlo return G), and for the actor
+    terms ``advantage`` and ``action_log_prob`` (added to a phase's data by
+    ``before_critic_phase`` and ``before_actor_phase``).
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        action: str = "action"
+        value_target: str = "value_target"
+        value: str = "state_value"
+        advantage: str = "advantage"
+        sample_log_prob: str = "action_log_prob"
+
+    actor_network: ProbabilisticTensorDictSequential
+    critic_network: TensorDictModule
+    actor_metrics = ("loss_objective", "loss_entropy", "entropy", "clip_fraction", "approx_kl",
+                     "ratio_mean", "advantage_mean")
+    critic_metrics = ("loss_critic", "value_mean")
+
+    def __init__(self, actor_network: ProbabilisticTensorDictSequential, critic_network: TensorDictModule,
+                 *, clip_epsilon: float = 0.2, ratio_space: str = "linear", entropy_coeff: float = 0.02,
+                 joint_log_prob: bool = False):
+        super().__init__()
+        F.clip_bounds(clip_epsilon, ratio_space)  # validates ratio_space
+        if not 0 < clip_epsilon < 1:
+            raise ValueError(f"clip_epsilon must be in (0, 1), got {clip_epsilon!r}")
+        self.actor_network = actor_network
+        self.critic_network = critic_network
+        self.clip_epsilon = float(clip_epsilon)
+        self.ratio_space = ratio_space
+        self.entropy_coeff = float(entropy_coeff)
+        self.joint_log_prob = bool(joint_log_prob)
+
+    # ------------------------------------------------------------------ phase preparation
+    @torch.no_grad()
+    def before_critic_phase(self, data: TensorDictBase) -> None:
+        """A = G - V(s) for the whole phase data, under the critic before this phase's update."""
+        keys = self.tensor_keys
+        value = self.critic_network(data.select(*self.critic_network.in_keys))[keys.value]
+        data.set(keys.advantage, data[keys.value_target] - value)
+
+    @torch.no_grad()
+    def before_actor_phase(self, data: TensorDictBase) -> None:
+        """log pi_old(a | s) for the whole phase data, under the policy before this phase's update."""
+        data.set(self.tensor_keys.sample_log_prob, self._log_prob(data, data[self.tensor_keys.action]))
+
+    def after_actor_phase(self) -> None:
+        """Nothing to update between phases."""
+
+    # ---------------------------------------------------------------------------- losses
+    def critic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
+        keys = self.tensor_keys
+        value = self.critic_network(tensordict)[keys.value]
+        loss = F.squared_error(value, tensordict[keys.value_target])
+        return TensorDict({"loss_critic": loss, "value_mean": value.detach().mean()})
+
+    def actor_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
+        keys = self.tensor_keys
+        dist = self.actor_network.get_dist(tensordict)
+        log_prob = F.per_dimension_or_joint(dist.log_prob(tensordict[keys.action]), self.joint_log_prob)
+        old_log_prob = tensordict[keys.sample_log_prob]
+        if old_log_prob.shape != log_prob.shape:
+            raise ValueError(f"{keys.sample_log_prob} has shape {tuple(old_log_prob.shape)} but the policy's "
+                             f"log-probabilities have shape {tuple(log_prob.shape)} (joint_log_prob="
+                             f"{self.joint_log_prob}); recompute it with before_actor_phase")
+        advantage = tensordict[keys.advantage]
+        ratio = F.ppo_ratio(log_prob, old_log_prob, self.ratio_space)
+        objective, clipped = F.clipped_surrogate(ratio, advantage, self.clip_epsilon, self.ratio_space)
+        entropy = F.per_dimension_or_joint(dist.entropy(), self.joint_log_prob).mean()
+        return TensorDict({
+            "loss_objective": -objective.mean(),
+            "loss_entropy": -self.entropy_coeff * entropy,
+            "entropy": entropy.detach(),
+            "clip_fraction": clipped.float().mean(),
+            "approx_kl": F.approx_kl(log_prob.detach(), old_log_prob),
+            "ratio_mean": ratio.detach().mean(),
+            "advantage_mean": advantage.mean(),
+        })
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Actor and critic terms on one batch (the ``loss_*`` entries sum to the total loss)."""
+        return self.actor_loss(tensordict).update(self.critic_loss(tensordict))
+
+    def _log_prob(self, tensordict: TensorDictBase, action: torch.Tensor) -> torch.Tensor:
+        dist = self.actor_network.get_dist(tensordict)
+        return F.per_dimension_or_joint(dist.log_prob(action), self.joint_log_prob)

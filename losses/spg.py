@@ -1,0 +1,144 @@
+"""``SPGLoss``: Sampled Policy Gradient with a Monte-Carlo Q(s, a) critic, optionally prioritised."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
+from torchrl.objectives import LossModule
+
+from losses import functional as F
+
+BASELINES = ("mean", "action")
+
+
+class SPGLoss(LossModule):
+    """Sampled Policy Gradient: move the policy towards the best action the critic can find.
+
+    For each state of a minibatch the candidates are the stored action, the policy mean and
+    ``num_samples`` perturbations clip(centre + N(0, T^2 I), -1, 1); the critic scores all of
+    them in one call and the best one is the target. The actor maximises mean log pi(target | s);
+    prioritised (SPG-p) weights each state's term by Q(s, target) - Q(s, baseline).
+
+    Args:
+        actor_network: a probabilistic actor whose ``get_dist`` gives the policy and whose
+            distribution has a ``mean``.
+        qvalue_network: writes Q(s, a) to the ``state_action_value`` key.
+        num_samples: K perturbed candidates per state.
+        temperature: initial exploration temperature T (standard deviation of the perturbations).
+        temperature_decay: T is multiplied by (1 - temperature_decay) after every actor phase.
+        prioritised: weight by the Q gain of the target over the baseline (SPG-p).
+        sample_around: centre of the perturbations, ``"mean"`` (reference) or ``"action"``
+            (the paper's text: around the stored action).
+        baseline: SPG-p's baseline, ``"mean"`` (reference) or ``"action"`` (paper's text).
+        entropy_coeff: optional entropy bonus (0 in the paper).
+        joint_log_prob: sum log-probabilities over action dimensions instead of averaging them.
+
+    Input keys: the actor's and critic's inputs, ``action`` and ``value_target`` (the
+    Monte-Carlo return G, for the critic).
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        action: str = "action"
+        value_target: str = "value_target"
+        value: str = "state_action_value"
+
+    actor_network: ProbabilisticTensorDictSequential
+    qvalue_network: TensorDictModule
+    actor_metrics = ("loss_objective", "loss_entropy", "entropy", "weight_mean", "q_target",
+                     "q_gain", "target_is_action", "target_is_mean", "temperature")
+    critic_metrics = ("loss_critic", "value_mean")
+
+    def __init__(self, actor_network: ProbabilisticTensorDictSequential, qvalue_network: TensorDictModule,
+                 *, num_samples: int = 5, temperature: float = 1.0, temperature_decay: float = 0.01,
+                 prioritised: bool = False, sample_around: str = "mean", baseline: str = "mean",
+                 entropy_coeff: float = 0.0, joint_log_prob: bool = False):
+        super().__init__()
+        if sample_around not in F.SAMPLE_CENTRES:
+            raise ValueError(f"sample_around must be one of {F.SAMPLE_CENTRES}, got {sample_around!r}")
+        if baseline not in BASELINES:
+            raise ValueError(f"baseline must be one of {BASELINES}, got {baseline!r}")
+        if isinstance(num_samples, bool) or not isinstance(num_samples, int) or num_samples < 0:
+            raise ValueError(f"num_samples must be an integer >= 0, got {num_samples!r}")
+        if not temperature >= 0 or not 0 <= temperature_decay < 1:
+            raise ValueError(f"need temperature >= 0 and temperature_decay in [0, 1), got "
+                             f"{temperature!r} and {temperature_decay!r}")
+        self.actor_network = actor_network
+        self.qvalue_network = qvalue_network
+        self.num_samples = num_samples
+        self.temperature_decay = float(temperature_decay)
+        self.prioritised = bool(prioritised)
+        self.sample_around = sample_around
+        self.baseline = baseline
+        self.entropy_coeff = float(entropy_coeff)
+        self.joint_log_prob = bool(joint_log_prob)
+        # A buffer, so that it travels with state_dict() (checkpoints) and .to(device).
+        self.register_buffer("temperature", torch.tensor(float(temperature), dtype=torch.float64))
+
+    # ------------------------------------------------------------------ phase preparation
+    def before_critic_phase(self, data: TensorDictBase) -> None:
+        """Nothing to precompute: SPG scores candidates per minibatch."""
+
+    def before_actor_phase(self, data: TensorDictBase) -> None:
+        """Nothing to precompute: SPG scores candidates per minibatch."""
+
+    def after_actor_phase(self) -> None:
+        """Cool the exploration temperature: T <- T * (1 - temperature_decay)."""
+        self.temperature.mul_(1.0 - self.temperature_decay)
+
+    # ---------------------------------------------------------------------------- losses
+    def critic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
+        keys = self.tensor_keys
+        q = self.qvalue_network(tensordict)[keys.value]
+        loss = F.squared_error(q, tensordict[keys.value_target])
+        return TensorDict({"loss_critic": loss, "value_mean": q.detach().mean()})
+
+    def actor_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
+        keys = self.tensor_keys
+        dist = self.actor_network.get_dist(tensordict)
+        action = tensordict[keys.action]
+        with torch.no_grad():
+            mean = dist.mean
+            noise = torch.randn(mean.shape[:-1] + (self.num_samples, mean.shape[-1]),
+                                dtype=mean.dtype, device=mean.device)
+            candidates = F.spg_candidates(action, mean, noise, float(self.temperature), self.sample_around)
+            scores = self._score(tensordict, candidates)
+            target, index = F.best_candidate(candidates, scores)
+            q_target = scores.gather(-1, index[:, None])
+            q_baseline = scores[:, 1:2] if self.baseline == "mean" else scores[:, 0:1]
+            weight = q_target - q_baseline if self.prioritised else None
+        log_prob = F.per_dimension_or_joint(dist.log_prob(target), self.joint_log_prob)
+        entropy = F.per_dimension_or_joint(dist.entropy(), self.joint_log_prob).mean()
+        return TensorDict({
+            "loss_objective": -F.weighted_log_likelihood(log_prob, weight),
+            "loss_entropy": -self.entropy_coeff * entropy,
+            "entropy": entropy.detach(),
+            "weight_mean": torch.ones(()) if weight is None else weight.mean(),
+            "q_target": q_target.mean(),
+            "q_gain": (q_target - q_baseline).mean(),
+            "target_is_action": (index == 0).float().mean(),
+            "target_is_mean": (index == 1).float().mean(),
+            "temperature": self.temperature.float(),
+        })
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Actor and critic terms on one batch (the ``loss_*`` entries sum to the total loss)."""
+        return self.actor_loss(tensordict).update(self.critic_loss(tensordict))
+
+    def _score(self, tensordict: TensorDictBase, candidates: torch.Tensor) -> torch.Tensor:
+        """Q(s, c) for every candidate c, in one critic call: [B, C]."""
+        batch, count = candidates.shape[:2]
+        keys = self.tensor_keys
+        pairs = TensorDict({key: _repeat(tensordict[key], count)
+                            for key in self.qvalue_network.in_keys if key != keys.action},
+                           batch_size=[batch, count])
+        pairs.set(keys.action, candidates)
+        return self.qvalue_network(pairs)[keys.value].squeeze(-1)
+
+
+def _repeat(value: torch.Tensor, count: int) -> torch.Tensor:
+    """[B, ...] -> [B, count, ...] without copying."""
+    return value.unsqueeze(1).expand(value.shape[0], count, *value.shape[1:])
