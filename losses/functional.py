@@ -29,7 +29,7 @@ def clip_bounds(clip_epsilon: float, ratio_space: str) -> tuple[float, float]:
     if ratio_space == "linear":
         return 1.0 - clip_epsilon, 1.0 + clip_epsilon
     if ratio_space == "log":
-        return math.log1p(-clip_epsilon), math.log1p(clip_epsilon)
+        return math.log(1.0 - clip_epsilon), math.log(1.0 + clip_epsilon)
     raise ValueError(f"ratio_space must be one of {RATIO_SPACES}, got {ratio_space!r}")
 
 

@@ -1,0 +1,97 @@
+"""Every config combination composes and validates; bad values fail in one clear sentence."""
+
+import itertools
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.errors import MissingConfigException
+from omegaconf import OmegaConf
+
+from experiment.config import ConfigError, RunConfig
+
+CONF = Path(__file__).resolve().parent.parent / "conf"
+ALGOS = sorted(p.stem for p in (CONF / "algo").glob("*.yaml"))
+ERS = sorted(p.stem for p in (CONF / "er").glob("*.yaml"))
+CELLS = sorted(p.stem for p in (CONF / "cell").glob("*.yaml"))
+
+
+def load(*overrides: str) -> RunConfig:
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("config", overrides=list(overrides))
+    return RunConfig.from_mapping(OmegaConf.to_container(cfg, resolve=True))
+
+
+def test_the_groups_hold_the_papers_columns_and_rows():
+    assert ALGOS == ["ppo", "ppo_log", "spg", "spg_multi", "spg_p", "spg_p_multi"]
+    assert ERS == ["hybrid", "memory", "recent"]
+    assert len(CELLS) == 15
+
+
+@pytest.mark.parametrize("algo, er", list(itertools.product(ALGOS, ERS)))
+def test_every_combination_composes(algo, er):
+    cfg = load(f"algo={algo}", f"er={er}")
+    assert (cfg.algo.name, cfg.er.name) == (algo, er)
+
+
+@pytest.mark.parametrize("cell", CELLS)
+def test_every_table_cell_composes(cell):
+    cfg = load(f"+cell={cell}")
+    assert cell == f"{cfg.er.name}-{cfg.algo.name}"
+
+
+def test_paper_hyperparameters():
+    ppo = load("algo=ppo").algo
+    assert (ppo.critic_lr, ppo.actor_lr, ppo.value_epochs, ppo.policy_epochs, ppo.minibatch_size) == (
+        0.0005, 0.001, 50, 10, 200)
+    assert (ppo.entropy_coeff, ppo.ppo.clip_epsilon, ppo.ppo.ratio_space) == (0.02, 0.2, "linear")
+    assert load("algo=ppo_log").algo.ppo.ratio_space == "log"
+    spg = load("algo=spg").algo
+    assert (spg.actor_lr, spg.policy_epochs, spg.entropy_coeff, spg.spg.prioritised) == (0.01, 1, 0.0, False)
+    assert (spg.spg.num_samples, spg.spg.temperature, spg.spg.temperature_decay) == (5, 1.0, 0.01)
+    multi = load("algo=spg_p_multi").algo
+    assert (multi.actor_lr, multi.policy_epochs, multi.spg.prioritised, multi.critic_lr) == (0.001, 10, True, 0.0005)
+    hybrid = load("er=hybrid").er
+    assert (hybrid.train_on_memory, hybrid.train_on_recent, hybrid.minibatch_fraction) == (True, True, 0.5)
+    top = load()
+    assert (top.episodes, top.gamma, top.final_window, top.er.buffer_size) == (201, 0.9, 20, 10000)
+    assert top.network.actor_hidden == (100,) and top.network.critic_hidden == (100, 100)
+
+
+@pytest.mark.parametrize("override, message", [
+    ("algo.actor_lr=-0.1", "actor_lr must be > 0"),
+    ("algo.critic_lr=0", "critic_lr must be > 0"),
+    ("episodes=0", "episodes must be >= 1"),
+    ("algo.minibatch_size=500", "larger than the 200 transitions of one episode"),
+    ("algo.ppo.ratio_space=sqrt", "ratio_space must be one of linear, log"),
+    ("env.track=circle", "env.track must be one of fixed, random"),
+    ("env.collector=magic", "env.collector must be one of direct, torchrl"),
+    ("algo.value_epochs=2.5", "value_epochs must be an integer"),
+    ("+algo.learning_rate=0.1", "unknown key(s) ['learning_rate']; valid keys are"),
+    ("+env.options.max_speeed=3", "unknown keyword(s) ['max_speeed']"),
+    ("seed=-1", "seed must be in [0, 2**32)"),
+    ("gamma=1.5", "gamma must be in [0, 1]"),
+    ("logger=wandb", "logger must be one of csv, tensorboard, none"),
+])
+def test_bad_values_fail_in_one_sentence(override, message):
+    overrides = ["algo=ppo"] if "ratio_space" in override else []
+    with pytest.raises(ConfigError) as err:
+        load(*overrides, override, "er=recent")
+    assert message in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_memory_minibatch_cannot_exceed_the_memory():
+    with pytest.raises(ConfigError, match="larger than the replay memory"):
+        load("er=memory", "er.buffer_size=100")
+
+
+def test_options_of_the_other_loss_are_rejected():
+    with pytest.raises(ConfigError, match="does not apply to loss ppo"):
+        load("algo=ppo", "+algo.spg.prioritised=true")
+
+
+def test_unknown_algorithm_names_the_choices():
+    with pytest.raises(MissingConfigException) as err:
+        load("algo=sac")
+    assert "spg_p_multi" in str(err.value)
