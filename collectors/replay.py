@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 
 
@@ -47,6 +47,10 @@ class ReplayMemory:
 
 
 def sample_minibatch(data: TensorDictBase, size: int, generator: torch.Generator | None = None) -> TensorDictBase:
-    """``size`` transitions drawn uniformly WITH replacement from ``data``."""
+    """``size`` transitions drawn uniformly WITH replacement from ``data`` (a flat TensorDict)."""
     index = torch.randint(len(data), (size,), generator=generator)
-    return data[index]
+    # Indexing each entry is cheaper than TensorDict indexing, which this is called for 10^4
+    # times per run; nested entries take the general path.
+    if any(isinstance(value, TensorDictBase) for value in data.values()):
+        return data[index]
+    return TensorDict({key: value[index] for key, value in data.items()}, batch_size=[size])

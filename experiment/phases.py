@@ -47,11 +47,13 @@ class PhaseRunner:
 
     @staticmethod
     def _step(optimiser, out: TensorDictBase, prefix: str, totals: "MetricTotals") -> None:
-        total = sum(value for key, value in out.items() if key.startswith("loss_"))
+        entries = dict(out.items())
+        losses = [value for key, value in entries.items() if key.startswith("loss_")]
+        total = losses[0] if len(losses) == 1 else torch.stack(losses).sum()
         optimiser.zero_grad(set_to_none=True)
         total.backward()
         optimiser.step()
-        totals.add(prefix, out)
+        totals.add(prefix, entries)
 
 
 class MetricTotals:
@@ -60,8 +62,8 @@ class MetricTotals:
     def __init__(self):
         self.values: dict[str, list[torch.Tensor]] = defaultdict(list)
 
-    def add(self, prefix: str, out: TensorDictBase) -> None:
-        for key, value in out.items():
+    def add(self, prefix: str, entries: dict[str, torch.Tensor]) -> None:
+        for key, value in entries.items():
             self.values[f"{prefix}/{key}"].append(value.detach())
 
     def check_finite(self) -> None:

@@ -10,6 +10,7 @@ from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
 from torchrl.objectives import LossModule
 
 from losses import functional as F
+from losses.common import cached as _cached, distribution_function, value_function
 
 
 class LogClipPPOLoss(LossModule):
@@ -41,7 +42,6 @@ class LogClipPPOLoss(LossModule):
     class _AcceptedKeys:
         action: str = "action"
         value_target: str = "value_target"
-        value: str = "state_value"
         advantage: str = "advantage"
         sample_log_prob: str = "action_log_prob"
 
@@ -70,7 +70,7 @@ class LogClipPPOLoss(LossModule):
     def before_critic_phase(self, data: TensorDictBase) -> None:
         """A = G - V(s) for the whole phase data, under the critic before this phase's update."""
         keys = self.tensor_keys
-        value = self.critic_network(data.select(*self.critic_network.in_keys))[keys.value]
+        value = self._value(data)
         data.set(keys.advantage, data[keys.value_target] - value)
 
     @torch.no_grad()
@@ -84,13 +84,13 @@ class LogClipPPOLoss(LossModule):
     # ---------------------------------------------------------------------------- losses
     def critic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
         keys = self.tensor_keys
-        value = self.critic_network(tensordict)[keys.value]
+        value = self._value(tensordict)
         loss = F.squared_error(value, tensordict[keys.value_target])
         return TensorDict({"loss_critic": loss, "value_mean": value.detach().mean()})
 
     def actor_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
         keys = self.tensor_keys
-        dist = self.actor_network.get_dist(tensordict)
+        dist = self._policy(tensordict)
         log_prob = F.per_dimension_or_joint(dist.log_prob(tensordict[keys.action]), self.joint_log_prob)
         old_log_prob = tensordict[keys.sample_log_prob]
         if old_log_prob.shape != log_prob.shape:
@@ -111,10 +111,16 @@ class LogClipPPOLoss(LossModule):
             "advantage_mean": advantage.mean(),
         })
 
+    def _policy(self, tensordict: TensorDictBase) -> torch.distributions.Distribution:
+        return _cached(self, self.actor_network, distribution_function)(tensordict)
+
+    def _value(self, tensordict: TensorDictBase) -> torch.Tensor:
+        return _cached(self, self.critic_network, value_function)(tensordict)
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Actor and critic terms on one batch (the ``loss_*`` entries sum to the total loss)."""
         return self.actor_loss(tensordict).update(self.critic_loss(tensordict))
 
     def _log_prob(self, tensordict: TensorDictBase, action: torch.Tensor) -> torch.Tensor:
-        dist = self.actor_network.get_dist(tensordict)
+        dist = self._policy(tensordict)
         return F.per_dimension_or_joint(dist.log_prob(action), self.joint_log_prob)

@@ -10,6 +10,7 @@ from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
 from torchrl.objectives import LossModule
 
 from losses import functional as F
+from losses.common import cached as _cached, distribution_function, value_function
 
 BASELINES = ("mean", "action")
 
@@ -44,7 +45,6 @@ class SPGLoss(LossModule):
     class _AcceptedKeys:
         action: str = "action"
         value_target: str = "value_target"
-        value: str = "state_action_value"
 
     actor_network: ProbabilisticTensorDictSequential
     qvalue_network: TensorDictModule
@@ -92,13 +92,13 @@ class SPGLoss(LossModule):
     # ---------------------------------------------------------------------------- losses
     def critic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
         keys = self.tensor_keys
-        q = self.qvalue_network(tensordict)[keys.value]
+        q = self._value(tensordict)
         loss = F.squared_error(q, tensordict[keys.value_target])
         return TensorDict({"loss_critic": loss, "value_mean": q.detach().mean()})
 
     def actor_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
         keys = self.tensor_keys
-        dist = self.actor_network.get_dist(tensordict)
+        dist = self._policy(tensordict)
         action = tensordict[keys.action]
         with torch.no_grad():
             mean = dist.mean
@@ -124,6 +124,12 @@ class SPGLoss(LossModule):
             "temperature": self.temperature.float(),
         })
 
+    def _policy(self, tensordict: TensorDictBase) -> torch.distributions.Distribution:
+        return _cached(self, self.actor_network, distribution_function)(tensordict)
+
+    def _value(self, tensordict: TensorDictBase) -> torch.Tensor:
+        return _cached(self, self.qvalue_network, value_function)(tensordict)
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Actor and critic terms on one batch (the ``loss_*`` entries sum to the total loss)."""
         return self.actor_loss(tensordict).update(self.critic_loss(tensordict))
@@ -136,7 +142,7 @@ class SPGLoss(LossModule):
                             for key in self.qvalue_network.in_keys if key != keys.action},
                            batch_size=[batch, count])
         pairs.set(keys.action, candidates)
-        return self.qvalue_network(pairs)[keys.value].squeeze(-1)
+        return self._value(pairs).squeeze(-1)
 
 
 def _repeat(value: torch.Tensor, count: int) -> torch.Tensor:

@@ -245,3 +245,25 @@ def test_ppo_rejects_bad_options():
         ppo_loss(ratio_space="sqrt")
     with pytest.raises(ValueError, match="clip_epsilon must be in"):
         ppo_loss(clip_epsilon=1.5)
+
+
+def test_fast_module_calls_equal_the_tensordict_path():
+    """losses.common calls plain modules directly; wrapped ones take TorchRL's path: same numbers."""
+    from tensordict.nn import TensorDictSequential
+
+    loss, actor_net = spg_loss(prioritised=True)
+    wrapped_actor = ProbabilisticActor(
+        TensorDictSequential(TensorDictModule(actor_net, in_keys=["observation"], out_keys=["loc", "scale"])),
+        in_keys=["loc", "scale"], distribution_class=torch.distributions.Normal)
+    wrapped_critic = TensorDictSequential(loss.qvalue_network)
+    general = SPGLoss(wrapped_actor, wrapped_critic, prioritised=True)
+    td = batch()
+    for out_fast, out_general in [(loss.critic_loss(td), general.critic_loss(td))]:
+        assert torch.equal(out_fast["loss_critic"], out_general["loss_critic"])
+    torch.manual_seed(5)
+    fast = loss.actor_loss(td)
+    torch.manual_seed(5)
+    slow = general.actor_loss(td)
+    for key in SPGLoss.actor_metrics:
+        assert torch.equal(fast[key], slow[key]), key
+    assert set(td.keys()) == {"observation", "action", "value_target"}  # inputs left untouched
