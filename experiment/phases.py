@@ -48,7 +48,8 @@ class PhaseRunner:
     @staticmethod
     def _step(optimiser, out: TensorDictBase, prefix: str, totals: "MetricTotals") -> None:
         entries = dict(out.items())
-        losses = [value for key, value in entries.items() if key.startswith("loss_")]
+        # Terms without a gradient (e.g. a zero-weight entropy bonus) are reported, not optimised.
+        losses = [value for key, value in entries.items() if key.startswith("loss_") and value.requires_grad]
         total = losses[0] if len(losses) == 1 else torch.stack(losses).sum()
         optimiser.zero_grad(set_to_none=True)
         total.backward()
@@ -64,7 +65,7 @@ class MetricTotals:
 
     def add(self, prefix: str, entries: dict[str, torch.Tensor]) -> None:
         for key, value in entries.items():
-            self.values[f"{prefix}/{key}"].append(value.detach())
+            self.values[f"{prefix}/{key}"].append(value.detach() if value.requires_grad else value)
 
     def check_finite(self) -> None:
         for name, values in self.values.items():

@@ -101,9 +101,10 @@ class LogClipPPOLoss(LossModule):
         ratio = F.ppo_ratio(log_prob, old_log_prob, self.ratio_space)
         objective, clipped = F.clipped_surrogate(ratio, advantage, self.clip_epsilon, self.ratio_space)
         entropy = F.per_dimension_or_joint(dist.entropy(), self.joint_log_prob).mean()
+        entropy_term = -self.entropy_coeff * (entropy if self.entropy_coeff else entropy.detach())
         return TensorDict({
             "loss_objective": -objective.mean(),
-            "loss_entropy": -self.entropy_coeff * entropy,
+            "loss_entropy": entropy_term,
             "entropy": entropy.detach(),
             "clip_fraction": clipped.float().mean(),
             "approx_kl": F.approx_kl(log_prob.detach(), old_log_prob),

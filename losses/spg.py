@@ -112,9 +112,10 @@ class SPGLoss(LossModule):
             weight = q_target - q_baseline if self.prioritised else None
         log_prob = F.per_dimension_or_joint(dist.log_prob(target), self.joint_log_prob)
         entropy = F.per_dimension_or_joint(dist.entropy(), self.joint_log_prob).mean()
+        entropy_term = -self.entropy_coeff * (entropy if self.entropy_coeff else entropy.detach())
         return TensorDict({
             "loss_objective": -F.weighted_log_likelihood(log_prob, weight),
-            "loss_entropy": -self.entropy_coeff * entropy,
+            "loss_entropy": entropy_term,
             "entropy": entropy.detach(),
             "weight_mean": torch.ones(()) if weight is None else weight.mean(),
             "q_target": q_target.mean(),

@@ -76,10 +76,10 @@ class RacingTorchEnv(EnvBase):
         """Step every car; returns the entries of ``step()["next"]`` as a dict of tensors."""
         a = self._checked_action(action)
         reward, terminated, truncated, crashed = self.sim.step(a[:, 0], a[:, 1])
-        return self._entries(reward=_column(reward.astype(np.float32)), crashed=_column(crashed),
-                             done=_column(terminated | truncated),
-                             terminated=_column(terminated.copy()),
-                             truncated=_column(truncated))
+        # One fresh (N, 4) array, handed out as four column views that share nothing else.
+        flags = torch.from_numpy(np.stack([terminated | truncated, terminated, truncated, crashed], axis=1))
+        return self._entries(reward=_column(reward.astype(np.float32)), done=flags[:, 0:1],
+                             terminated=flags[:, 1:2], truncated=flags[:, 2:3], crashed=flags[:, 3:4])
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         cars = None

@@ -16,3 +16,13 @@ def test_env_speed_benchmark_prints_its_table():
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
     assert len(rows) == 1 + 7  # header and one row per implementation
     assert "| TorchRL env, step_and_maybe_reset | 4096 |" in result.stdout
+
+
+def test_train_speed_benchmark_prints_its_tables():
+    result = subprocess.run([sys.executable, "-m", "benchmarks.train_speed", "--episodes", "2", "--repeats", "2",
+                             "--cells", "ppo/recent", "spg_p/hybrid", "--baseline", "spg_p/hybrid"],
+                            capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
+    assert len(rows) == (1 + 2) + (1 + 2) + (1 + 3)
+    assert "| spg_p/hybrid (TorchRL Collector, baseline) |" in result.stdout
