@@ -24,9 +24,19 @@ def main(cfg: DictConfig) -> float | None:
     except ConfigError as err:
         print(f"Invalid configuration: {err}", file=sys.stderr)
         raise SystemExit(2) from None
-    from experiment.runner import train  # after validation: torch and torchrl load slowly
+    from experiment.runner import finished_run, train  # after validation: torch loads slowly
 
-    summary = train(run_cfg, Path(HydraConfig.get().runtime.output_dir))
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    settings = OmegaConf.to_container(cfg, resolve=True)
+    try:
+        done = finished_run(out_dir, settings, overwrite=run_cfg.overwrite)
+    except ConfigError as err:
+        print(f"Refusing to run: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+    if done is not None:
+        print(f"{out_dir}: already {done['status']} (final_mean {done['final_mean']}); skipped", file=sys.stderr)
+        return done["final_mean"]
+    summary = train(run_cfg, out_dir, settings)
     return summary["final_mean"]
 
 

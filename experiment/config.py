@@ -220,6 +220,7 @@ class RunConfig:
     threads: int
     progress: bool
     logger: str
+    overwrite: bool
     algo: AlgoConfig
     er: ERConfig
     env: EnvConfig
@@ -245,6 +246,9 @@ class RunConfig:
         if self.er.train_on_memory and minibatch > self.er.buffer_size:
             raise ConfigError(f"a minibatch of {minibatch} is larger than the replay memory "
                               f"({self.er.buffer_size} transitions) that er={self.er.name} trains on")
+
+    # Keys that change how a run reports, not what it computes.
+    PRESENTATION_KEYS = ("progress", "logger", "overwrite")
 
     @classmethod
     def from_mapping(cls, cfg: Mapping[str, Any]) -> "RunConfig":

@@ -17,15 +17,41 @@ import torch
 from tensordict import TensorDictBase
 
 from collectors import ReplayMemory, add_monte_carlo_returns, episode_transitions
-from experiment.config import RunConfig
+from experiment.config import ConfigError, RunConfig
 from experiment.factories import (make_env, make_episode_collector, make_loss, make_models,
                                   make_optimisers, make_schedule, seed_everything)
-from experiment.outputs import SUMMARY_FILE, MetricsWriter, metric_columns, write_json_atomic
+from experiment.outputs import SUMMARY_FILE, MetricsWriter, metric_columns, read_summary, write_json_atomic
 from experiment.phases import Diverged, MetricTotals, PhaseRunner
 
 
-def train(cfg: RunConfig, out_dir: Path) -> dict:
-    """Train one run of ``cfg`` and write its outputs into ``out_dir``; returns the summary."""
+def run_settings(settings: dict) -> dict:
+    """The part of a config mapping that decides what a run computes."""
+    return {k: v for k, v in settings.items() if k not in RunConfig.PRESENTATION_KEYS and k != "hydra"}
+
+
+def finished_run(out_dir: Path, settings: dict, overwrite: bool = False) -> dict | None:
+    """The summary of a finished run of these settings in ``out_dir``, if there is one.
+
+    A finished run of other settings raises ``ConfigError`` (its results would be lost)
+    unless ``overwrite``. An unfinished run (no summary) is started again.
+    """
+    summary = read_summary(Path(out_dir))
+    if summary is None or summary.get("status") not in ("completed", "diverged"):
+        return None
+    if summary.get("settings") == run_settings(settings):
+        return summary
+    if overwrite:
+        return None
+    raise ConfigError(f"{out_dir} holds a finished run of a different configuration; choose another "
+                      "folder (hydra.run.dir=...) or pass overwrite=true to replace it")
+
+
+def train(cfg: RunConfig, out_dir: Path, settings: dict | None = None) -> dict:
+    """Train one run of ``cfg`` and write its outputs into ``out_dir``; returns the summary.
+
+    ``settings`` (the config as a plain mapping) is stored in summary.json to recognise the
+    run later.
+    """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
@@ -86,6 +112,7 @@ def train(cfg: RunConfig, out_dir: Path) -> dict:
         "status": status, "diverged": failure,
         "wall_time_s": round(time.perf_counter() - start, 3),
         **{f"time/{key}": round(value, 3) for key, value in timing.items()},
+        "settings": run_settings(settings) if settings is not None else None,
     }
     write_json_atomic(out_dir / SUMMARY_FILE, summary)
     return summary

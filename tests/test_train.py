@@ -36,7 +36,7 @@ def test_every_table_cell_trains_for_two_episodes(tmp_path):
     assert len(summaries) == len(CELLS) == 15
     for path in summaries:
         summary = json.loads(path.read_text())
-        assert summary["status"] == "completed" and summary["episodes"] == 2
+        assert summary["status"] == "completed" and summary["episodes"] == 2 and summary["settings"]["seed"] == 2067791
         assert f"{summary['er']}-{summary['algo']}" in CELLS
         rows = read_rows(path.parent / "metrics.csv")
         assert [int(r["episode"]) for r in rows] == [0, 1]
@@ -102,3 +102,17 @@ def test_parallel_launcher_reuses_workers_and_stays_deterministic(tmp_path):
                        "logger=none"), alone)
             swept = tmp_path / "sweep" / algo / "recent" / f"seed{seed}" / "metrics.csv"
             assert swept.read_bytes() == (alone / "metrics.csv").read_bytes(), (algo, seed)
+
+
+def test_a_finished_run_is_skipped_and_a_different_one_refused(tmp_path):
+    args = ["algo=spg", "er=recent", "episodes=2", "progress=false", f"hydra.run.dir={tmp_path}"]
+    assert run_train(*args).returncode == 0
+    before = (tmp_path / "metrics.csv").read_bytes()
+    again = run_train(*args, "logger=none")  # presentation keys do not make a different run
+    assert again.returncode == 0 and "already completed" in again.stderr and "skipped" in again.stderr
+    other = run_train(*args[:-1], "episodes=3", f"hydra.run.dir={tmp_path}")
+    assert other.returncode == 2
+    assert "holds a finished run of a different configuration" in other.stderr
+    assert (tmp_path / "metrics.csv").read_bytes() == before
+    replaced = run_train(*args[:-1], "episodes=3", "overwrite=true", f"hydra.run.dir={tmp_path}")
+    assert replaced.returncode == 0 and len(read_rows(tmp_path / "metrics.csv")) == 3
