@@ -1,0 +1,167 @@
+"""Reading a sweep folder and laying its results out as the paper's Table 1.
+
+A run is a folder with ``metrics.csv`` and (once finished) ``summary.json``. Runs without a
+summary are *partial* (killed or still running), runs whose summary cannot be read are
+*unreadable*; both are listed, not counted.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from experiment.outputs import METRICS_FILE, SUMMARY_FILE
+
+PAPER_TABLE = Path(__file__).resolve().parent / "data" / "paper_table1.csv"
+ER_ROWS = ("recent", "memory", "hybrid")
+ALGO_COLUMNS = ("ppo", "ppo_log", "spg", "spg_multi", "spg_p", "spg_p_multi")
+COLUMN_TITLES = {"ppo": "PPO linear", "ppo_log": "PPO log", "spg": "SPG single", "spg_multi": "SPG multiple",
+                 "spg_p": "SPG-p single", "spg_p_multi": "SPG-p multiple"}
+
+
+@dataclass
+class Run:
+    path: Path
+    status: str  # completed, diverged, partial, unreadable
+    algo: str | None = None
+    er: str | None = None
+    seed: int | None = None
+    final_mean: float | None = None
+    rewards: list[float] = field(default_factory=list)
+
+
+@dataclass
+class Cell:
+    er: str
+    algo: str
+    finals: list[float]
+    diverged: int
+    paper_mean: float | None
+    paper_sem: float | None
+
+    @property
+    def n(self) -> int:
+        return len(self.finals)
+
+    @property
+    def mean(self) -> float | None:
+        return math.fsum(self.finals) / self.n if self.n else None
+
+    @property
+    def sem(self) -> float | None:
+        if self.n < 2:
+            return None
+        m = self.mean
+        return math.sqrt(math.fsum((x - m) ** 2 for x in self.finals) / (self.n - 1) / self.n)
+
+    @property
+    def z(self) -> float | None:
+        """(ours - paper) in units of the combined standard error."""
+        if self.mean is None or self.sem is None or self.paper_mean is None:
+            return None
+        combined = math.hypot(self.sem, self.paper_sem or 0.0)
+        return (self.mean - self.paper_mean) / combined if combined > 0 else None
+
+
+def find_runs(sweep_dir: Path) -> list[Run]:
+    """Every run folder under ``sweep_dir`` (any depth), finished or not."""
+    sweep_dir = Path(sweep_dir)
+    if not sweep_dir.is_dir():
+        raise FileNotFoundError(f"{sweep_dir} is not a folder; give the sweep's output folder "
+                                "(e.g. outputs/sweeps/paper_grid)")
+    folders = sorted({p.parent for p in sweep_dir.rglob(METRICS_FILE)} | {p.parent for p in sweep_dir.rglob(SUMMARY_FILE)})
+    folders = [f for f in folders if "report" not in f.relative_to(sweep_dir).parts]
+    if not folders:
+        raise FileNotFoundError(f"no runs under {sweep_dir}: expected folders with {SUMMARY_FILE} and "
+                                f"{METRICS_FILE}, as train.py writes them")
+    return [read_run(folder) for folder in folders]
+
+
+def read_run(folder: Path) -> Run:
+    rewards = _read_rewards(folder / METRICS_FILE)
+    summary_path = folder / SUMMARY_FILE
+    if not summary_path.exists():
+        return Run(folder, "partial", rewards=rewards)
+    try:
+        summary = json.loads(summary_path.read_text())
+        return Run(folder, summary["status"], summary["algo"], summary["er"], int(summary["seed"]),
+                   summary.get("final_mean"), rewards)
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+        return Run(folder, "unreadable", rewards=rewards)
+
+
+def _read_rewards(path: Path) -> list[float]:
+    try:
+        with open(path, newline="") as f:
+            return [float(row["total_reward"]) for row in csv.DictReader(f)]
+    except (FileNotFoundError, KeyError, ValueError):
+        return []
+
+
+def read_paper_table(path: Path = PAPER_TABLE) -> dict[tuple[str, str], tuple[float, float]]:
+    """{(er, algo): (mean, sem)} in this project's names."""
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(line for line in f if not line.startswith("#")))
+    table = {}
+    for row in rows:
+        er = "hybrid" if row["er_mode"] == "both" else row["er_mode"]
+        algo = row["algorithm"]
+        if algo.startswith("spg") and row["epochs"] == "multiple":
+            algo += "_multi"
+        table[(er, algo)] = (float(row["final_mean"]), float(row["final_sem"]))
+    return table
+
+
+def cells(runs: list[Run], paper: dict[tuple[str, str], tuple[float, float]]) -> list[Cell]:
+    """One cell per (er, algo) that has runs or a paper value, in the table's order."""
+    out = []
+    for er in ER_ROWS:
+        for algo in ALGO_COLUMNS:
+            mine = [r for r in runs if (r.er, r.algo) == (er, algo)]
+            finals = [r.final_mean for r in mine if r.status == "completed" and r.final_mean is not None]
+            diverged = sum(r.status == "diverged" for r in mine)
+            paper_mean, paper_sem = paper.get((er, algo), (None, None))
+            if mine or paper_mean is not None:
+                out.append(Cell(er, algo, finals, diverged, paper_mean, paper_sem))
+    return out
+
+
+def _fmt(cell: Cell | None) -> str:
+    if cell is None:
+        return ""
+    parts = []
+    if cell.n:
+        ours = f"{cell.mean:.1f}" + (f" ± {cell.sem:.1f}" if cell.sem is not None else "") + f" (n={cell.n})"
+        parts.append(ours)
+    if cell.diverged:
+        parts.append(f"{cell.diverged} diverged")
+    if cell.paper_mean is not None:
+        parts.append(f"paper {cell.paper_mean:.1f} ± {cell.paper_sem:.1f}")
+    if cell.z is not None:
+        parts.append(f"Δ = {cell.z:+.1f} SE")
+    return "<br>".join(parts) if parts else "not run"
+
+
+def table_markdown(table: list[Cell]) -> str:
+    by_key = {(c.er, c.algo): c for c in table}
+    lines = ["| ER mode | " + " | ".join(COLUMN_TITLES[a] for a in ALGO_COLUMNS) + " |",
+             "|---|" + "---|" * len(ALGO_COLUMNS)]
+    for er in ER_ROWS:
+        lines.append(f"| {er} | " + " | ".join(_fmt(by_key.get((er, a))) for a in ALGO_COLUMNS) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_table_csv(table: list[Cell], path: Path) -> None:
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["er", "algo", "n", "mean", "sem", "diverged", "paper_mean", "paper_sem", "z"])
+        for c in table:
+            writer.writerow([c.er, c.algo, c.n, _num(c.mean), _num(c.sem), c.diverged, _num(c.paper_mean),
+                             _num(c.paper_sem), _num(c.z)])
+
+
+def _num(value: float | None) -> str:
+    return "" if value is None else f"{value:.4f}"

@@ -1,0 +1,63 @@
+"""report.py: Table 1 from a sweep folder, tolerant of partial, unreadable and diverged runs."""
+
+import json
+import math
+
+import pytest
+
+import report
+from experiment.report import cells, find_runs, read_paper_table
+
+
+def fake_run(root, algo, er, seed, final=None, status="completed", summary=True, episodes=3):
+    folder = root / algo / er / f"seed{seed}"
+    folder.mkdir(parents=True)
+    rows = ["episode,total_reward"] + [f"{i},{(final or 0.0) + i - 1}" for i in range(episodes)]
+    (folder / "metrics.csv").write_text("\n".join(rows) + "\n")
+    if summary is True:
+        (folder / "summary.json").write_text(json.dumps(
+            {"algo": algo, "er": er, "seed": seed, "final_mean": final, "status": status, "episodes": episodes}))
+    elif summary:
+        (folder / "summary.json").write_text(summary)
+    return folder
+
+
+def test_paper_table_is_in_the_project():
+    paper = read_paper_table()
+    assert len(paper) == 15
+    assert paper[("memory", "spg_p_multi")] == (141.1, 5.7)
+    assert paper[("hybrid", "spg_multi")] == (140.9, 4.0)
+    assert ("hybrid", "ppo_log") not in paper
+
+
+def test_cell_statistics_by_hand(tmp_path):
+    for seed, final in zip(range(5), [100.0, 110.0, 120.0, 130.0, 140.0]):
+        fake_run(tmp_path, "spg_p_multi", "memory", seed, final)
+    (cell,) = [c for c in cells(find_runs(tmp_path), read_paper_table()) if c.n]
+    sem = math.sqrt(250.0) / math.sqrt(5)  # sample sd of 100..140 is sqrt(250)
+    assert (cell.mean, cell.sem) == (120.0, pytest.approx(sem))
+    assert cell.z == pytest.approx((120.0 - 141.1) / math.hypot(sem, 5.7))
+
+
+def test_report_lists_partial_unreadable_and_diverged_runs(tmp_path, capsys):
+    fake_run(tmp_path, "spg", "recent", 1, 90.0)
+    fake_run(tmp_path, "spg", "recent", 2, 100.0)
+    fake_run(tmp_path, "ppo_log", "hybrid", 1, None, status="diverged")
+    fake_run(tmp_path, "spg", "recent", 3, summary=False)
+    fake_run(tmp_path, "spg", "recent", 4, summary="{not json")
+    assert report.main([str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "1 diverged run(s)" in out and "1 partial run(s)" in out and "1 unreadable run(s)" in out
+    table = (tmp_path / "report" / "table.md").read_text()
+    assert "95.0 ± 5.0 (n=2)" in table and "paper 94.4 ± 3.8" in table
+    assert "1 diverged" in table
+    csv_rows = (tmp_path / "report" / "table.csv").read_text().splitlines()
+    assert csv_rows[0] == "er,algo,n,mean,sem,diverged,paper_mean,paper_sem,z"
+    assert any(r.startswith("hybrid,ppo_log,0,,,1,,,") for r in csv_rows)
+
+
+def test_report_refuses_a_folder_without_runs(tmp_path, capsys):
+    assert report.main([str(tmp_path)]) == 2
+    assert "no runs under" in capsys.readouterr().err
+    assert report.main([str(tmp_path / "missing")]) == 2
+    assert "is not a folder" in capsys.readouterr().err
