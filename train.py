@@ -24,20 +24,23 @@ def main(cfg: DictConfig) -> float | None:
     except ConfigError as err:
         print(f"Invalid configuration: {err}", file=sys.stderr)
         raise SystemExit(2) from None
+    from experiment.checkpoint import CHECKPOINT_FILE, CheckpointError
     from experiment.runner import finished_run, train  # after validation: torch loads slowly
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     settings = OmegaConf.to_container(cfg, resolve=True)
     try:
         done = finished_run(out_dir, settings, overwrite=run_cfg.overwrite)
-    except ConfigError as err:
+        if done is not None:
+            print(f"{out_dir}: already {done['status']} (final_mean {done['final_mean']}); skipped",
+                  file=sys.stderr)
+            return done["final_mean"]
+        if run_cfg.overwrite:
+            (out_dir / CHECKPOINT_FILE).unlink(missing_ok=True)
+        return train(run_cfg, out_dir, settings)["final_mean"]
+    except (ConfigError, CheckpointError) as err:
         print(f"Refusing to run: {err}", file=sys.stderr)
         raise SystemExit(2) from None
-    if done is not None:
-        print(f"{out_dir}: already {done['status']} (final_mean {done['final_mean']}); skipped", file=sys.stderr)
-        return done["final_mean"]
-    summary = train(run_cfg, out_dir, settings)
-    return summary["final_mean"]
 
 
 if __name__ == "__main__":

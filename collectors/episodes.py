@@ -8,8 +8,8 @@ Two interchangeable backends produce the same batches for the same seeds:
   the per-step TensorDict machinery, which dominates the cost of a single car (about 5x faster
   at N = 1; see ``benchmarks/train_speed.py``).
 
-Both reset the cars whose episode ended (``done``) after the step that ended it, so a batch
-of ``steps`` frames is exactly one episode per car when episodes last ``steps`` frames.
+Both reset the cars whose episode ended (``done``) before their next step, so a batch of
+``steps`` frames is exactly one episode per car when episodes last ``steps`` frames.
 """
 
 from __future__ import annotations
@@ -54,28 +54,33 @@ class DirectCollector:
             yield self.collect()
 
     def collect(self) -> TensorDictBase:
-        if self._state is None:
-            self._state = self.env.reset_tensors()
+        state = self._state if self._state is not None else self.env.reset_tensors()
         rows: list[dict[str, torch.Tensor]] = []
-        state = self._state
         for _ in range(self.steps):
+            state = self._reset_finished(state)
             action = self.sample(state["observation"])
             result = self.env.step_tensors(action)
             rows.append({"observation": state["observation"], "action": action,
                          **{key: state[key] for key in DONE_KEYS}, "next": result})
-            state = self._after_step(result)
+            state = result
         self._state = state
         return _stack(rows, self.env.batch_size)
 
-    def _after_step(self, result: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        done = result["done"]
+    def _reset_finished(self, state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Reset the cars whose episode ended at the previous step.
+
+        Resets happen lazily, before the next step rather than after the last one, so that
+        between batches every finished car is still in its final state (checkpoints are saved
+        there). Resets draw only from the cars' own streams, so the order relative to the
+        policy's sampling changes no number.
+        """
+        done = state["done"]
         if not done.any():
-            return result
+            return state
         fresh = self.env.reset_tensors(done)
         keep = ~done
-        state = {"observation": torch.where(keep, result["observation"], fresh["observation"])}
-        state.update({key: result[key] & keep for key in DONE_KEYS})
-        return state
+        return {"observation": torch.where(keep, state["observation"], fresh["observation"]),
+                **{key: state[key] & keep for key in DONE_KEYS}}
 
     def shutdown(self) -> None:
         """Nothing to release (same interface as TorchRL's collectors)."""

@@ -41,6 +41,13 @@ class ReplayMemory:
     def add(self, transitions: TensorDictBase) -> None:
         self.buffer.extend(transitions)
 
+    def state_dict(self) -> dict:
+        """Storage (in slot order) and write cursor: restoring them continues the ring exactly."""
+        return self.buffer.state_dict()
+
+    def load_state_dict(self, state: dict) -> None:
+        self.buffer.load_state_dict(state)
+
     def contents(self) -> TensorDictBase:
         """Every stored transition (in slot order, not time order), as a new TensorDict."""
         return self.buffer[:].clone()

@@ -221,6 +221,7 @@ class RunConfig:
     progress: bool
     logger: str
     overwrite: bool
+    checkpoint_every: int
     algo: AlgoConfig
     er: ERConfig
     env: EnvConfig
@@ -235,6 +236,8 @@ class RunConfig:
             raise ConfigError(f"gamma must be in [0, 1], got {self.gamma}")
         if self.final_window < 1:
             raise ConfigError(f"final_window must be >= 1, got {self.final_window}")
+        if self.checkpoint_every < 0:
+            raise ConfigError(f"checkpoint_every must be >= 0 (0: never), got {self.checkpoint_every}")
         if self.threads < 1:
             raise ConfigError(f"threads must be >= 1, got {self.threads}")
         _choice("logger", self.logger, LOGGERS)
@@ -248,7 +251,7 @@ class RunConfig:
                               f"({self.er.buffer_size} transitions) that er={self.er.name} trains on")
 
     # Keys that change how a run reports, not what it computes.
-    PRESENTATION_KEYS = ("progress", "logger", "overwrite")
+    PRESENTATION_KEYS = ("progress", "logger", "overwrite", "checkpoint_every")
 
     @classmethod
     def from_mapping(cls, cfg: Mapping[str, Any]) -> "RunConfig":

@@ -52,10 +52,10 @@ def make_models(cfg: RunConfig, env: RacingTorchEnv) -> Models:
 
 
 # ------------------------------------------------------------------------------ collector
-def make_episode_collector(cfg: RunConfig, env: RacingTorchEnv, models: Models):
+def make_episode_collector(cfg: RunConfig, env: RacingTorchEnv, models: Models, episodes: int):
     return make_collector(cfg.env.collector, env, policy=make_policy(models.actor),
                           sample=make_sampler(models.actor_net), steps=cfg.env.episode_steps,
-                          episodes=cfg.episodes)
+                          episodes=episodes)
 
 
 def make_schedule(cfg: RunConfig) -> ReplaySchedule:

@@ -24,13 +24,31 @@ def metric_columns(loss) -> list[str]:
 class MetricsWriter:
     """metrics.csv, one row per episode, flushed as written; plus an optional TorchRL logger."""
 
-    def __init__(self, out_dir: Path, columns: list[str], logger_kind: str = "none"):
+    def __init__(self, out_dir: Path, columns: list[str], logger_kind: str = "none", keep_rows: int = 0):
+        """``keep_rows``: continue after the first this-many rows of an existing metrics.csv
+        (a resumed run: rows after its checkpoint are dropped and written again)."""
         self.path = out_dir / METRICS_FILE
         self.columns = columns
+        kept = self._kept_rows(keep_rows)
         self.file = open(self.path, "w", newline="")
         self.writer = csv.DictWriter(self.file, fieldnames=columns, extrasaction="raise")
         self.writer.writeheader()
+        self.file.writelines(kept)
+        self.file.flush()
         self.logger = make_torchrl_logger(logger_kind, out_dir)
+
+    def _kept_rows(self, count: int) -> list[str]:
+        if count == 0:
+            return []
+        try:
+            with open(self.path, newline="") as f:  # keep the csv module's line endings
+                lines = f.read().splitlines(keepends=True)
+        except FileNotFoundError:
+            lines = []
+        if len(lines) < count + 1 or lines[0].rstrip("\r\n") != ",".join(self.columns):
+            raise RuntimeError(f"{self.path} does not hold the {count} episodes its checkpoint has; "
+                               "delete the checkpoint to start the run afresh")
+        return lines[1:count + 1]
 
     def write(self, row: dict[str, Any]) -> None:
         self.writer.writerow({key: _format(row.get(key)) for key in self.columns})

@@ -17,6 +17,7 @@ import torch
 from tensordict import TensorDictBase
 
 from collectors import ReplayMemory, add_monte_carlo_returns, episode_transitions
+from experiment import checkpoint
 from experiment.config import ConfigError, RunConfig
 from experiment.factories import (make_env, make_episode_collector, make_loss, make_models,
                                   make_optimisers, make_schedule, seed_everything)
@@ -49,33 +50,39 @@ def finished_run(out_dir: Path, settings: dict, overwrite: bool = False) -> dict
 def train(cfg: RunConfig, out_dir: Path, settings: dict | None = None) -> dict:
     """Train one run of ``cfg`` and write its outputs into ``out_dir``; returns the summary.
 
-    ``settings`` (the config as a plain mapping) is stored in summary.json to recognise the
-    run later.
+    ``settings`` (the config as a plain mapping) is stored in summary.json and checkpoints to
+    recognise the run later. If ``out_dir`` holds a checkpoint of the same settings, the run
+    continues from it, exactly as if it had never stopped.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     torch.set_num_threads(cfg.threads)
     seed_everything(cfg.seed)
+    settings = run_settings(settings) if settings is not None else None
 
     env = make_env(cfg)
     models = make_models(cfg, env)
     loss = make_loss(cfg, models)
     optimisers = make_optimisers(cfg, models)
-    collector = make_episode_collector(cfg, env, models)
     schedule = make_schedule(cfg)
     memory = ReplayMemory(cfg.er.buffer_size)
     phases = PhaseRunner(loss, optimisers, cfg.algo.value_epochs, cfg.algo.policy_epochs)
     minibatch = schedule.minibatch_size(cfg.algo.minibatch_size)
-    metrics = MetricsWriter(out_dir, metric_columns(loss), cfg.logger)
 
-    rewards: list[float] = []
-    timing = {"rollout_s": 0.0, "train_s": 0.0}
+    parts = {"loss": loss, "actor_optim": optimisers.actor, "critic_optim": optimisers.critic, "memory": memory}
+    first, rewards, timing = 0, [], {"rollout_s": 0.0, "train_s": 0.0}
+    checkpoint_path = out_dir / checkpoint.CHECKPOINT_FILE
+    if checkpoint_path.exists():
+        first, rewards, timing = _restore(checkpoint.load(checkpoint_path), settings, parts, env)
+    collector = make_episode_collector(cfg, env, models, episodes=cfg.episodes - first)
+    metrics = MetricsWriter(out_dir, metric_columns(loss), cfg.logger, keep_rows=first)
+
     status, failure = "completed", None
-    progress = _progress_bar(cfg)
+    progress = _progress_bar(cfg, initial=first)
     episodes = iter(collector)
     try:
-        for episode in range(cfg.episodes):
+        for episode in range(first, cfg.episodes):
             totals = MetricTotals()
             try:
                 with _timer(timing, "train_s"):
@@ -97,6 +104,9 @@ def train(cfg: RunConfig, out_dir: Path, settings: dict | None = None) -> dict:
             rewards.append(row["total_reward"])
             progress.update(1)
             progress.set_postfix(reward=f"{rewards[-1]:.1f}", last20=f"{_mean(rewards[-20:]):.1f}")
+            done = episode + 1
+            if cfg.checkpoint_every and done % cfg.checkpoint_every == 0 and done < cfg.episodes:
+                checkpoint.save(checkpoint_path, _payload(done, rewards, timing, settings, parts, env))
     finally:
         progress.close()
         metrics.close()
@@ -110,12 +120,37 @@ def train(cfg: RunConfig, out_dir: Path, settings: dict | None = None) -> dict:
         "episodes": len(rewards), "episodes_planned": cfg.episodes,
         "final_mean": _mean(window) if window else None, "final_window": len(window),
         "status": status, "diverged": failure,
-        "wall_time_s": round(time.perf_counter() - start, 3),
+        "wall_time_s": round(time.perf_counter() - start, 3), "resumed_at": first or None,
         **{f"time/{key}": round(value, 3) for key, value in timing.items()},
-        "settings": run_settings(settings) if settings is not None else None,
+        "settings": settings,
     }
     write_json_atomic(out_dir / SUMMARY_FILE, summary)
+    checkpoint_path.unlink(missing_ok=True)  # the run is finished: summary and weights remain
     return summary
+
+
+def _payload(episodes_done: int, rewards: list[float], timing: dict, settings: dict | None, parts: dict,
+             env) -> dict:
+    return {
+        "settings": settings, "episodes_done": episodes_done, "rewards": list(rewards), "timing": dict(timing),
+        **{name: part.state_dict() for name, part in parts.items()},
+        "rng": checkpoint.capture_rng(), "streams": checkpoint.streams_to_tensors(env.sim.stream_state()),
+    }
+
+
+def _restore(payload: dict, settings: dict | None, parts: dict, env) -> tuple[int, list[float], dict]:
+    if payload.get("settings") != settings:
+        raise ConfigError("the run folder holds a checkpoint of a different configuration; choose another "
+                          "folder (hydra.run.dir=...) or pass overwrite=true to start afresh")
+    try:
+        for name, part in parts.items():
+            part.load_state_dict(payload[name])
+        env.sim.load_stream_state(checkpoint.streams_from_tensors(payload["streams"]))
+        checkpoint.restore_rng(payload["rng"])
+        return int(payload["episodes_done"]), list(payload["rewards"]), dict(payload["timing"])
+    except (KeyError, RuntimeError, ValueError, TypeError) as err:
+        raise checkpoint.CheckpointError(f"the checkpoint does not fit this run ({type(err).__name__}: "
+                                         f"{str(err).splitlines()[0][:200]}); delete it to start afresh") from None
 
 
 def _episode_results(episode: int, batch: TensorDictBase) -> dict:
@@ -144,8 +179,8 @@ class _timer:
         self.totals[self.key] += time.perf_counter() - self.start
 
 
-def _progress_bar(cfg: RunConfig):
+def _progress_bar(cfg: RunConfig, initial: int = 0):
     from tqdm import tqdm
 
-    return tqdm(total=cfg.episodes, disable=not cfg.progress, unit="ep", dynamic_ncols=True,
+    return tqdm(total=cfg.episodes, initial=initial, disable=not cfg.progress, unit="ep", dynamic_ncols=True,
                 desc=f"{cfg.algo.name}/{cfg.er.name}/seed{cfg.seed}")

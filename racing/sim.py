@@ -166,6 +166,37 @@ class RacingSim:
             self._streams[car] = np.random.RandomState(s)
             self._fresh[car] = True
 
+    def stream_state(self) -> dict:
+        """The cars' random streams, to continue them later with ``load_stream_state``.
+
+        With the car states this is everything a reset draws from; after every car's episode
+        has ended (the point where training saves checkpoints), it is all a resumed run needs.
+        Plain NumPy arrays and numbers.
+        """
+        n = self.num_cars
+        seeded = np.array([s is not None for s in self._streams])
+        keys = np.zeros((n, 624), dtype=np.uint32)
+        pos, has_gauss, gauss = np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n)
+        for car, stream in enumerate(self._streams):
+            if stream is not None:
+                _, keys[car], pos[car], has_gauss[car], gauss[car] = stream.get_state()
+        return {"seeded": seeded, "keys": keys, "pos": pos, "has_gauss": has_gauss, "gauss": gauss,
+                "fresh": np.array(self._fresh)}
+
+    def load_stream_state(self, state: dict) -> None:
+        """Restore the cars' random streams saved by ``stream_state``."""
+        seeded = np.asarray(state["seeded"], dtype=bool)
+        if seeded.shape != (self.num_cars,):
+            raise ValueError(f"stream state for {seeded.shape[0]} cars, but this simulator has {self.num_cars}")
+        for car in range(self.num_cars):
+            stream = None
+            if seeded[car]:
+                stream = np.random.RandomState()
+                stream.set_state(("MT19937", np.asarray(state["keys"][car], dtype=np.uint32),
+                                  int(state["pos"][car]), int(state["has_gauss"][car]), float(state["gauss"][car])))
+            self._streams[car] = stream
+        self._fresh = [bool(f) for f in state["fresh"]]
+
     def _stream(self, car: int) -> np.random.RandomState:
         stream = self._streams[car]
         if stream is None:  # never seeded: a fixed track's own seed (as the reference), else entropy

@@ -1,0 +1,102 @@
+"""Runs that survive: kill and resume, corrupt checkpoints, divergence."""
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+
+from experiment import checkpoint, outputs
+from experiment.runner import train
+from tests.test_config import load
+from tests.test_train import ENV, ROOT, read_rows, run_train
+
+RUN = ["algo=spg_p", "er=hybrid", "episodes=8", "progress=false", "logger=none", "checkpoint_every=2"]
+
+
+def uninterrupted(tmp_path, *extra):
+    out = tmp_path / "reference"
+    train(load(*RUN, *extra), out)
+    return (out / "metrics.csv").read_bytes()
+
+
+def test_sigkill_then_resume_gives_the_uninterrupted_metrics(tmp_path):
+    run_dir = tmp_path / "run"
+    cmd = [sys.executable, str(ROOT / "train.py"), *RUN, f"hydra.run.dir={run_dir}"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None:
+        if (run_dir / checkpoint.CHECKPOINT_FILE).exists() and len(read_rows(run_dir / "metrics.csv")) >= 5:
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run finished before it could be killed"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert not (run_dir / "summary.json").exists()
+    resumed = subprocess.run(cmd, cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["status"] == "completed" and summary["resumed_at"] in (2, 4, 6)
+    assert (run_dir / "metrics.csv").read_bytes() == uninterrupted(tmp_path)
+    assert not (run_dir / checkpoint.CHECKPOINT_FILE).exists()
+
+
+def test_resume_after_an_interruption_in_process(tmp_path, monkeypatch):
+    """Stopped after episode 5 (checkpoint at 4): the resumed run equals the uninterrupted one."""
+    original = outputs.MetricsWriter.write
+
+    def write_then_stop(self, row):
+        original(self, row)
+        if row["episode"] == 5:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(outputs.MetricsWriter, "write", write_then_stop)
+    with pytest.raises(KeyboardInterrupt):
+        train(load(*RUN), tmp_path / "run")
+    monkeypatch.setattr(outputs.MetricsWriter, "write", original)
+    assert len(read_rows(tmp_path / "run" / "metrics.csv")) == 6
+    payload = checkpoint.load(tmp_path / "run" / checkpoint.CHECKPOINT_FILE)
+    assert payload["episodes_done"] == 4 and payload["loss"]["temperature"] < 1.0
+    summary = train(load(*RUN), tmp_path / "run")
+    assert summary["resumed_at"] == 4
+    assert (tmp_path / "run" / "metrics.csv").read_bytes() == uninterrupted(tmp_path)
+
+
+def test_a_corrupt_checkpoint_is_refused_clearly(tmp_path):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / checkpoint.CHECKPOINT_FILE).write_bytes(b"\x80\x02 not a checkpoint")
+    result = run_train(*RUN, f"hydra.run.dir={run_dir}")
+    assert result.returncode == 2
+    assert "is not a readable checkpoint" in result.stderr and "delete it to start the run afresh" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_a_checkpoint_of_another_configuration_is_refused(tmp_path):
+    torch.save({"version": checkpoint.VERSION, "settings": {"seed": 1}}, tmp_path / checkpoint.CHECKPOINT_FILE)
+    result = run_train(*RUN, f"hydra.run.dir={tmp_path}")
+    assert result.returncode == 2 and "checkpoint of a different configuration" in result.stderr
+
+
+def test_checkpoints_load_with_weights_only(tmp_path):
+    path = tmp_path / "c.pt"
+    checkpoint.save(path, {"x": torch.ones(2), "rng": checkpoint.capture_rng()})
+    assert torch.equal(checkpoint.load(path)["x"], torch.ones(2))
+    assert not (tmp_path / "c.pt.tmp").exists()
+    with pytest.raises(checkpoint.CheckpointError, match="no checkpoint at"):
+        checkpoint.load(tmp_path / "missing.pt")
+
+
+def test_divergence_stops_the_run_cleanly(tmp_path):
+    """A critic learning rate of 1e30 overflows float32 within the first phase."""
+    summary = train(load("algo=ppo_log", "er=recent", "episodes=4", "progress=false", "logger=none",
+                         "algo.critic_lr=1e30"), tmp_path)
+    assert summary["status"] == "diverged"
+    assert summary["diverged"]["episode"] == 0 and "NaN or infinite" in summary["diverged"]["reason"]
+    assert summary["episodes"] == 0 and summary["final_mean"] is None
+    assert read_rows(tmp_path / "metrics.csv") == []
+    stored = json.loads((tmp_path / "summary.json").read_text())
+    assert stored["status"] == "diverged"
