@@ -7,6 +7,7 @@ TorchRL logs and Hydra's ``.hydra/``. See ``conf/config.yaml`` for every option.
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -15,6 +16,8 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from experiment.config import ConfigError, RunConfig
+
+os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")  # torchrl's INFO lines (set before it loads)
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
