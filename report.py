@@ -1,8 +1,15 @@
 """Lay out a sweep's results beside the paper's: ``python report.py SWEEP_DIR``.
 
-Writes ``SWEEP_DIR/report/table.md`` and ``table.csv`` (Table 1's layout: mean ± standard
-error over seeds of each run's final performance, the paper's value, and the difference in
-units of the combined standard error), and lists runs that are partial, unreadable or diverged.
+Writes into ``SWEEP_DIR/report/``:
+- ``table.md``, ``table.csv``: Table 1's layout, mean ± standard error over seeds of each run's
+  final performance, the paper's value, and the difference in units of the combined standard
+  error; diverged runs counted;
+- ``iqm.md`` and ``iqm.png``: interquartile mean of the last 20 episodes per cell with 95%
+  stratified-bootstrap intervals (strata: tracks);
+- ``curves_*.png``: learning curves, mean over tracks with a ±1 SE band, per algorithm and per
+  replay mode; ``paper_tracks.png``; ``agent.png``, a frame of the best run's policy.
+Lists runs that are partial (killed or running), unreadable or diverged. The figures need the
+``render`` extra; without it only the tables are written.
 """
 
 from __future__ import annotations
@@ -17,6 +24,7 @@ from experiment.report import cells, find_runs, read_paper_table, table_markdown
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("sweep_dir", type=Path, help="a sweep folder, e.g. outputs/sweeps/paper_grid")
+    parser.add_argument("--no-figures", action="store_true", help="write the tables only")
     args = parser.parse_args(argv)
     try:
         runs = find_runs(args.sweep_dir)
@@ -37,7 +45,30 @@ def main(argv: list[str] | None = None) -> int:
             for r in listed:
                 print(f"  {r.path} ({len(r.rewards)} episodes in metrics.csv)")
     print(f"{sum(r.status == 'completed' for r in runs)} completed runs; wrote {out}/table.md, table.csv")
+    if not args.no_figures:
+        write_figures(runs, out)
     return 0
+
+
+def write_figures(runs, out: Path) -> None:
+    try:
+        from experiment import report_figures as figures
+    except ImportError as err:
+        print(f"figures skipped ({err}); install the render extra: pip install -c constraints/cpu.txt "
+              "-e '.[render]'")
+        return
+    rows = figures.iqm_rows(runs)
+    lines = ["| cell | IQM | 95% CI | tracks |", "|---|---:|---|---:|"]
+    lines += [f"| {label} | {point:.1f} | [{low:.1f}, {high:.1f}] | {n} |" for label, point, low, high, n in rows]
+    (out / "iqm.md").write_text("\n".join(lines) + "\n")
+    written = figures.learning_curve_figures(runs, out)
+    written += [p for p in (figures.iqm_figure(rows, out / "iqm.png"),
+                            figures.paper_tracks_figure(out / "paper_tracks.png")) if p is not None]
+    finished = [r for r in runs if r.status == "completed" and r.final_mean is not None]
+    if finished:
+        best = max(finished, key=lambda r: r.final_mean)
+        written.append(figures.agent_frame(best.path, out / "agent.png"))
+    print(f"wrote iqm.md and {len(written)} figures")
 
 
 if __name__ == "__main__":

@@ -42,7 +42,7 @@ class PhaseRunner:
         # (Adam propagates it), and one check per phase costs nothing per step.
         for name, params in (("critic", self.critic_params), ("actor", self.actor_params)):
             if not all(bool(torch.isfinite(p).all()) for p in params):
-                raise Diverged(f"a {name} parameter became NaN or infinite")
+                raise Diverged(f"the {name}'s parameters became NaN or infinite")
         totals.check_finite()
 
     @staticmethod

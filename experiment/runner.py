@@ -112,8 +112,12 @@ def train(cfg: RunConfig, out_dir: Path, settings: dict | None = None) -> dict:
         metrics.close()
         collector.shutdown()
 
-    torch.save(models.actor_net.state_dict(), out_dir / "actor.pt")
-    torch.save(models.critic_net.state_dict(), out_dir / "critic.pt")
+    for name, net in (("actor", models.actor_net), ("critic", models.critic_net)):
+        path = out_dir / f"{name}.pt"
+        if status == "completed":
+            torch.save(net.state_dict(), path)
+        else:  # non-finite weights are of no use; no stale file from an earlier run either
+            path.unlink(missing_ok=True)
     window = rewards[-cfg.final_window:]
     summary = {
         "algo": cfg.algo.name, "er": cfg.er.name, "seed": cfg.seed,

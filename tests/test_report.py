@@ -61,3 +61,39 @@ def test_report_refuses_a_folder_without_runs(tmp_path, capsys):
     assert "no runs under" in capsys.readouterr().err
     assert report.main([str(tmp_path / "missing")]) == 2
     assert "is not a folder" in capsys.readouterr().err
+
+
+def test_tiny_sweep_then_report_and_evaluate(tmp_path, capsys):
+    """2 configurations x 2 seeds x 3 episodes, end to end: sweep, report with figures, evaluate."""
+    pytest.importorskip("matplotlib", reason="the report's figures need the render extra")
+    from tests.test_train import run_train
+
+    import evaluate
+
+    sweep = tmp_path / "sweep"
+    result = run_train("-m", "algo=spg_p,ppo", "er=recent", "seed=2067791,773203", "episodes=3", "progress=false",
+                       "logger=none", f"hydra.sweep.dir={sweep}")
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert report.main([str(sweep)]) == 0
+    out = sweep / "report"
+    for name in ("table.md", "table.csv", "iqm.md", "iqm.png", "curves_spg_p.png", "curves_ppo.png",
+                 "curves_er-recent.png", "paper_tracks.png", "agent.png"):
+        assert (out / name).stat().st_size > 0, name
+    table = (out / "table.md").read_text()
+    assert "(n=2)" in table and "paper 121.5 ± 5.8" in table
+    assert "| recent / SPG-p single |" in (out / "iqm.md").read_text()
+    capsys.readouterr()
+
+    run = sweep / "spg_p" / "recent" / "seed773203"
+    video = tmp_path / "agent.gif"
+    assert evaluate.main([str(run), "--tracks", "2067791", "773203", "--episodes", "2", "--video", str(video)]) == 0
+    printed = capsys.readouterr().out
+    assert "track 2067791: mean total reward" in printed and "track 773203" in printed
+    assert video.stat().st_size > 0
+
+
+def test_evaluate_refuses_a_folder_that_is_not_a_run(tmp_path, capsys):
+    import evaluate
+
+    assert evaluate.main([str(tmp_path)]) == 2
+    assert "holds no summary.json" in capsys.readouterr().err

@@ -96,6 +96,7 @@ def test_divergence_stops_the_run_cleanly(tmp_path):
                          "algo.critic_lr=1e30"), tmp_path)
     assert summary["status"] == "diverged"
     assert summary["diverged"]["episode"] == 0 and "NaN or infinite" in summary["diverged"]["reason"]
+    assert not (tmp_path / "actor.pt").exists()
     assert summary["episodes"] == 0 and summary["final_mean"] is None
     assert read_rows(tmp_path / "metrics.csv") == []
     stored = json.loads((tmp_path / "summary.json").read_text())

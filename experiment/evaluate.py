@@ -1,0 +1,100 @@
+"""Load a trained run's policy, evaluate it deterministically, film it driving."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from experiment.models import GaussianPolicyNet
+from racing.config import RacingConfig
+from racing.gym_env import RacingEnv
+
+
+class RunFolderError(ValueError):
+    """A folder that does not hold a usable trained run."""
+
+
+def load_policy(run_dir: Path) -> tuple[GaussianPolicyNet, dict]:
+    """The run's final actor network and its settings (from summary.json)."""
+    run_dir = Path(run_dir)
+    summary_path, actor_path = run_dir / "summary.json", run_dir / "actor.pt"
+    for path in (summary_path, actor_path):
+        if not path.exists():
+            raise RunFolderError(f"{run_dir} holds no {path.name}: give the folder of a finished train.py run "
+                                 "(e.g. outputs/runs/spg_p_multi/memory/seed2067791)")
+    try:
+        settings = json.loads(summary_path.read_text())["settings"]
+        network, env = settings["network"], settings["env"]
+    except (json.JSONDecodeError, KeyError, TypeError):
+        raise RunFolderError(f"{summary_path} is not a summary written by train.py") from None
+    config = RacingConfig(**env.get("options", {}))
+    net = GaussianPolicyNet(config.obs_size, 2, network["actor_hidden"], network["activation"])
+    try:
+        net.load_state_dict(torch.load(actor_path, weights_only=True, map_location="cpu"))
+    except Exception as err:  # unpickling errors of several types, or mismatched shapes
+        raise RunFolderError(f"{actor_path} is not this run's actor ({type(err).__name__}: "
+                             f"{str(err).splitlines()[0][:200]})") from None
+    if not all(torch.isfinite(p).all() for p in net.parameters()):
+        raise RunFolderError(f"{actor_path} holds non-finite weights (the run diverged)")
+    net.eval()
+    return net, settings
+
+
+def deterministic_action(net: GaussianPolicyNet, observation: np.ndarray) -> np.ndarray:
+    """The policy's mean action (clipped to [-1, 1]): no exploration noise."""
+    with torch.no_grad():
+        loc, _ = net(torch.as_tensor(observation, dtype=torch.float32).unsqueeze(0))
+    return loc.clamp(-1.0, 1.0).squeeze(0).numpy()
+
+
+def evaluate(net: GaussianPolicyNet, settings: dict, track_seeds: list[int], episodes: int,
+             seed: int = 0) -> dict[int, float]:
+    """Mean total reward of ``episodes`` episodes on each track (start states from ``seed``)."""
+    options = settings["env"].get("options", {})
+    results = {}
+    for track in track_seeds:
+        env = RacingEnv(track_seed=track, nearest_ray=settings["env"].get("nearest_ray", False), **options)
+        totals = []
+        for episode in range(episodes):
+            obs, _ = env.reset(seed=seed + episode)
+            total, done = 0.0, False
+            while not done:
+                obs, reward, terminated, truncated, _ = env.step(deterministic_action(net, obs))
+                total += reward
+                done = terminated or truncated
+            totals.append(total)
+        results[track] = math.fsum(totals) / len(totals)
+        env.close()
+    return results
+
+
+def film(net: GaussianPolicyNet, settings: dict, track_seed: int, path: Path, seed: int = 0, fps: int = 30) -> int:
+    """Write one deterministic episode on ``track_seed`` as a GIF or MP4 (by suffix); returns frames."""
+    try:
+        import imageio.v2 as imageio
+    except ImportError:
+        raise RuntimeError("writing videos needs the render extra: pip install -c constraints/cpu.txt "
+                           "-e '.[render]'") from None
+    path = Path(path)
+    if path.suffix.lower() not in (".gif", ".mp4"):
+        raise ValueError(f"video path must end in .gif or .mp4, got {path.name!r}")
+    options = settings["env"].get("options", {})
+    env = RacingEnv(track_seed=track_seed, render_mode="rgb_array", **options)
+    obs, _ = env.reset(seed=seed)
+    frames = [env.render()]
+    done = False
+    while not done:
+        obs, _, terminated, truncated, _ = env.step(deterministic_action(net, obs))
+        frames.append(env.render())
+        done = terminated or truncated
+    env.close()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix.lower() == ".gif":
+        imageio.mimsave(path, frames, duration=1000 / fps, loop=0)
+    else:
+        imageio.mimsave(path, frames, fps=fps, macro_block_size=16)
+    return len(frames)
