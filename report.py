@@ -64,11 +64,23 @@ def write_figures(runs, out: Path) -> None:
     written = figures.learning_curve_figures(runs, out)
     written += [p for p in (figures.iqm_figure(rows, out / "iqm.png"),
                             figures.paper_tracks_figure(out / "paper_tracks.png")) if p is not None]
-    finished = [r for r in runs if r.status == "completed" and r.final_mean is not None]
-    if finished:
-        best = max(finished, key=lambda r: r.final_mean)
-        written.append(figures.agent_frame(best.path, out / "agent.png"))
+    written += agent_frame(runs, out, figures)
     print(f"wrote iqm.md and {len(written)} figures")
+
+
+def agent_frame(runs, out: Path, figures) -> list[Path]:
+    """A frame of the best completed run whose policy loads; none (with a note) otherwise."""
+    from experiment.evaluate import RunFolderError
+
+    finished = sorted((r for r in runs if r.status == "completed" and r.final_mean is not None),
+                      key=lambda r: r.final_mean, reverse=True)
+    for run in finished:
+        try:
+            return [figures.agent_frame(run.path, out / "agent.png")]
+        except RunFolderError as err:
+            print(f"agent frame: skipping {run.path}: {err}")
+    print("agent frame: no completed run with a loadable policy")
+    return []
 
 
 if __name__ == "__main__":
