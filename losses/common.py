@@ -1,4 +1,9 @@
-"""Calling TorchRL modules from inside a loss, cheaply.
+"""What the losses share: the two-phase loss base class, and cheap module calls.
+
+``PhaseLoss`` holds what SPG and PPO have in common: the Monte-Carlo critic loss, the
+entropy term, ``forward`` and no-op phase hooks.
+
+Calling TorchRL modules from inside a loss, cheaply:
 
 A loss calls its networks dozens of times per training step on small batches, where the
 TensorDict bookkeeping of a module call (writing outputs into a TensorDict, then reading them
@@ -13,8 +18,11 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictModule, ProbabilisticTensorDictSequential, TensorDictModule
+from torchrl.objectives import LossModule
+
+from losses import functional as F
 
 
 def value_function(module: TensorDictModule) -> Callable[[TensorDictBase], torch.Tensor]:
@@ -57,3 +65,45 @@ def cached(owner, module, make: Callable) -> Callable:
     if function is None:
         function = cache[key] = make(module)
     return function
+
+
+class PhaseLoss(LossModule):
+    """Base of the paper's losses, optimised in a critic phase then an actor phase.
+
+    Subclasses set ``critic_attr`` (the attribute holding the critic module), ``entropy_coeff``
+    and ``joint_log_prob``, define ``actor_loss`` and override the hooks they need.
+    """
+
+    critic_attr: str
+    critic_metrics = ("loss_critic", "value_mean")
+
+    def before_critic_phase(self, data: TensorDictBase) -> None:
+        """Called once with the phase's whole data before its critic steps."""
+
+    def before_actor_phase(self, data: TensorDictBase) -> None:
+        """Called once with the phase's whole data before its actor steps."""
+
+    def after_actor_phase(self) -> None:
+        """Called once after the phase's actor steps."""
+
+    def critic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Mean (G - critic)^2 with G the Monte-Carlo return."""
+        value = self._value(tensordict)
+        loss = F.squared_error(value, tensordict[self.tensor_keys.value_target])
+        return TensorDict({"loss_critic": loss, "value_mean": value.detach().mean()})
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Actor and critic terms on one batch (the ``loss_*`` entries sum to the total loss)."""
+        return self.actor_loss(tensordict).update(self.critic_loss(tensordict))
+
+    def _entropy(self, dist: torch.distributions.Distribution) -> tuple[torch.Tensor, torch.Tensor]:
+        """(mean entropy, detached; the loss term -coeff * entropy, with no gradient if coeff is 0)."""
+        entropy = F.per_dimension_or_joint(dist.entropy(), self.joint_log_prob).mean()
+        term = -self.entropy_coeff * (entropy if self.entropy_coeff else entropy.detach())
+        return entropy.detach(), term
+
+    def _policy(self, tensordict: TensorDictBase) -> torch.distributions.Distribution:
+        return cached(self, self.actor_network, distribution_function)(tensordict)
+
+    def _value(self, tensordict: TensorDictBase) -> torch.Tensor:
+        return cached(self, getattr(self, self.critic_attr), value_function)(tensordict)

@@ -7,13 +7,12 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
-from torchrl.objectives import LossModule
 
 from losses import functional as F
-from losses.common import cached as _cached, distribution_function, value_function
+from losses.common import PhaseLoss
 
 
-class LogClipPPOLoss(LossModule):
+class LogClipPPOLoss(PhaseLoss):
     """PPO with a Monte-Carlo V(s) critic; the probability ratio in linear or log space.
 
     Linear space: p = exp(logp - logp_old), clipped to [1 - eps, 1 + eps]. Log space:
@@ -49,7 +48,7 @@ class LogClipPPOLoss(LossModule):
     critic_network: TensorDictModule
     actor_metrics = ("loss_objective", "loss_entropy", "entropy", "clip_fraction", "approx_kl",
                      "ratio_mean", "advantage_mean")
-    critic_metrics = ("loss_critic", "value_mean")
+    critic_attr = "critic_network"
 
     def __init__(self, actor_network: ProbabilisticTensorDictSequential, critic_network: TensorDictModule,
                  *, clip_epsilon: float = 0.2, ratio_space: str = "linear", entropy_coeff: float = 0.02,
@@ -76,22 +75,14 @@ class LogClipPPOLoss(LossModule):
     @torch.no_grad()
     def before_actor_phase(self, data: TensorDictBase) -> None:
         """log pi_old(a | s) for the whole phase data, under the policy before this phase's update."""
-        data.set(self.tensor_keys.sample_log_prob, self._log_prob(data, data[self.tensor_keys.action]))
-
-    def after_actor_phase(self) -> None:
-        """Nothing to update between phases."""
+        keys = self.tensor_keys
+        data.set(keys.sample_log_prob, self._log_prob(self._policy(data), data[keys.action]))
 
     # ---------------------------------------------------------------------------- losses
-    def critic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
-        keys = self.tensor_keys
-        value = self._value(tensordict)
-        loss = F.squared_error(value, tensordict[keys.value_target])
-        return TensorDict({"loss_critic": loss, "value_mean": value.detach().mean()})
-
     def actor_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
         keys = self.tensor_keys
         dist = self._policy(tensordict)
-        log_prob = F.per_dimension_or_joint(dist.log_prob(tensordict[keys.action]), self.joint_log_prob)
+        log_prob = self._log_prob(dist, tensordict[keys.action])
         old_log_prob = tensordict[keys.sample_log_prob]
         if old_log_prob.shape != log_prob.shape:
             raise ValueError(f"{keys.sample_log_prob} has shape {tuple(old_log_prob.shape)} but the policy's "
@@ -100,28 +91,16 @@ class LogClipPPOLoss(LossModule):
         advantage = tensordict[keys.advantage]
         ratio = F.ppo_ratio(log_prob, old_log_prob, self.ratio_space)
         objective, clipped = F.clipped_surrogate(ratio, advantage, self.clip_epsilon, self.ratio_space)
-        entropy = F.per_dimension_or_joint(dist.entropy(), self.joint_log_prob).mean()
-        entropy_term = -self.entropy_coeff * (entropy if self.entropy_coeff else entropy.detach())
+        entropy, entropy_term = self._entropy(dist)
         return TensorDict({
             "loss_objective": -objective.mean(),
             "loss_entropy": entropy_term,
-            "entropy": entropy.detach(),
+            "entropy": entropy,
             "clip_fraction": clipped.float().mean(),
             "approx_kl": F.approx_kl(log_prob.detach(), old_log_prob),
             "ratio_mean": ratio.detach().mean(),
             "advantage_mean": advantage.mean(),
         })
 
-    def _policy(self, tensordict: TensorDictBase) -> torch.distributions.Distribution:
-        return _cached(self, self.actor_network, distribution_function)(tensordict)
-
-    def _value(self, tensordict: TensorDictBase) -> torch.Tensor:
-        return _cached(self, self.critic_network, value_function)(tensordict)
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Actor and critic terms on one batch (the ``loss_*`` entries sum to the total loss)."""
-        return self.actor_loss(tensordict).update(self.critic_loss(tensordict))
-
-    def _log_prob(self, tensordict: TensorDictBase, action: torch.Tensor) -> torch.Tensor:
-        dist = self._policy(tensordict)
+    def _log_prob(self, dist: torch.distributions.Distribution, action: torch.Tensor) -> torch.Tensor:
         return F.per_dimension_or_joint(dist.log_prob(action), self.joint_log_prob)

@@ -7,15 +7,14 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
-from torchrl.objectives import LossModule
 
 from losses import functional as F
-from losses.common import cached as _cached, distribution_function, value_function
+from losses.common import PhaseLoss
 
 BASELINES = ("mean", "action")
 
 
-class SPGLoss(LossModule):
+class SPGLoss(PhaseLoss):
     """Sampled Policy Gradient: move the policy towards the best action the critic can find.
 
     For each state of a minibatch the candidates are the stored action, the policy mean and
@@ -50,7 +49,7 @@ class SPGLoss(LossModule):
     qvalue_network: TensorDictModule
     actor_metrics = ("loss_objective", "loss_entropy", "entropy", "weight_mean", "q_target",
                      "q_gain", "target_is_action", "target_is_mean", "temperature")
-    critic_metrics = ("loss_critic", "value_mean")
+    critic_attr = "qvalue_network"
 
     def __init__(self, actor_network: ProbabilisticTensorDictSequential, qvalue_network: TensorDictModule,
                  *, num_samples: int = 5, temperature: float = 1.0, temperature_decay: float = 0.01,
@@ -79,23 +78,12 @@ class SPGLoss(LossModule):
         self.register_buffer("temperature", torch.tensor(float(temperature), dtype=torch.float64))
 
     # ------------------------------------------------------------------ phase preparation
-    def before_critic_phase(self, data: TensorDictBase) -> None:
-        """Nothing to precompute: SPG scores candidates per minibatch."""
-
-    def before_actor_phase(self, data: TensorDictBase) -> None:
-        """Nothing to precompute: SPG scores candidates per minibatch."""
-
+    # Nothing to precompute before a phase: SPG scores candidates per minibatch.
     def after_actor_phase(self) -> None:
         """Cool the exploration temperature: T <- T * (1 - temperature_decay)."""
         self.temperature.mul_(1.0 - self.temperature_decay)
 
     # ---------------------------------------------------------------------------- losses
-    def critic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
-        keys = self.tensor_keys
-        q = self._value(tensordict)
-        loss = F.squared_error(q, tensordict[keys.value_target])
-        return TensorDict({"loss_critic": loss, "value_mean": q.detach().mean()})
-
     def actor_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
         keys = self.tensor_keys
         dist = self._policy(tensordict)
@@ -111,12 +99,11 @@ class SPGLoss(LossModule):
             q_baseline = scores[:, 1:2] if self.baseline == "mean" else scores[:, 0:1]
             weight = q_target - q_baseline if self.prioritised else None
         log_prob = F.per_dimension_or_joint(dist.log_prob(target), self.joint_log_prob)
-        entropy = F.per_dimension_or_joint(dist.entropy(), self.joint_log_prob).mean()
-        entropy_term = -self.entropy_coeff * (entropy if self.entropy_coeff else entropy.detach())
+        entropy, entropy_term = self._entropy(dist)
         return TensorDict({
             "loss_objective": -F.weighted_log_likelihood(log_prob, weight),
             "loss_entropy": entropy_term,
-            "entropy": entropy.detach(),
+            "entropy": entropy,
             "weight_mean": torch.ones(()) if weight is None else weight.mean(),
             "q_target": q_target.mean(),
             "q_gain": (q_target - q_baseline).mean(),
@@ -124,16 +111,6 @@ class SPGLoss(LossModule):
             "target_is_mean": (index == 1).float().mean(),
             "temperature": self.temperature.float(),
         })
-
-    def _policy(self, tensordict: TensorDictBase) -> torch.distributions.Distribution:
-        return _cached(self, self.actor_network, distribution_function)(tensordict)
-
-    def _value(self, tensordict: TensorDictBase) -> torch.Tensor:
-        return _cached(self, self.qvalue_network, value_function)(tensordict)
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Actor and critic terms on one batch (the ``loss_*`` entries sum to the total loss)."""
-        return self.actor_loss(tensordict).update(self.critic_loss(tensordict))
 
     def _score(self, tensordict: TensorDictBase, candidates: torch.Tensor) -> torch.Tensor:
         """Q(s, c) for every candidate c, in one critic call: [B, C]."""
