@@ -22,8 +22,9 @@ os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")  # torchrl's INFO lines (se
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> float | None:
+    settings = OmegaConf.to_container(cfg, resolve=True)
     try:
-        run_cfg = RunConfig.from_mapping(OmegaConf.to_container(cfg, resolve=True))
+        run_cfg = RunConfig.from_mapping(settings)
     except ConfigError as err:
         print(f"Invalid configuration: {err}", file=sys.stderr)
         raise SystemExit(2) from None
@@ -31,7 +32,6 @@ def main(cfg: DictConfig) -> float | None:
     from experiment.runner import finished_run, train  # after validation: torch loads slowly
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
-    settings = OmegaConf.to_container(cfg, resolve=True)
     try:
         done = finished_run(out_dir, settings, overwrite=run_cfg.overwrite)
         if done is not None:

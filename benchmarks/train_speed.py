@@ -23,8 +23,6 @@ from pathlib import Path
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
 
 import torch  # noqa: E402
-from hydra import compose, initialize_config_dir  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
 
 from collectors import make_collector  # noqa: E402
 from experiment.config import RunConfig  # noqa: E402
@@ -32,7 +30,6 @@ from experiment.models import GaussianPolicyNet, make_actor, make_policy, make_s
 from experiment.runner import train  # noqa: E402
 from racing.torchrl_env import RacingTorchEnv  # noqa: E402
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
 DEFAULT_CELLS = ["ppo/recent", "ppo_log/memory", "spg/hybrid", "spg_multi/hybrid", "spg_p/hybrid",
                  "spg_p_multi/hybrid"]
 
@@ -90,11 +87,10 @@ def collector_table(episodes: int) -> None:
 
 def run(cell: str, episodes: int, *overrides: str) -> dict:
     algo, er = cell.split("/")
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose("config", overrides=[f"algo={algo}", f"er={er}", f"episodes={episodes}",
-                                           "progress=false", "logger=none", *overrides])
+    cfg = RunConfig.compose(f"algo={algo}", f"er={er}", f"episodes={episodes}", "progress=false", "logger=none",
+                            *overrides)
     with tempfile.TemporaryDirectory() as out:
-        return train(RunConfig.from_mapping(OmegaConf.to_container(cfg, resolve=True)), Path(out))
+        return train(cfg, Path(out))
 
 
 def run_table(cells: list[str], episodes: int, baseline: str | None) -> None:

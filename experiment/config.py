@@ -84,6 +84,11 @@ def _positive(where: str, value: float) -> None:
         raise ConfigError(f"{where} must be > 0, got {value!r}")
 
 
+def _at_least(where: str, value: float, low: float, note: str = "") -> None:
+    if not value >= low:
+        raise ConfigError(f"{where} must be >= {low}{note}, got {value}")
+
+
 @dataclass(frozen=True)
 class AlgoConfig:
     """One algorithm column of the paper's table (``conf/algo/*.yaml``)."""
@@ -106,13 +111,9 @@ class AlgoConfig:
         _choice(f"{w}: loss", self.loss, LOSSES)
         for key in ("critic_lr", "actor_lr", "adam_eps"):
             _positive(f"{w}: {key}", getattr(self, key))
-        for key in ("value_epochs", "policy_epochs"):
-            if getattr(self, key) < 0:
-                raise ConfigError(f"{w}: {key} must be >= 0, got {getattr(self, key)}")
-        if self.minibatch_size < 1:
-            raise ConfigError(f"{w}: minibatch_size must be >= 1, got {self.minibatch_size}")
-        if self.entropy_coeff < 0:
-            raise ConfigError(f"{w}: entropy_coeff must be >= 0, got {self.entropy_coeff}")
+        for key in ("value_epochs", "policy_epochs", "entropy_coeff"):
+            _at_least(f"{w}: {key}", getattr(self, key), 0)
+        _at_least(f"{w}: minibatch_size", self.minibatch_size, 1)
         for kind, options in (("ppo", PPOOptions), ("spg", SPGOptions)):
             block = getattr(self, kind)
             if kind == self.loss:
@@ -146,10 +147,8 @@ class SPGOptions:
     def __post_init__(self) -> None:
         _choice("algo.spg.sample_around", self.sample_around, CENTRES)
         _choice("algo.spg.baseline", self.baseline, CENTRES)
-        if self.num_samples < 0:
-            raise ConfigError(f"algo.spg.num_samples must be >= 0, got {self.num_samples}")
-        if self.temperature < 0:
-            raise ConfigError(f"algo.spg.temperature must be >= 0, got {self.temperature}")
+        _at_least("algo.spg.num_samples", self.num_samples, 0)
+        _at_least("algo.spg.temperature", self.temperature, 0)
         if not 0 <= self.temperature_decay < 1:
             raise ConfigError(f"algo.spg.temperature_decay must be in [0, 1), got {self.temperature_decay}")
 
@@ -171,8 +170,7 @@ class ERConfig:
         if not 0 < self.minibatch_fraction <= 1:
             raise ConfigError(f"er {self.name}: minibatch_fraction must be in (0, 1], "
                               f"got {self.minibatch_fraction}")
-        if self.buffer_size < 1:
-            raise ConfigError(f"er {self.name}: buffer_size must be >= 1, got {self.buffer_size}")
+        _at_least(f"er {self.name}: buffer_size", self.buffer_size, 1)
 
 
 @dataclass(frozen=True)
@@ -230,16 +228,12 @@ class RunConfig:
     def __post_init__(self) -> None:
         if not 0 <= self.seed < 2**32:
             raise ConfigError(f"seed must be in [0, 2**32) (it is also the track seed), got {self.seed}")
-        if self.episodes < 1:
-            raise ConfigError(f"episodes must be >= 1, got {self.episodes}")
+        _at_least("episodes", self.episodes, 1)
         if not 0 <= self.gamma <= 1:
             raise ConfigError(f"gamma must be in [0, 1], got {self.gamma}")
-        if self.final_window < 1:
-            raise ConfigError(f"final_window must be >= 1, got {self.final_window}")
-        if self.checkpoint_every < 0:
-            raise ConfigError(f"checkpoint_every must be >= 0 (0: never), got {self.checkpoint_every}")
-        if self.threads < 1:
-            raise ConfigError(f"threads must be >= 1, got {self.threads}")
+        _at_least("final_window", self.final_window, 1)
+        _at_least("checkpoint_every", self.checkpoint_every, 0, " (0: never)")
+        _at_least("threads", self.threads, 1)
         _choice("logger", self.logger, LOGGERS)
         minibatch = max(1, round(self.algo.minibatch_size * self.er.minibatch_fraction))
         steps = self.env.episode_steps
@@ -252,6 +246,20 @@ class RunConfig:
 
     # Keys that change how a run reports, not what it computes.
     PRESENTATION_KEYS = ("progress", "logger", "overwrite", "checkpoint_every")
+
+    @classmethod
+    def compose(cls, *overrides: str) -> "RunConfig":
+        """Compose ``conf/config.yaml`` with Hydra overrides (as on the command line) and validate,
+        without running Hydra's app (for tests, benchmarks and notebooks)."""
+        from pathlib import Path
+
+        from hydra import compose, initialize_config_dir
+        from omegaconf import OmegaConf
+
+        conf = Path(__file__).resolve().parent.parent / "conf"
+        with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+            cfg = compose("config", overrides=list(overrides))
+        return cls.from_mapping(OmegaConf.to_container(cfg, resolve=True))
 
     @classmethod
     def from_mapping(cls, cfg: Mapping[str, Any]) -> "RunConfig":

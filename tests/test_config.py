@@ -4,9 +4,7 @@ import itertools
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
 from hydra.errors import MissingConfigException
-from omegaconf import OmegaConf
 
 from experiment.config import ConfigError, RunConfig
 
@@ -17,9 +15,7 @@ CELLS = sorted(p.stem for p in (CONF / "cell").glob("*.yaml"))
 
 
 def load(*overrides: str) -> RunConfig:
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose("config", overrides=list(overrides))
-    return RunConfig.from_mapping(OmegaConf.to_container(cfg, resolve=True))
+    return RunConfig.compose(*overrides)
 
 
 def test_the_groups_hold_the_papers_columns_and_rows():
