@@ -51,22 +51,38 @@ def deterministic_action(net: GaussianPolicyNet, observation: np.ndarray) -> np.
     return loc.clamp(-1.0, 1.0).squeeze(0).numpy()
 
 
+def make_env(settings: dict, track_seed: int, render_mode: str | None = None) -> RacingEnv:
+    """A Gymnasium env with the run's environment settings, on ``track_seed``."""
+    env = settings["env"]
+    return RacingEnv(track_seed=track_seed, render_mode=render_mode, nearest_ray=env.get("nearest_ray", False),
+                     **env.get("options", {}))
+
+
+def run_episode(net: GaussianPolicyNet, env: RacingEnv, seed: int, frames: list | None = None) -> float:
+    """One deterministic episode from the start state of ``seed``; its total reward.
+
+    With ``frames``, every rendered frame (the start included) is appended to it.
+    """
+    obs, _ = env.reset(seed=seed)
+    if frames is not None:
+        frames.append(env.render())
+    total, done = 0.0, False
+    while not done:
+        obs, reward, terminated, truncated, _ = env.step(deterministic_action(net, obs))
+        total += reward
+        done = terminated or truncated
+        if frames is not None:
+            frames.append(env.render())
+    return total
+
+
 def evaluate(net: GaussianPolicyNet, settings: dict, track_seeds: list[int], episodes: int,
              seed: int = 0) -> dict[int, float]:
     """Mean total reward of ``episodes`` episodes on each track (start states from ``seed``)."""
-    options = settings["env"].get("options", {})
     results = {}
     for track in track_seeds:
-        env = RacingEnv(track_seed=track, nearest_ray=settings["env"].get("nearest_ray", False), **options)
-        totals = []
-        for episode in range(episodes):
-            obs, _ = env.reset(seed=seed + episode)
-            total, done = 0.0, False
-            while not done:
-                obs, reward, terminated, truncated, _ = env.step(deterministic_action(net, obs))
-                total += reward
-                done = terminated or truncated
-            totals.append(total)
+        env = make_env(settings, track)
+        totals = [run_episode(net, env, seed + episode) for episode in range(episodes)]
         results[track] = math.fsum(totals) / len(totals)
         env.close()
     return results
@@ -82,15 +98,9 @@ def film(net: GaussianPolicyNet, settings: dict, track_seed: int, path: Path, se
     path = Path(path)
     if path.suffix.lower() not in (".gif", ".mp4"):
         raise ValueError(f"video path must end in .gif or .mp4, got {path.name!r}")
-    options = settings["env"].get("options", {})
-    env = RacingEnv(track_seed=track_seed, render_mode="rgb_array", **options)
-    obs, _ = env.reset(seed=seed)
-    frames = [env.render()]
-    done = False
-    while not done:
-        obs, _, terminated, truncated, _ = env.step(deterministic_action(net, obs))
-        frames.append(env.render())
-        done = terminated or truncated
+    env = make_env(settings, track_seed, render_mode="rgb_array")
+    frames: list = []
+    run_episode(net, env, seed, frames)
     env.close()
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.suffix.lower() == ".gif":

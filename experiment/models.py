@@ -22,9 +22,9 @@ _SMALL = 12_000  # elements; below this one torch.tanh call is cheaper than thre
 def tanh(x: torch.Tensor) -> torch.Tensor:
     """tanh(x); on minibatch-sized inputs computed as 2 * sigmoid(2x) - 1.
 
-    The same function to within 2.4e-7 (absolute), and about 3.7x faster than ``torch.tanh``
-    on large float32 inputs on CPU builds whose tanh is not vectorised (this one's; see
-    ``benchmarks/train_speed.py``). Small inputs (acting, one state at a time) take
+    The same function to within 2.4e-7 (absolute), and about 2.4x faster than ``torch.tanh``
+    on minibatch-sized float32 inputs on CPU builds whose tanh is not vectorised (this one's;
+    ``benchmarks/train_speed.py`` measures it). Small inputs (acting, one state at a time) take
     ``torch.tanh``: one call is cheaper than three there.
     """
     if x.numel() <= _SMALL:

@@ -95,17 +95,15 @@ def paper_tracks_figure(path: Path) -> Path:
 
 
 def agent_frame(run_dir: Path, path: Path, step: int = 120) -> Path:
-    """A frame of the run's deterministic policy driving on its track."""
+    """Frame ``step`` of one episode of the run's deterministic policy on its own track."""
     import imageio.v2 as imageio
 
-    from experiment.evaluate import deterministic_action, load_policy
-    from racing.gym_env import RacingEnv
+    from experiment.evaluate import load_policy, make_env, run_episode
 
     net, settings = load_policy(run_dir)
-    env = RacingEnv(track_seed=settings["seed"], render_mode="rgb_array", **settings["env"].get("options", {}))
-    obs, _ = env.reset(seed=0)
-    for _ in range(step):
-        obs, *_ = env.step(deterministic_action(net, obs))
-    imageio.imwrite(path, env.render())
+    env = make_env(settings, settings["seed"], render_mode="rgb_array")
+    frames: list = []
+    run_episode(net, env, seed=0, frames=frames)
     env.close()
+    imageio.imwrite(path, frames[min(step, len(frames) - 1)])
     return path
