@@ -1,0 +1,66 @@
+"""Every Hydra launcher the README names runs a sweep to finished run folders.
+
+basic, joblib and submitit_local (the submitit plugin's local executor: the job machinery of
+SLURM without a cluster) each run the same two-job sweep; the SLURM preset is checked as Hydra
+composes it (no cluster here).
+"""
+
+import json
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from tests.test_train import ROOT, run_train
+
+SWEEP = ["algo=spg", "er=recent", "seed=11,12", "episodes=2", "progress=false", "logger=none"]
+
+
+def _sweep(launcher: str, sweep_dir) -> dict[int, bytes]:
+    result = run_train("-m", f"hydra/launcher={launcher}", *SWEEP, f"hydra.sweep.dir={sweep_dir}")
+    assert result.returncode == 0, result.stderr[-3000:]
+    metrics = {}
+    for seed in (11, 12):
+        run_dir = sweep_dir / "spg" / "recent" / f"seed{seed}"
+        summary = json.loads((run_dir / "summary.json").read_text())
+        assert summary["status"] == "completed" and summary["episodes"] == 2, launcher
+        assert (run_dir / "actor.pt").exists() and (run_dir / ".hydra" / "config.yaml").exists()
+        metrics[seed] = (run_dir / "metrics.csv").read_bytes()
+    return metrics
+
+
+@pytest.fixture(scope="module")
+def basic_sweep(tmp_path_factory):
+    return _sweep("basic", tmp_path_factory.mktemp("basic"))
+
+
+@pytest.mark.parametrize("launcher", ["joblib", "submitit_local"])
+def test_launchers_run_the_same_sweep(tmp_path, basic_sweep, launcher):
+    """Same runs, byte-identical results, whichever launcher ran them."""
+    assert _sweep(launcher, tmp_path) == basic_sweep
+
+
+def test_submitit_rerun_skips_finished_runs(tmp_path):
+    _sweep("submitit_local", tmp_path)
+    summary = tmp_path / "spg" / "recent" / "seed11" / "summary.json"
+    before = summary.stat().st_mtime_ns, summary.read_bytes()
+    _sweep("submitit_local", tmp_path)
+    assert (summary.stat().st_mtime_ns, summary.read_bytes()) == before
+    logs = "".join(p.read_text() for p in (tmp_path / ".submitit").rglob("*_log.err"))
+    assert "already completed" in logs and "skipped" in logs
+
+
+def test_slurm_preset_composes_with_its_defaults():
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=["hydra/launcher=slurm", "hydra.launcher.partition=cpu"],
+                      return_hydra_config=True)
+    launcher = cfg.hydra.launcher
+    assert launcher._target_.endswith("SlurmLauncher")
+    assert (launcher.partition, launcher.cpus_per_task, launcher.tasks_per_node) == ("cpu", 1, 1)
+    assert launcher.timeout_min == 15 and launcher.max_num_timeout == 3 and launcher.mem_gb == 2
+    assert "n_jobs" not in launcher
+
+
+def test_joblib_stays_the_default_with_its_own_keys():
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("config", overrides=["hydra.launcher.n_jobs=2"], return_hydra_config=True)
+    assert cfg.hydra.launcher._target_.endswith("JoblibLauncher") and cfg.hydra.launcher.n_jobs == 2
