@@ -10,6 +10,10 @@ Writes into ``SWEEP_DIR/report/``:
   replay mode; ``paper_tracks.png``; ``agent.png``, a frame of the best run's policy.
 Lists runs that are partial (killed or running), unreadable or diverged. The figures need the
 ``render`` extra; without it only the tables are written.
+
+Every report states the code version (commit and source hash, from each run's summary.json)
+that made its runs. Runs of different code versions are refused unless
+``--allow-mixed-versions`` is given; then every version is listed with its number of runs.
 """
 
 from __future__ import annotations
@@ -18,23 +22,35 @@ import argparse
 import sys
 from pathlib import Path
 
-from experiment.report import cells, find_runs, read_paper_table, table_markdown, write_table_csv
+from experiment.report import (cells, code_versions, find_runs, read_paper_table, table_markdown,
+                               versions_markdown, write_table_csv)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("sweep_dir", type=Path, help="a sweep folder, e.g. outputs/sweeps/paper_grid")
     parser.add_argument("--no-figures", action="store_true", help="write the tables only")
+    parser.add_argument("--allow-mixed-versions", action="store_true",
+                        help="report runs made by different versions of the code together")
     args = parser.parse_args(argv)
     try:
         runs = find_runs(args.sweep_dir)
     except FileNotFoundError as err:
         print(f"report: {err}", file=sys.stderr)
         return 2
+    versions = code_versions(runs)
+    if len(versions) > 1 and not args.allow_mixed_versions:
+        print(f"report: {args.sweep_dir} holds runs of {len(versions)} versions of the code; a table "
+              "mixing them describes no single program. Versions (source hash: runs, e.g.):", file=sys.stderr)
+        for key, members in versions.items():
+            print(f"  {key}: {len(members)} runs, e.g. {members[0].path}", file=sys.stderr)
+        print("Re-run the sweep from one commit (clean_sweep.py), or pass --allow-mixed-versions.",
+              file=sys.stderr)
+        return 2
     out = args.sweep_dir / "report"
     out.mkdir(exist_ok=True)
     table = cells(runs, read_paper_table())
-    markdown = table_markdown(table)
+    markdown = versions_markdown(versions) + "\n" + table_markdown(table)
     (out / "table.md").write_text(markdown)
     write_table_csv(table, out / "table.csv")
     print(markdown)

@@ -30,13 +30,14 @@ def main(cfg: DictConfig) -> float | None:
         raise SystemExit(2) from None
     from experiment.checkpoint import CHECKPOINT_FILE, CheckpointError
     from experiment.runner import finished_run, train  # after validation: torch loads slowly
+    from experiment.version import describe
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
         done = finished_run(out_dir, settings, overwrite=run_cfg.overwrite)
         if done is not None:
-            print(f"{out_dir}: already {done['status']} (final_mean {done['final_mean']}); skipped",
-                  file=sys.stderr)
+            print(f"{out_dir}: already {done['status']} (final_mean {done['final_mean']}, "
+                  f"{describe(done.get('code'))}); skipped", file=sys.stderr)
             return done["final_mean"]
         if run_cfg.overwrite:
             (out_dir / CHECKPOINT_FILE).unlink(missing_ok=True)

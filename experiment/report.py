@@ -31,6 +31,15 @@ class Run:
     seed: int | None = None
     final_mean: float | None = None
     rewards: list[float] = field(default_factory=list)
+    code: dict | None = None  # summary.json's "code" (experiment.version.code_version())
+
+    @property
+    def version(self) -> str:
+        """The code's identity: its source hash (and the one it resumed from, if different)."""
+        if not self.code or not self.code.get("source"):
+            return "not recorded"
+        earlier = self.code.get("resumed_from")
+        return self.code["source"] + (f" resumed from {earlier.get('source')}" if earlier else "")
 
 
 @dataclass
@@ -88,9 +97,28 @@ def read_run(folder: Path) -> Run:
     try:
         summary = json.loads(summary_path.read_text())
         return Run(folder, summary["status"], summary["algo"], summary["er"], int(summary["seed"]),
-                   summary.get("final_mean"), rewards)
+                   summary.get("final_mean"), rewards, summary.get("code"))
     except (json.JSONDecodeError, KeyError, TypeError, ValueError):
         return Run(folder, "unreadable", rewards=rewards)
+
+
+def code_versions(runs: list[Run]) -> dict[str, list[Run]]:
+    """Finished runs grouped by the version of the code that made them (see ``Run.version``)."""
+    groups: dict[str, list[Run]] = {}
+    for run in runs:
+        if run.status in ("completed", "diverged"):
+            groups.setdefault(run.version, []).append(run)
+    return groups
+
+
+def versions_markdown(groups: dict[str, list[Run]]) -> str:
+    """One line per code version: its commit and how many runs it made."""
+    from experiment.version import describe
+
+    lines = []
+    for key, members in sorted(groups.items(), key=lambda kv: -len(kv[1])):
+        lines.append(f"Code: {describe(members[0].code)} ({len(members)} runs)")
+    return "\n".join(lines) + "\n"
 
 
 def _read_rewards(path: Path) -> list[float]:

@@ -23,6 +23,7 @@ from experiment.factories import (make_env, make_episode_collector, make_loss, m
                                   make_optimisers, make_schedule, seed_everything)
 from experiment.outputs import SUMMARY_FILE, MetricsWriter, metric_columns, read_summary, write_json_atomic
 from experiment.phases import Diverged, MetricTotals, PhaseRunner
+from experiment.version import code_version, software_versions
 
 
 def run_settings(settings: dict) -> dict:
@@ -72,9 +73,16 @@ def train(cfg: RunConfig, out_dir: Path, settings: dict | None = None) -> dict:
 
     parts = {"loss": loss, "actor_optim": optimisers.actor, "critic_optim": optimisers.critic, "memory": memory}
     first, rewards, timing = 0, [], {"rollout_s": 0.0, "train_s": 0.0}
+    code = dict(code_version())
     checkpoint_path = out_dir / checkpoint.CHECKPOINT_FILE
     if checkpoint_path.exists():
-        first, rewards, timing = _restore(checkpoint.load(checkpoint_path), settings, parts, env)
+        payload = checkpoint.load(checkpoint_path)
+        first, rewards, timing = _restore(payload, settings, parts, env)
+        earlier = payload.get("code") or {"source": None}
+        if earlier.get("source") != code["source"]:  # this run mixes two versions of the code
+            code["resumed_from"] = {k: v for k, v in earlier.items() if k != "resumed_from"}
+        elif earlier.get("resumed_from"):
+            code["resumed_from"] = earlier["resumed_from"]
     collector = make_episode_collector(cfg, env, models, episodes=cfg.episodes - first)
     metrics = MetricsWriter(out_dir, metric_columns(loss), cfg.logger, keep_rows=first)
 
@@ -106,7 +114,7 @@ def train(cfg: RunConfig, out_dir: Path, settings: dict | None = None) -> dict:
             progress.set_postfix(reward=f"{rewards[-1]:.1f}", last20=f"{_mean(rewards[-20:]):.1f}")
             done = episode + 1
             if cfg.checkpoint_every and done % cfg.checkpoint_every == 0 and done < cfg.episodes:
-                checkpoint.save(checkpoint_path, _payload(done, rewards, timing, settings, parts, env))
+                checkpoint.save(checkpoint_path, _payload(done, rewards, timing, settings, parts, env, code))
     finally:
         progress.close()
         metrics.close()
@@ -126,6 +134,7 @@ def train(cfg: RunConfig, out_dir: Path, settings: dict | None = None) -> dict:
         "status": status, "diverged": failure,
         "wall_time_s": round(time.perf_counter() - start, 3), "resumed_at": first or None,
         **{f"time/{key}": round(value, 3) for key, value in timing.items()},
+        "code": code, "software": software_versions(),
         "settings": settings,
     }
     write_json_atomic(out_dir / SUMMARY_FILE, summary)
@@ -134,9 +143,10 @@ def train(cfg: RunConfig, out_dir: Path, settings: dict | None = None) -> dict:
 
 
 def _payload(episodes_done: int, rewards: list[float], timing: dict, settings: dict | None, parts: dict,
-             env) -> dict:
+             env, code: dict) -> dict:
     return {
-        "settings": settings, "episodes_done": episodes_done, "rewards": list(rewards), "timing": dict(timing),
+        "settings": settings, "code": code, "episodes_done": episodes_done, "rewards": list(rewards),
+        "timing": dict(timing),
         **{name: part.state_dict() for name, part in parts.items()},
         "rng": checkpoint.capture_rng(), "streams": checkpoint.streams_to_tensors(env.sim.stream_state()),
     }

@@ -64,3 +64,29 @@ def test_joblib_stays_the_default_with_its_own_keys():
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("config", overrides=["hydra.launcher.n_jobs=2"], return_hydra_config=True)
     assert cfg.hydra.launcher._target_.endswith("JoblibLauncher") and cfg.hydra.launcher.n_jobs == 2
+
+
+def test_clean_sweep_runs_an_export_of_the_commit(tmp_path):
+    """clean_sweep.py runs HEAD's exported code (not the working tree's) and records its commit."""
+    import subprocess
+    import sys
+
+    from experiment.version import source_hash
+    from tests.test_train import ENV
+
+    if not (ROOT / ".git").exists():
+        pytest.skip("clean_sweep.py exports commits: needs a git clone of the project")
+    head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    code_dir, sweep = tmp_path / "code", tmp_path / "sweep"
+    result = subprocess.run([sys.executable, str(ROOT / "clean_sweep.py"), "--code-dir", str(code_dir),
+                             "algo=spg", "er=recent", "seed=11", "episodes=2", "progress=false", "logger=none",
+                             f"hydra.sweep.dir={sweep}"], cwd=tmp_path, env=ENV, capture_output=True, text=True,
+                            timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert (code_dir / "experiment" / "COMMIT").read_text().strip() == head
+    summary = json.loads((sweep / "spg" / "recent" / "seed11" / "summary.json").read_text())
+    assert summary["status"] == "completed"
+    assert summary["code"] == {"commit": head, "dirty": None, "origin": "export", "source": source_hash(code_dir)}
+    again = subprocess.run([sys.executable, str(ROOT / "clean_sweep.py"), "--code-dir", str(code_dir),
+                            "--commit", "HEAD~1"], cwd=tmp_path, env=ENV, capture_output=True, text=True)
+    assert again.returncode == 2 and "holds an export of another commit" in again.stderr

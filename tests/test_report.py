@@ -9,14 +9,18 @@ import report
 from experiment.report import cells, find_runs, read_paper_table
 
 
-def fake_run(root, algo, er, seed, final=None, status="completed", summary=True, episodes=3):
+CODE = {"commit": "a" * 40, "dirty": False, "origin": "git", "source": "0123456789abcdef"}
+
+
+def fake_run(root, algo, er, seed, final=None, status="completed", summary=True, episodes=3, code=CODE):
     folder = root / algo / er / f"seed{seed}"
     folder.mkdir(parents=True)
     rows = ["episode,total_reward"] + [f"{i},{(final or 0.0) + i - 1}" for i in range(episodes)]
     (folder / "metrics.csv").write_text("\n".join(rows) + "\n")
     if summary is True:
         (folder / "summary.json").write_text(json.dumps(
-            {"algo": algo, "er": er, "seed": seed, "final_mean": final, "status": status, "episodes": episodes}))
+            {"algo": algo, "er": er, "seed": seed, "final_mean": final, "status": status, "episodes": episodes,
+             "code": code}))
     elif summary:
         (folder / "summary.json").write_text(summary)
     return folder
@@ -57,6 +61,32 @@ def test_report_lists_partial_unreadable_and_diverged_runs(tmp_path, capsys):
     assert any(r.startswith("hybrid,ppo_log,0,,,1,,,") for r in csv_rows)
 
 
+def test_report_refuses_to_mix_code_versions_unless_allowed(tmp_path, capsys):
+    fake_run(tmp_path, "spg", "recent", 1, 90.0)
+    fake_run(tmp_path, "spg", "recent", 2, 100.0, code={**CODE, "source": "fedcba9876543210"})
+    fake_run(tmp_path, "spg", "recent", 3, 95.0, code={**CODE, "resumed_from": {"source": "fedcba9876543210"}})
+    fake_run(tmp_path, "spg", "memory", 1, 95.0, code=None)  # a run from before versions were recorded
+    assert report.main([str(tmp_path), "--no-figures"]) == 2
+    err = capsys.readouterr().err
+    assert "holds runs of 4 versions of the code" in err
+    for key in ("0123456789abcdef:", "fedcba9876543210:", "0123456789abcdef resumed from fedcba9876543210:",
+                "not recorded:"):
+        assert key in err
+    assert not (tmp_path / "report").exists()
+    assert report.main([str(tmp_path), "--no-figures", "--allow-mixed-versions"]) == 0
+    table = (tmp_path / "report" / "table.md").read_text()
+    assert table.count("Code: ") == 4 and "commit aaaaaaaaaaaa (clean), source 0123456789abcdef (1 runs)" in table
+
+
+def test_report_states_the_one_version(tmp_path, capsys):
+    fake_run(tmp_path, "spg", "recent", 1, 90.0)
+    fake_run(tmp_path, "spg", "recent", 2, 100.0)
+    assert report.main([str(tmp_path), "--no-figures"]) == 0
+    first_line = (tmp_path / "report" / "table.md").read_text().splitlines()[0]
+    assert first_line == "Code: commit aaaaaaaaaaaa (clean), source 0123456789abcdef (2 runs)"
+    assert first_line in capsys.readouterr().out
+
+
 def test_report_refuses_a_folder_without_runs(tmp_path, capsys):
     assert report.main([str(tmp_path)]) == 2
     assert "no runs under" in capsys.readouterr().err
@@ -82,6 +112,7 @@ def test_tiny_sweep_then_report_and_evaluate(tmp_path, capsys):
         assert (out / name).stat().st_size > 0, name
     table = (out / "table.md").read_text()
     assert "(n=2)" in table and "paper 121.5 ± 5.8" in table
+    assert table.startswith("Code: commit ") and "(4 runs)" in table
     assert "| recent / SPG-p single |" in (out / "iqm.md").read_text()
     capsys.readouterr()
 
