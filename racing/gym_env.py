@@ -143,7 +143,11 @@ class RacingEnv(gym.Env):
 
     @property
     def track(self):
-        """The current track (walls as ``left_wall``, ``right_wall`` of shape (N + 1, 2))."""
+        """The track of the current episode (a ``racing.Track``: walls as ``left_wall``,
+        ``right_wall`` of shape (N + 1, 2)). With a fixed ``track_seed`` it is known from
+        construction on; with ``track_seed=None`` it is ``None`` until the first ``reset()``
+        lays one out, and a new one after every reset (also after a reset with the
+        ``track_seed`` option, which drives that episode on the seed's track)."""
         return self.sim.tracks[0]
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):

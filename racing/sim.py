@@ -116,7 +116,8 @@ class RacingSim:
     Args:
         num_cars: batch size N.
         track_seeds: one per car, or one for all: an int fixes the car's track, ``None``
-            gives it a fresh random track at every reset.
+            gives it a fresh random track at every reset. ``tracks[i]`` is car i's track:
+            a fixed track from construction on, a random one from the car's first reset.
         config: constants of the task.
         nearest_ray: take the nearest ray crossing instead of the reference's first in
             scan order (they differ only where a track crosses itself within sensor range).
@@ -151,6 +152,11 @@ class RacingSim:
         self.finished = np.zeros(n, dtype=bool)
         self._streams: list[np.random.RandomState | None] = [None] * n
         self._fresh = [True] * n
+        self._reset_once = np.zeros(n, dtype=bool)  # step() needs every car reset at least once
+        self._ready = False
+        for car, seed in enumerate(self.track_seeds):  # a fixed track is known before any reset
+            if seed is not None:
+                self._use_track(car, cached_track(seed, config))
 
     # ----------------------------------------------------------------------------- seeding
     def seed(self, seeds: int | Sequence[int], cars: Sequence[int] | None = None) -> None:
@@ -238,6 +244,9 @@ class RacingSim:
         self.checkpoint[cars] = 0
         self.t[cars] = 0
         self.finished[cars] = False
+        if not self._ready:
+            self._reset_once[cars] = True
+            self._ready = bool(self._reset_once.all())
 
     def _use_track(self, car: int, track: Track) -> None:
         if self.tracks[car] is track:
@@ -254,8 +263,9 @@ class RacingSim:
         Returns ``(reward, terminated, truncated, crashed)``, each of shape (N,).
         """
         cfg = self.config
-        if self.tracks[0] is None:
-            raise RuntimeError("RacingSim.step() called before reset()")
+        if not self._ready:
+            cars = np.flatnonzero(~self._reset_once)
+            raise RuntimeError(f"RacingSim.step() called before reset() of cars {cars[:8].tolist()}")
         throttle = np.minimum(np.maximum(throttle, -1.0), 1.0)
         steer = np.minimum(np.maximum(steer, -1.0), 1.0)
         speed = self.speed + ((throttle / 2 + 0.5) * cfg.max_speed - self.speed) * cfg.accel

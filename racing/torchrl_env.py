@@ -60,6 +60,12 @@ class RacingTorchEnv(EnvBase):
             shape=n,
         )
 
+    @property
+    def tracks(self) -> list:
+        """Each car's current track (``racing.Track``): a fixed track (an int in ``track_seeds``)
+        from construction on; a random one (``None``) from the car's first reset, new at each."""
+        return list(self.sim.tracks)
+
     # A lean path for collectors that step thousands of times per second: the same
     # simulator calls and checks as ``reset``/``step``, without TensorDict bookkeeping.
     def reset_tensors(self, cars: torch.Tensor | None = None) -> dict[str, torch.Tensor]:

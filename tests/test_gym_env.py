@@ -37,6 +37,20 @@ def test_registered_and_made_with_keywords():
     assert env.unwrapped.track.right_wall.shape == (21, 2)
 
 
+def test_a_fixed_track_is_there_before_reset_and_a_random_one_after():
+    fixed = gym.make(ENV_ID, track_seed=2067791).unwrapped
+    np.testing.assert_array_equal(fixed.track.left_wall, track_from_seed(2067791).left_wall)
+    before = fixed.track
+    fixed.reset(seed=3)
+    assert fixed.track is before
+    fixed.reset(options={"track_seed": 773203})  # one episode on another track
+    np.testing.assert_array_equal(fixed.track.right_wall, track_from_seed(773203).right_wall)
+    random = gym.make(ENV_ID, track_seed=None).unwrapped
+    assert random.track is None
+    random.reset(seed=5)
+    assert random.track is not None and random.track.seed is None
+
+
 def test_spaces_have_the_true_bounds():
     env = RacingEnv()
     assert env.action_space == gym.spaces.Box(-1, 1, (2,), np.float32)

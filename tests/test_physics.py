@@ -143,3 +143,7 @@ def test_bad_seeds_and_sizes_are_refused():
         RacingSim(1, 1).seed(1.5)
     with pytest.raises(RuntimeError, match="before reset"):
         RacingSim(1, 1).step(np.zeros(1), np.zeros(1))
+    half = RacingSim(2, 1)
+    half.reset([0])
+    with pytest.raises(RuntimeError, match=r"before reset\(\) of cars \[1\]"):
+        half.step(np.zeros(2), np.zeros(2))

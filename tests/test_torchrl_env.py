@@ -7,7 +7,7 @@ import pytest
 import torch
 from torchrl.envs import check_env_specs
 
-from racing import RacingEnv, RacingTorchEnv
+from racing import RacingEnv, RacingTorchEnv, track_from_seed
 
 TRACKS = [2067791, None, 5412436, 773203, None]
 
@@ -47,6 +47,14 @@ def test_lockstep_with_the_gymnasium_env(track_seeds):
             assert nxt["checkpoint"][i].item() == info["checkpoint"]
             gym_obs[i] = env.reset()[0] if terminated or truncated else obs
         np.testing.assert_array_equal(td["observation"].numpy(), np.stack(gym_obs))
+
+
+def test_fixed_tracks_are_there_before_reset():
+    env = RacingTorchEnv(3, track_seeds=[2067791, None, 773203])
+    assert env.tracks[0].seed == 2067791 and env.tracks[1] is None and env.tracks[2].seed == 773203
+    np.testing.assert_array_equal(env.tracks[2].left_wall, track_from_seed(773203).left_wall)
+    env.reset()
+    assert env.tracks[1] is not None and env.tracks[0].seed == 2067791
 
 
 def test_partial_reset_leaves_other_cars_alone():
