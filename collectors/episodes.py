@@ -8,8 +8,9 @@ Two interchangeable backends produce the same batches for the same seeds:
   the per-step TensorDict machinery, which dominates the cost of a single car (about 5x faster
   at N = 1; see ``benchmarks/train_speed.py``).
 
-Both reset the cars whose episode ended (``done``) before their next step, so a batch of
-``steps`` frames is exactly one episode per car when episodes last ``steps`` frames.
+Both reset a car as soon as its episode ends (``done``), so a batch of ``steps`` frames is
+exactly one episode per car when episodes last ``steps`` frames, and between batches the
+environment is in the same state with either backend.
 """
 
 from __future__ import annotations
@@ -57,30 +58,27 @@ class DirectCollector:
         state = self._state if self._state is not None else self.env.reset_tensors()
         rows: list[dict[str, torch.Tensor]] = []
         for _ in range(self.steps):
-            state = self._reset_finished(state)
             action = self.sample(state["observation"])
             result = self.env.step_tensors(action)
             rows.append({"observation": state["observation"], "action": action,
                          **{key: state[key] for key in DONE_KEYS}, "next": result})
-            state = result
+            state = self._reset_finished(result)
         self._state = state
         return _stack(rows, self.env.batch_size)
 
-    def _reset_finished(self, state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        """Reset the cars whose episode ended at the previous step.
+    def _reset_finished(self, result: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """The state to act on next: cars whose episode just ended are reset at once.
 
-        Resets happen lazily, before the next step rather than after the last one, so that
-        between batches every finished car is still in its final state (checkpoints are saved
-        there). Resets draw only from the cars' own streams, so the order relative to the
-        policy's sampling changes no number.
+        As TorchRL's ``step_and_maybe_reset`` does, so that between batches both backends
+        leave the environment in the same state (checkpoints are taken there).
         """
-        done = state["done"]
+        done = result["done"]
         if not done.any():
-            return state
+            return {"observation": result["observation"], **{key: result[key] for key in DONE_KEYS}}
         fresh = self.env.reset_tensors(done)
         keep = ~done
-        return {"observation": torch.where(keep, state["observation"], fresh["observation"]),
-                **{key: state[key] & keep for key in DONE_KEYS}}
+        return {"observation": torch.where(keep, result["observation"], fresh["observation"]),
+                **{key: result[key] & keep for key in DONE_KEYS}}
 
     def shutdown(self) -> None:
         """Nothing to release (same interface as TorchRL's collectors)."""

@@ -1,9 +1,10 @@
 """Checkpoints of a training run: everything needed to continue it exactly.
 
-Saved at episode boundaries (after an episode's training, when every car's episode has
-ended): the loss module (networks and, for SPG, the temperature), both optimisers, the replay
-memory (storage and write cursor), the torch, NumPy and Python generators, the cars' random
-streams, the episode counter, the learning curve so far and the run's settings.
+Saved at episode boundaries (after an episode's training; every car has just been reset for
+its next episode, by either collector): the loss module (networks and, for SPG, the
+temperature), both optimisers, the replay memory (storage and write cursor), the torch, NumPy
+and Python generators, the simulator's state (cars, tracks, random streams), the episode
+counter, the learning curve so far, the run's settings and the code version.
 
 Written atomically (a temporary file, fsync, rename), so a crash mid-write leaves the previous
 checkpoint in place. Loaded with ``torch.load(weights_only=True)``: only tensors and plain
@@ -20,7 +21,7 @@ import numpy as np
 import torch
 
 CHECKPOINT_FILE = "checkpoint.pt"
-VERSION = 1
+VERSION = 2  # 2: the simulator's whole state (cars, tracks, streams), not only its streams
 
 
 class CheckpointError(RuntimeError):
@@ -41,12 +42,13 @@ def restore_rng(state: dict) -> None:
     random.setstate((version, tuple(internal), gauss_next))
 
 
-def streams_to_tensors(state: dict) -> dict:
+def arrays_to_tensors(state: dict) -> dict:
+    """NumPy arrays (e.g. the simulator's state) as int64 / float64 tensors, for ``weights_only``."""
     return {key: torch.from_numpy(np.asarray(value).astype(np.int64 if value.dtype.kind in "uib" else np.float64))
             for key, value in state.items()}
 
 
-def streams_from_tensors(state: dict) -> dict:
+def arrays_from_tensors(state: dict) -> dict:
     return {key: value.numpy() for key, value in state.items()}
 
 

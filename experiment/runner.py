@@ -148,7 +148,7 @@ def _payload(episodes_done: int, rewards: list[float], timing: dict, settings: d
         "settings": settings, "code": code, "episodes_done": episodes_done, "rewards": list(rewards),
         "timing": dict(timing),
         **{name: part.state_dict() for name, part in parts.items()},
-        "rng": checkpoint.capture_rng(), "streams": checkpoint.streams_to_tensors(env.sim.stream_state()),
+        "rng": checkpoint.capture_rng(), "sim": checkpoint.arrays_to_tensors(env.sim.state_dict()),
     }
 
 
@@ -159,7 +159,7 @@ def _restore(payload: dict, settings: dict | None, parts: dict, env) -> tuple[in
     try:
         for name, part in parts.items():
             part.load_state_dict(payload[name])
-        env.sim.load_stream_state(checkpoint.streams_from_tensors(payload["streams"]))
+        env.load_sim_state(checkpoint.arrays_from_tensors(payload["sim"]))
         checkpoint.restore_rng(payload["rng"])
         return int(payload["episodes_done"]), list(payload["rewards"]), dict(payload["timing"])
     except (KeyError, RuntimeError, ValueError, TypeError) as err:

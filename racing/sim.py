@@ -172,12 +172,14 @@ class RacingSim:
             self._streams[car] = np.random.RandomState(s)
             self._fresh[car] = True
 
-    def stream_state(self) -> dict:
-        """The cars' random streams, to continue them later with ``load_stream_state``.
+    CAR_STATE = ("x", "y", "theta", "speed", "checkpoint", "t", "finished", "_reset_once")
 
-        With the car states this is everything a reset draws from; after every car's episode
-        has ended (the point where training saves checkpoints), it is all a resumed run needs.
-        Plain NumPy arrays and numbers.
+    def state_dict(self) -> dict:
+        """Everything that decides what the cars do next, as plain NumPy arrays.
+
+        Car states, their random streams and their current tracks (a fixed track by its seed,
+        a random one by its walls). ``load_state_dict`` on a simulator built with the same
+        arguments continues exactly from here, mid-episode or between episodes.
         """
         n = self.num_cars
         seeded = np.array([s is not None for s in self._streams])
@@ -186,22 +188,41 @@ class RacingSim:
         for car, stream in enumerate(self._streams):
             if stream is not None:
                 _, keys[car], pos[car], has_gauss[car], gauss[car] = stream.get_state()
+        walls = np.full((n, 2, self.config.num_segments + 1, 2), np.nan)
+        track_seed = np.full(n, -1, dtype=np.int64)
+        for car, track in enumerate(self.tracks):
+            if track is not None:
+                walls[car] = track.left_wall, track.right_wall
+                track_seed[car] = -1 if track.seed is None else track.seed
         return {"seeded": seeded, "keys": keys, "pos": pos, "has_gauss": has_gauss, "gauss": gauss,
-                "fresh": np.array(self._fresh)}
+                "fresh": np.array(self._fresh), "track_seed": track_seed, "walls": walls,
+                **{name: getattr(self, name).copy() for name in self.CAR_STATE}}
 
-    def load_stream_state(self, state: dict) -> None:
-        """Restore the cars' random streams saved by ``stream_state``."""
+    def load_state_dict(self, state: dict) -> None:
+        """Continue from a ``state_dict()`` of a simulator with the same number of cars and config."""
+        n = self.num_cars
         seeded = np.asarray(state["seeded"], dtype=bool)
-        if seeded.shape != (self.num_cars,):
-            raise ValueError(f"stream state for {seeded.shape[0]} cars, but this simulator has {self.num_cars}")
-        for car in range(self.num_cars):
+        if seeded.shape != (n,) or np.shape(state["walls"])[2] != self.config.num_segments + 1:
+            raise ValueError(f"a simulator state of {seeded.shape[0]} cars on tracks of "
+                             f"{np.shape(state['walls'])[2] - 1} checkpoints does not fit this simulator "
+                             f"({n} cars, {self.config.num_segments} checkpoints)")
+        for car in range(n):
             stream = None
             if seeded[car]:
                 stream = np.random.RandomState()
                 stream.set_state(("MT19937", np.asarray(state["keys"][car], dtype=np.uint32),
                                   int(state["pos"][car]), int(state["has_gauss"][car]), float(state["gauss"][car])))
             self._streams[car] = stream
+            walls, seed = np.asarray(state["walls"][car]), int(state["track_seed"][car])
+            if seed >= 0:
+                self._use_track(car, cached_track(seed, self.config))
+            elif not np.isnan(walls).all():
+                self._use_track(car, Track(walls[0], walls[1]))
         self._fresh = [bool(f) for f in state["fresh"]]
+        for name in self.CAR_STATE:
+            current = getattr(self, name)
+            setattr(self, name, np.asarray(state[name], dtype=current.dtype).reshape(current.shape).copy())
+        self._ready = bool(self._reset_once.all())
 
     def _stream(self, car: int) -> np.random.RandomState:
         stream = self._streams[car]

@@ -45,6 +45,7 @@ class RacingTorchEnv(EnvBase):
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
         self.config = cfg
         self._on_cpu = self.device == torch.device("cpu")
+        self._continue = False  # see load_sim_state
         n = (num_envs,)
         self.observation_spec = Composite(
             observation=Bounded(0.0, 1.0, n + (cfg.obs_size,), dtype=torch.float32, device=self.device),
@@ -66,6 +67,17 @@ class RacingTorchEnv(EnvBase):
         from construction on; a random one (``None``) from the car's first reset, new at each."""
         return list(self.sim.tracks)
 
+    def load_sim_state(self, state: dict) -> None:
+        """Restore the simulator from ``env.sim.state_dict()`` (cars, tracks, random streams).
+
+        The next full reset then continues the restored cars where they are (it resets only
+        those whose episode had ended) instead of starting new episodes. So a collector built
+        after restoring, whose first act is a full reset, carries on exactly where the saved
+        run stopped.
+        """
+        self.sim.load_state_dict(state)
+        self._continue = True
+
     # A lean path for collectors that step thousands of times per second: the same
     # simulator calls and checks as ``reset``/``step``, without TensorDict bookkeeping.
     def reset_tensors(self, cars: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
@@ -74,6 +86,10 @@ class RacingTorchEnv(EnvBase):
         Returns the entries of ``reset()`` as a dict of tensors (observation of every car).
         """
         rows = None if cars is None else cars.reshape(-1).cpu().numpy().nonzero()[0]
+        if self._continue:  # the first reset after load_sim_state
+            self._continue = False
+            if rows is None:
+                rows = np.flatnonzero(self.sim.finished | (self.sim.t >= self.config.max_steps))
         self.sim.reset(rows)
         return self._entries(**{key: torch.zeros(self.batch_size + (1,), dtype=torch.bool)
                                 for key in ("crashed", "done", "terminated", "truncated")})

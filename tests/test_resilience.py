@@ -44,8 +44,10 @@ def test_sigkill_then_resume_gives_the_uninterrupted_metrics(tmp_path):
     assert not (run_dir / checkpoint.CHECKPOINT_FILE).exists()
 
 
-def test_resume_after_an_interruption_in_process(tmp_path, monkeypatch):
-    """Stopped after episode 5 (checkpoint at 4): the resumed run equals the uninterrupted one."""
+@pytest.mark.parametrize("collector", ["direct", "torchrl"])
+def test_resume_after_an_interruption_in_process(tmp_path, monkeypatch, collector):
+    """Stopped after episode 5 (checkpoint at 4): the resumed run equals the uninterrupted one,
+    with either collector."""
     original = outputs.MetricsWriter.write
 
     def write_then_stop(self, row):
@@ -54,15 +56,16 @@ def test_resume_after_an_interruption_in_process(tmp_path, monkeypatch):
             raise KeyboardInterrupt
 
     monkeypatch.setattr(outputs.MetricsWriter, "write", write_then_stop)
+    run = [*RUN, f"env.collector={collector}"]
     with pytest.raises(KeyboardInterrupt):
-        train(load(*RUN), tmp_path / "run")
+        train(load(*run), tmp_path / "run")
     monkeypatch.setattr(outputs.MetricsWriter, "write", original)
     assert len(read_rows(tmp_path / "run" / "metrics.csv")) == 6
     payload = checkpoint.load(tmp_path / "run" / checkpoint.CHECKPOINT_FILE)
     assert payload["episodes_done"] == 4 and payload["loss"]["temperature"] < 1.0
-    summary = train(load(*RUN), tmp_path / "run")
+    summary = train(load(*run), tmp_path / "run")
     assert summary["resumed_at"] == 4
-    assert (tmp_path / "run" / "metrics.csv").read_bytes() == uninterrupted(tmp_path)
+    assert (tmp_path / "run" / "metrics.csv").read_bytes() == uninterrupted(tmp_path, f"env.collector={collector}")
 
 
 def test_a_corrupt_checkpoint_is_refused_clearly(tmp_path):

@@ -57,6 +57,39 @@ def test_fixed_tracks_are_there_before_reset():
     assert env.tracks[1] is not None and env.tracks[0].seed == 2067791
 
 
+@pytest.mark.parametrize("track_seeds", [[2067791, 773203], None])
+def test_a_restored_simulator_continues_exactly(track_seeds):
+    """Saved mid-episode (one car's episode just ended), restored into a new env: the next
+    full reset continues the cars (resetting only the finished one) and every step after it
+    is identical, random tracks included."""
+    actions = torch.rand(150, 2, 2, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    env = RacingTorchEnv(2, track_seeds=track_seeds, max_steps=60)
+    env.set_seed(4)
+    env.reset_tensors()
+    for k in range(90):
+        out = env.step_tensors(actions[k])
+        if out["done"].any():
+            env.reset_tensors(out["done"])
+    env.step_tensors(actions[90])  # t = 31: neither car is done
+    saved = env.sim.state_dict()
+    follow = [env.reset_tensors()] + [env.step_tensors(a) for a in actions[91:]]  # a plain full reset
+    restored = RacingTorchEnv(2, track_seeds=track_seeds, max_steps=60)
+    restored.set_seed(99)
+    restored.load_sim_state(saved)
+    first = restored.reset_tensors()
+    assert restored.sim.t.tolist() == [31, 31]  # continued, not reset
+    again = [first]
+    for a in actions[91:]:
+        again.append(restored.step_tensors(a))
+    plain = RacingTorchEnv(2, track_seeds=track_seeds, max_steps=60)
+    plain.load_sim_state(saved)
+    expected = [plain.reset_tensors(torch.zeros(2, dtype=torch.bool))] + [plain.step_tensors(a) for a in actions[91:]]
+    for got, want in zip(again, expected, strict=True):
+        for key in want:
+            assert torch.equal(got[key], want[key]), key
+    assert not torch.equal(follow[1]["observation"], again[1]["observation"])  # a real reset differs
+
+
 def test_partial_reset_leaves_other_cars_alone():
     env = RacingTorchEnv(3, 2067791)
     env.set_seed(0)
