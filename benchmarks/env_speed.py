@@ -3,7 +3,8 @@
     python benchmarks/env_speed.py [--seconds 2]
 
 Workload: uniformly random actions in [-1, 1] on paper track 2067791, episodes of 200
-steps (the reset is timed too). Each row runs for about ``--seconds`` and reports steps
+steps (the reset is timed too). One car takes the simulator's scalar path (plain Python
+floats over the same tables, ``racing.physics.step_car``); more cars the batched kernels. Each row runs for about ``--seconds`` and reports steps
 per second per car, as a ratio against the plain-Python scalar baseline run here (first
 crossing, the reference's rule) and against its nearest-crossing variant (every segment
 scanned). Ratios are what to compare across machines, not absolute numbers.
@@ -54,8 +55,8 @@ def scalar(nearest: bool, seconds: float) -> float:
     return timed(step, seconds)
 
 
-def gymnasium_env(seconds: float) -> float:
-    env = gym.make(racing.ENV_ID, track_seed=TRACK)
+def gymnasium_env(seconds: float, nearest: bool = False) -> float:
+    env = gym.make(racing.ENV_ID, track_seed=TRACK, nearest_ray=nearest)
     env.reset(seed=0)
     actions = np.random.default_rng(0).uniform(-1, 1, (EPISODE, 2)).astype(np.float32)
 
@@ -81,6 +82,21 @@ def torchrl_env(n: int, seconds: float) -> float:
     return timed(step, seconds) * n
 
 
+def torchrl_tensors(n: int, seconds: float) -> float:
+    """The lean tensor path the direct collector uses (``step_tensors``, resets of finished cars)."""
+    env = racing.RacingTorchEnv(n, TRACK)
+    env.set_seed(0)
+    actions = torch.rand(EPISODE, n, 2, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    env.reset_tensors()
+
+    def step(k):
+        out = env.step_tensors(actions[k])
+        if out["done"].any():
+            env.reset_tensors(out["done"])
+
+    return timed(step, seconds) * n
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=2.0, help="time per row")
@@ -90,7 +106,9 @@ def main() -> None:
     first = scalar(False, args.seconds)
     rows = [("scalar Python, first crossing (baseline)", 1, first),
             ("scalar Python, nearest crossing", 1, scalar(True, args.seconds)),
-            ("Gymnasium env (gym.make)", 1, gymnasium_env(args.seconds))]
+            ("Gymnasium env (gym.make)", 1, gymnasium_env(args.seconds)),
+            ("Gymnasium env (gym.make), nearest_ray=True", 1, gymnasium_env(args.seconds, nearest=True)),
+            ("TorchRL env, step_tensors", 1, torchrl_tensors(1, args.seconds))]
     for n in (1, 64, 1024, 4096):
         rows.append(("TorchRL env, step_and_maybe_reset", n, torchrl_env(n, args.seconds)))
     nearest = rows[1][2]

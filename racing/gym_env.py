@@ -165,15 +165,14 @@ class RacingEnv(gym.Env):
         return self._observation(), self._info()
 
     def step(self, action):
-        a = validate_action(action)
-        reward, terminated, truncated, crashed = self.sim.step(a[:1], a[1:])
-        self._crashed = bool(crashed[0])
+        throttle, steer = validate_action(action).tolist()
+        reward, terminated, truncated, self._crashed = self.sim.step_car(throttle, steer)
         if self.render_mode == "human":
             self.render()
-        return self._observation(), float(reward[0]), bool(terminated[0]), bool(truncated[0]), self._info()
+        return self._observation(), reward, terminated, truncated, self._info()
 
     def _observation(self) -> np.ndarray:
-        return self.sim.observe()[0].astype(np.float32)
+        return np.array(self.sim.observe_car(), dtype=np.float32)
 
     def _info(self) -> dict[str, Any]:
         info = self.sim.car_state(0)

@@ -167,3 +167,104 @@ def crosses_segment(ax, ay, bx, by, px, py, qx, qy) -> np.ndarray:
     d3 = (qx - px) * (ay - py) - (qy - py) * (ax - px)
     d4 = (qx - px) * (by - py) - (qy - py) * (bx - px)
     return (d1 * d2 <= 0) & (d3 * d4 <= 0) & (d1 != d2)
+
+
+# ------------------------------------------------------------------------------ one car
+# One car pays for every NumPy call as if it were a batch: about 50 small calls per step,
+# whose fixed cost dwarfs the arithmetic. For N = 1 the same tables are read as Python
+# floats and the same operations run in the same order on scalars (IEEE double arithmetic,
+# so the results are identical bit for bit); sines and cosines still come from NumPy, so the
+# two paths agree on any NumPy build. tests/test_physics.py checks the two paths against
+# each other on random tracks, and the conformance tests check both against the reference.
+
+
+@dataclass(frozen=True, eq=False)
+class CarTables:
+    """``TrackTables`` as nested tuples of Python floats, one entry per checkpoint."""
+
+    polygons: tuple  # [c]: checkpoint c's polygon and c + 1's, each 4 edges of the 7 edge columns
+    respawn: tuple  # [c]: (checkpoint, x, y, theta) after leaving the track from c
+    finish: tuple  # (ax, ay, bx, by)
+    segments: tuple  # [c]: (p1x, p1y, v2x, v2y) of each reachable wall segment, in scan order
+
+
+def car_tables(tables: TrackTables) -> CarTables:
+    n = tables.edges.shape[-1]
+    edges = tables.edges.transpose(3, 1, 2, 0).tolist()  # (N, 2, 4, 7)
+    rays = tables.rays.transpose(2, 1, 0).tolist()  # (N, W, 4)
+    respawn = tables.respawn.T.tolist()
+    return CarTables(
+        polygons=tuple(tuple(tuple(tuple(edge) for edge in polygon) for polygon in edges[c]) for c in range(n)),
+        respawn=tuple((int(r[0]), r[1], r[2], r[3]) for r in respawn),
+        finish=tuple(tables.finish.tolist()),
+        segments=tuple(tuple(tuple(s) for s in rays[c] if s[0] == s[0]) for c in range(n)),  # drop NaN pads
+    )
+
+
+def _inside_car(x: float, y: float, polygon: tuple) -> bool:
+    """``inside_parity`` for one point and one polygon."""
+    inside = False
+    for ymin, ymax, xmax, p1x, p1y, dx, dy in polygon:
+        if y > ymin and y <= ymax and x <= xmax and x <= (y - p1y) * dx / dy + p1x:
+            inside = not inside
+    return inside
+
+
+def step_car(x: float, y: float, theta: float, speed: float, checkpoint: int, throttle: float, steer: float,
+             tables: CarTables, config: RacingConfig) -> tuple:
+    """One step of one car, as ``RacingSim.step`` computes it for a batch.
+
+    Returns ``(x, y, theta, speed, checkpoint, reward, finished, crashed)``.
+    """
+    throttle = min(max(throttle, -1.0), 1.0)
+    steer = min(max(steer, -1.0), 1.0)
+    speed = speed + ((throttle / 2 + 0.5) * config.max_speed - speed) * config.accel
+    theta = theta - steer * speed / max(speed * speed / config.turn_rate, config.min_turn_radius)
+    sin_cos = np.sin(theta), np.cos(theta)
+    old_x, old_y = x, y
+    x = old_x + float(sin_cos[0]) * speed
+    y = old_y + float(sin_cos[1]) * speed
+    reward = speed / config.max_speed
+    current, following = tables.polygons[checkpoint]
+    in_current = _inside_car(x, y, current)
+    in_next = _inside_car(x, y, following)
+    finished = crashed = False
+    if in_current or in_next:
+        checkpoint += not in_current and in_next
+    else:
+        if checkpoint == config.num_segments - 1:
+            finished = bool(crosses_segment(*tables.finish, old_x, old_y, x, y))
+        if not finished:
+            crashed = True
+            reward -= config.crash_penalty
+            checkpoint, x, y, theta = tables.respawn[checkpoint]
+            speed = 0.0
+    return x, y, theta, speed, checkpoint, reward, finished, crashed
+
+
+def ray_distances_car(x: float, y: float, theta: float, segments: tuple, config: RacingConfig,
+                      nearest: bool = False) -> list[float]:
+    """``ray_distances`` for one car: the reading of each ray, capped at the ray length."""
+    length = config.ray_length
+    phi = (np.asarray(_ray_offsets(config)[:, 0]) - theta / np.pi * 180.0) / 180.0 * np.pi
+    directions = zip(np.cos(phi).tolist(), np.sin(phi).tolist())
+    # Per segment, what does not depend on the ray: the car relative to its start, and t1's numerator.
+    relative = [(v1x, v1y, v2x, v2y, v2x * v1y - v2y * v1x)
+                for v1x, v1y, v2x, v2y in ((x - p1x, y - p1y, v2x, v2y) for p1x, p1y, v2x, v2y in segments)]
+    readings = []
+    for ux, uy in directions:
+        best = length
+        for v1x, v1y, v2x, v2y, numerator in relative:
+            denom = v2x * -uy + v2y * ux
+            if denom == 0.0:  # parallel: no crossing (the batched kernel gets inf or NaN here)
+                continue
+            t1 = numerator / denom
+            if 0.0 <= t1 <= length:
+                t2 = (v1x * -uy + v1y * ux) / denom
+                if 0.0 <= t2 <= 1.0:
+                    if not nearest:
+                        best = t1
+                        break
+                    best = min(best, t1)
+        readings.append(best)
+    return readings

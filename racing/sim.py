@@ -21,7 +21,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from racing.config import RacingConfig
-from racing.physics import TrackTables, build_tables, crosses_segment, inside_parity, ray_distances
+from racing.physics import (CarTables, TrackTables, build_tables, car_tables, crosses_segment, inside_parity,
+                            ray_distances, ray_distances_car, step_car)
 from racing.track import Track, deg_to_rad, layout_track, track_from_seed
 
 
@@ -38,6 +39,16 @@ def tables_of(track: Track, config: RacingConfig) -> TrackTables:
     tables = _TABLES.get(track)
     if tables is None:
         tables = _TABLES[track] = build_tables(track, config)
+    return tables
+
+
+_CAR_TABLES: weakref.WeakKeyDictionary[Track, CarTables] = weakref.WeakKeyDictionary()
+
+
+def car_tables_of(track: Track, config: RacingConfig) -> CarTables:
+    tables = _CAR_TABLES.get(track)
+    if tables is None:
+        tables = _CAR_TABLES[track] = car_tables(tables_of(track, config))
     return tables
 
 
@@ -276,6 +287,8 @@ class RacingSim:
             self.bank.release(int(self.slot[car]))
         self.slot[car] = self.bank.acquire(track)
         self.tracks[car] = track
+        if self.num_cars == 1:
+            self._car = car_tables_of(track, self.config)
 
     # -------------------------------------------------------------------------------- step
     def step(self, throttle: np.ndarray, steer: np.ndarray):
@@ -287,6 +300,8 @@ class RacingSim:
         if not self._ready:
             cars = np.flatnonzero(~self._reset_once)
             raise RuntimeError(f"RacingSim.step() called before reset() of cars {cars[:8].tolist()}")
+        if self.num_cars == 1:
+            return tuple(np.array([value]) for value in self.step_car(float(throttle[0]), float(steer[0])))
         throttle = np.minimum(np.maximum(throttle, -1.0), 1.0)
         steer = np.minimum(np.maximum(steer, -1.0), 1.0)
         speed = self.speed + ((throttle / 2 + 0.5) * cfg.max_speed - self.speed) * cfg.accel
@@ -319,9 +334,28 @@ class RacingSim:
         self.finished = finished
         return reward, finished, self.t >= cfg.max_steps, off_track
 
+    def step_car(self, throttle: float, steer: float) -> tuple[float, bool, bool, bool]:
+        """``step`` of a one-car simulator with Python scalars in and out (``physics.step_car``:
+        the same arithmetic without NumPy's per-call cost). Returns ``(reward, terminated,
+        truncated, crashed)``."""
+        if self.num_cars != 1:
+            raise ValueError(f"step_car() steps a one-car simulator; this one has {self.num_cars} cars")
+        if not self._ready:
+            raise RuntimeError("RacingSim.step_car() called before reset()")
+        cfg = self.config
+        (x, y, theta, speed, checkpoint, reward, finished, crashed) = step_car(
+            float(self.x[0]), float(self.y[0]), float(self.theta[0]), float(self.speed[0]), int(self.checkpoint[0]),
+            throttle, steer, self._car, cfg)
+        self.x[0], self.y[0], self.theta[0], self.speed[0], self.checkpoint[0] = x, y, theta, speed, checkpoint
+        self.t[0] += 1
+        self.finished[0] = finished
+        return reward, finished, bool(self.t[0] >= cfg.max_steps), crashed
+
     # ---------------------------------------------------------------------------- observe
     def observe(self) -> np.ndarray:
         """Ray readings (divided by the ray length) and speed / max_speed: (N, num_rays + 1) float64."""
+        if self.num_cars == 1:
+            return np.array([self.observe_car()])
         cfg = self.config
         rows = self.slot * cfg.num_segments + self.checkpoint
         obs = np.empty((cfg.obs_size, self.num_cars))
@@ -334,6 +368,13 @@ class RacingSim:
         obs[:-1] /= cfg.ray_length
         obs[-1] = self.speed / cfg.max_speed
         return obs.T
+
+    def observe_car(self) -> list[float]:
+        """``observe`` of a one-car simulator, as a list of Python floats."""
+        cfg = self.config
+        x, y, theta = float(self.x[0]), float(self.y[0]), float(self.theta[0])
+        readings = ray_distances_car(x, y, theta, self._car.segments[int(self.checkpoint[0])], cfg, self.nearest_ray)
+        return [r / cfg.ray_length for r in readings] + [float(self.speed[0]) / cfg.max_speed]
 
     def car_state(self, car: int = 0) -> dict:
         """The state of one car as plain Python values."""

@@ -14,7 +14,7 @@ def test_env_speed_benchmark_prints_its_table():
                             capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
-    assert len(rows) == 1 + 7  # header and one row per implementation
+    assert len(rows) == 1 + 9  # header and one row per implementation
     assert "| TorchRL env, step_and_maybe_reset | 4096 |" in result.stdout
 
 

@@ -65,6 +65,39 @@ def test_first_and_nearest_crossing_differ_only_on_self_crossing_tracks():
     assert differ > 0
 
 
+@pytest.mark.parametrize("nearest", [False, True])
+@pytest.mark.parametrize("track_seed, options", [(None, {}), (None, {"num_segments": 6}), (2067791, {})])
+def test_one_car_path_equals_the_batched_path(nearest, track_seed, options):
+    """A one-car simulator takes the scalar path (physics.step_car); car 0 of a two-car
+    simulator the batched one. Same streams, same actions: identical to the bit, over random
+    tracks (self-crossing ones among them), crashes, respawns and, on 6-segment tracks, finishes."""
+    config = RacingConfig(**options)
+    one, two = RacingSim(1, track_seed, config, nearest), RacingSim(2, track_seed, config, nearest)
+    one.seed([11])
+    two.seed([11, 12])
+    rng = np.random.default_rng(0)
+    events = {"crashed": 0, "finished": 0}
+    for episode in range(30):
+        one.reset()
+        two.reset()
+        for _ in range(120):
+            a = rng.uniform(-1.3, 1.3, 2)
+            a[0] = max(a[0], rng.uniform(0.2, 1.0))  # mostly forward, so cars get somewhere
+            solo = one.step(a[:1], a[1:])
+            pair = two.step(np.array([a[0], 0.0]), np.array([a[1], 0.0]))
+            for mine, theirs in zip(solo, pair):
+                assert mine[0] == theirs[0]
+            np.testing.assert_array_equal(one.observe()[0], two.observe()[0])
+            for name in ("x", "y", "theta", "speed", "checkpoint", "t"):
+                assert getattr(one, name)[0] == getattr(two, name)[0], name
+            events["crashed"] += int(solo[3][0])
+            events["finished"] += int(solo[1][0])
+            if solo[1][0] or solo[2][0]:
+                break
+    assert events["crashed"] > 0
+    assert events["finished"] > 0 or options.get("num_segments") != 6
+
+
 def test_inside_parity_matches_the_scalar_polygon_test():
     rng = np.random.default_rng(0)
     track = track_from_seed(5468063)
