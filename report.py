@@ -1,6 +1,7 @@
 """Lay out a sweep's results beside the paper's: ``python report.py SWEEP_DIR``.
 
 Writes into ``SWEEP_DIR/report/``:
+- ``runs.csv``: one row per run (cell, track seed, status, final performance, code version);
 - ``table.md``, ``table.csv``: Table 1's layout, mean ± standard error over seeds of each run's
   final performance, the paper's value, and the difference in units of the combined standard
   error; diverged runs counted;
@@ -23,7 +24,7 @@ import sys
 from pathlib import Path
 
 from experiment.report import (cells, code_versions, find_runs, read_paper_table, table_markdown,
-                               versions_markdown, write_table_csv)
+                               versions_markdown, write_runs_csv, write_table_csv)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -53,6 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     markdown = versions_markdown(versions) + "\n" + table_markdown(table)
     (out / "table.md").write_text(markdown)
     write_table_csv(table, out / "table.csv")
+    write_runs_csv(runs, out / "runs.csv", args.sweep_dir)
     print(markdown)
     for status in ("diverged", "partial", "unreadable"):
         listed = [r for r in runs if r.status == status]
@@ -60,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{len(listed)} {status} run(s):")
             for r in listed:
                 print(f"  {r.path} ({len(r.rewards)} episodes in metrics.csv)")
-    print(f"{sum(r.status == 'completed' for r in runs)} completed runs; wrote {out}/table.md, table.csv")
+    print(f"{sum(r.status == 'completed' for r in runs)} completed runs; wrote {out}/table.md, table.csv, runs.csv")
     if not args.no_figures:
         write_figures(runs, out)
     return 0

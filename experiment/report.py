@@ -191,5 +191,16 @@ def write_table_csv(table: list[Cell], path: Path) -> None:
                              _num(c.paper_sem), _num(c.z)])
 
 
+def write_runs_csv(runs: list[Run], path: Path, root: Path) -> None:
+    """One row per run folder: cell, track seed, final performance, status, code version."""
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["er", "algo", "seed", "status", "final_mean", "episodes", "code", "folder"])
+        for r in sorted(runs, key=lambda r: (r.er or "", r.algo or "", r.seed or -1, str(r.path))):
+            final = "" if r.final_mean is None else repr(float(r.final_mean))
+            writer.writerow([r.er or "", r.algo or "", "" if r.seed is None else r.seed, r.status, final,
+                             len(r.rewards), r.version, r.path.relative_to(root).as_posix()])
+
+
 def _num(value: float | None) -> str:
     return "" if value is None else f"{value:.4f}"

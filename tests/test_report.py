@@ -56,6 +56,11 @@ def test_report_lists_partial_unreadable_and_diverged_runs(tmp_path, capsys):
     table = (tmp_path / "report" / "table.md").read_text()
     assert "95.0 ± 5.0 (n=2)" in table and "paper 94.4 ± 3.8" in table
     assert "1 diverged" in table
+    runs_csv = (tmp_path / "report" / "runs.csv").read_text().splitlines()
+    assert runs_csv[0] == "er,algo,seed,status,final_mean,episodes,code,folder"
+    assert "hybrid,ppo_log,1,diverged,,3,0123456789abcdef,ppo_log/hybrid/seed1" in runs_csv
+    assert "recent,spg,1,completed,90.0,3,0123456789abcdef,spg/recent/seed1" in runs_csv
+    assert ",,,partial,,3,not recorded,spg/recent/seed3" in runs_csv
     csv_rows = (tmp_path / "report" / "table.csv").read_text().splitlines()
     assert csv_rows[0] == "er,algo,n,mean,sem,diverged,paper_mean,paper_sem,z"
     assert any(r.startswith("hybrid,ppo_log,0,,,1,,,") for r in csv_rows)
