@@ -235,6 +235,12 @@ class RunConfig:
         _at_least("checkpoint_every", self.checkpoint_every, 0, " (0: never)")
         _at_least("threads", self.threads, 1)
         _choice("logger", self.logger, LOGGERS)
+        if self.logger == "tensorboard":
+            import importlib.util
+
+            if importlib.util.find_spec("tensorboard") is None:
+                raise ConfigError("logger=tensorboard needs the tensorboard package: "
+                                  "pip install -c constraints/cpu.txt -e '.[tensorboard]' (or use logger=csv)")
         minibatch = max(1, round(self.algo.minibatch_size * self.er.minibatch_fraction))
         steps = self.env.episode_steps
         if self.er.train_on_recent and minibatch > steps:

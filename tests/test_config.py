@@ -91,3 +91,12 @@ def test_unknown_algorithm_names_the_choices():
     with pytest.raises(MissingConfigException) as err:
         load("algo=sac")
     assert "spg_p_multi" in str(err.value)
+
+
+def test_tensorboard_logger_without_the_package_is_a_config_error(monkeypatch):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "tensorboard" else real(name, *a))
+    with pytest.raises(ConfigError, match=r"logger=tensorboard needs the tensorboard package: pip install"):
+        load("logger=tensorboard")

@@ -1,0 +1,105 @@
+"""Every command the README shows runs, at a tiny size (two episodes, a temporary folder).
+
+Commands are read from the README itself, so a documented command that breaks fails here.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shlex
+from pathlib import Path
+
+import pytest
+
+from tests.test_config import CELLS
+from tests.test_train import ROOT, read_rows, run_train
+
+README = (ROOT / "README.md").read_text()
+# Commands run by other tests at a tiny size (or that need a cluster), and where.
+ELSEWHERE = {
+    "clean_sweep.py": "tests/test_launchers.py::test_clean_sweep_runs_an_export_of_the_commit",
+    "hydra/launcher=slurm": "tests/test_launchers.py::test_slurm_preset_composes_with_its_defaults",
+}
+
+
+def readme_commands(script: str) -> list[list[str]]:
+    """Each distinct ``python <script> ...`` line of the README (continuations joined, comments cut)."""
+    text = README.replace("\\\n", " ")
+    found = []
+    for match in re.finditer(rf"^\s*(?:\.venv/bin/)?python3? {re.escape(script)}(.*)$", text, re.MULTILINE):
+        line = match.group(1).split("#")[0]
+        if any(key in line for key in ELSEWHERE):
+            continue
+        args = shlex.split(line)
+        if args not in found:
+            found.append(args)
+    return found
+
+
+def tiny(args: list[str], out: Path) -> list[str]:
+    """The same command at two episodes, writing into ``out``."""
+    keep = [a for a in args if not a.startswith("episodes=")]
+    extra = ["episodes=2", "progress=false"]
+    if "-m" in args:
+        extra.append(f"hydra.sweep.dir={out}")
+        if any(a.startswith("+experiment=") for a in args):
+            extra.append("seed=2067791")  # one track instead of five
+    else:
+        extra.append(f"hydra.run.dir={out}")
+    return keep + extra
+
+
+TRAIN = readme_commands("train.py")
+
+
+def test_the_readme_shows_what_these_tests_run():
+    assert [] in TRAIN  # the main job: python train.py
+    assert any("+experiment=paper_grid" in c for c in TRAIN)
+    assert readme_commands("report.py") and readme_commands("evaluate.py")
+    assert "clean_sweep.py +experiment=full_grid" in README and "hydra/launcher=slurm" in README
+
+
+@pytest.mark.parametrize("args", TRAIN, ids=[" ".join(c) or "defaults" for c in TRAIN])
+def test_readme_train_command(tmp_path, args):
+    result = run_train(*tiny(args, tmp_path))
+    if "logger=tensorboard" in args and "needs the tensorboard package" in result.stderr:
+        assert result.returncode == 2 and "Traceback" not in result.stderr  # the extra is not installed
+        return
+    assert result.returncode == 0, result.stderr[-3000:]
+    summaries = list(tmp_path.rglob("summary.json"))
+    assert summaries
+    for path in summaries:
+        summary = json.loads(path.read_text())
+        assert summary["status"] == "completed" and summary["episodes"] == 2
+        assert summary["code"]["source"]
+    if "+experiment=paper_grid" in args:  # every cell of Table 1, on one track here
+        assert len(summaries) == len(CELLS) == 15
+        for path in summaries:
+            summary = json.loads(path.read_text())
+            assert f"{summary['er']}-{summary['algo']}" in CELLS and summary["settings"]["seed"] == 2067791
+            rows = read_rows(path.parent / "metrics.csv")
+            assert [int(r["episode"]) for r in rows] == [0, 1]
+            assert rows[1]["critic/loss_critic"] != "" and rows[1]["actor/loss_objective"] != ""
+            assert (path.parent / ".hydra" / "config.yaml").exists()
+
+
+def test_readme_report_and_evaluate_commands(tmp_path, capsys):
+    """The README's report and evaluate lines, on a two-run sweep in place of the paper grid."""
+    pytest.importorskip("matplotlib", reason="the report's figures and the video need the render extra")
+    import evaluate
+    import report
+
+    sweep = tmp_path / "paper_grid"
+    result = run_train("-m", "+cell=memory-spg_p_multi,recent-ppo", "seed=2067791", "episodes=2",
+                       "progress=false", "logger=none", f"hydra.sweep.dir={sweep}")
+    assert result.returncode == 0, result.stderr[-3000:]
+    for args in readme_commands("report.py"):
+        if "paper_grid" in args[0]:
+            assert report.main([str(sweep), *args[1:]]) == 0
+    for args in readme_commands("evaluate.py"):
+        args = [str(sweep / Path(args[0]).relative_to("outputs/sweeps/paper_grid")), *args[1:]]
+        args = [str(tmp_path / a) if a.endswith((".gif", ".mp4")) else a for a in args]
+        args[args.index("--episodes") + 1] = "1"
+        assert evaluate.main(args) == 0
+    assert (sweep / "report" / "table.md").exists() and list(tmp_path.glob("*.gif"))
