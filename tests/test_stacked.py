@@ -1,0 +1,120 @@
+"""Stacked population networks: members are independent, and each equals a population of one."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from experiment.models import CriticNet, GaussianPolicyNet
+from experiment.stacked import (StackedCriticNet, StackedGaussianPolicyNet, load_member_state_dict,
+                                member_state_dict, reset_parameters)
+
+SEEDS = [2067791, 5468063, 5412436, 8273186]
+
+
+def population(seeds):
+    generators = [torch.Generator().manual_seed(s) for s in seeds]
+    actor = reset_parameters(StackedGaussianPolicyNet(len(seeds), 6, 2, [100]), generators)
+    critic = reset_parameters(StackedCriticNet(len(seeds), 8, [100, 100]), generators)
+    return actor, critic
+
+
+def data(seed, batch=200):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(batch, 6, generator=g), torch.rand(batch, 2, generator=g) * 2 - 1, torch.randn(batch, 1, generator=g)
+
+
+def train_steps(actor, critic, batches, steps=20):
+    """Adam steps on each member's own batch: losses are means per member, summed over members."""
+    obs, act, ret = (torch.stack(parts) for parts in zip(*batches))
+    critic_opt = torch.optim.Adam(critic.parameters(), lr=5e-4, foreach=True)
+    actor_opt = torch.optim.Adam(actor.parameters(), lr=1e-3, foreach=True)
+    for _ in range(steps):
+        critic_loss = (ret - critic(obs, act)).pow(2).flatten(1).mean(1).sum()
+        critic_opt.zero_grad()
+        critic_loss.backward()
+        critic_opt.step()
+        loc, scale = actor(obs)
+        actor_loss = -torch.distributions.Normal(loc, scale).log_prob(act).flatten(1).mean(1).sum()
+        actor_opt.zero_grad()
+        actor_loss.backward()
+        actor_opt.step()
+
+
+def test_initialisation_depends_on_the_member_seed_alone():
+    actor, critic = population(SEEDS)
+    for r, seed in enumerate(SEEDS):
+        solo_actor, solo_critic = population([seed])
+        for stacked, solo in ((actor, solo_actor), (critic, solo_critic)):
+            for name, value in member_state_dict(stacked, r).items():
+                assert torch.equal(value, member_state_dict(solo, 0)[name]), name
+    assert not torch.equal(actor.loc_head.weight[0], actor.loc_head.weight[1])
+    assert torch.count_nonzero(actor.body.layers[0].bias) == 0
+
+
+def test_members_forward_like_the_solo_networks():
+    """Saved member weights load into the solo networks (evaluate.py) and compute the same
+    function, to float rounding (F.linear and bmm accumulate in other orders)."""
+    torch.set_num_threads(1)
+    actor, critic = population(SEEDS)
+    obs = torch.rand(len(SEEDS), 3, 7, 6)  # extra batch dimensions, as SPG's candidates have
+    act = torch.rand(len(SEEDS), 3, 7, 2)
+    loc, scale = actor(obs)
+    q = critic(obs, act)
+    assert loc.shape == (4, 3, 7, 2) and q.shape == (4, 3, 7, 1)
+    for r in range(len(SEEDS)):
+        solo_actor, solo_critic = GaussianPolicyNet(6, 2, [100]), CriticNet(8, [100, 100])
+        solo_actor.load_state_dict(member_state_dict(actor, r))
+        solo_critic.load_state_dict(member_state_dict(critic, r))
+        solo_loc, solo_scale = solo_actor(obs[r])
+        torch.testing.assert_close((loc[r], scale[r]), (solo_loc, solo_scale), rtol=1e-6, atol=1e-6)
+        torch.testing.assert_close(q[r], solo_critic(obs[r], act[r]), rtol=1e-6, atol=1e-6)
+
+
+def test_a_member_trains_exactly_like_a_population_of_one():
+    """Twenty Adam steps of critic and actor on each member's own data: every member's weights
+    equal those of the same member trained alone, to the bit."""
+    torch.set_num_threads(1)
+    actor, critic = population(SEEDS)
+    train_steps(actor, critic, [data(s) for s in SEEDS])
+    for r, seed in [(0, SEEDS[0]), (3, SEEDS[3])]:
+        solo_actor, solo_critic = population([seed])
+        train_steps(solo_actor, solo_critic, [data(seed)])
+        for stacked, solo in ((actor, solo_actor), (critic, solo_critic)):
+            for name, value in member_state_dict(stacked, r).items():
+                assert torch.equal(value, member_state_dict(solo, 0)[name]), (r, name)
+
+
+def test_order_of_members_does_not_matter():
+    torch.set_num_threads(1)
+    forward, backward = population(SEEDS), population(SEEDS[::-1])
+    train_steps(*forward, [data(s) for s in SEEDS])
+    train_steps(*backward, [data(s) for s in SEEDS[::-1]])
+    last = len(SEEDS) - 1
+    for a, b in zip(forward, backward):
+        for name, value in member_state_dict(a, 0).items():
+            assert torch.equal(value, member_state_dict(b, last)[name]), name
+
+
+def test_a_diverging_member_leaves_the_others_alone():
+    torch.set_num_threads(1)
+    actor, critic = population(SEEDS[:2])
+    batches = [data(SEEDS[0]), data(SEEDS[1])]
+    batches[0] = (batches[0][0], batches[0][1], torch.full((200, 1), float("nan")))  # member 0's returns
+    train_steps(actor, critic, batches)
+    assert not torch.isfinite(critic.net.layers[0].weight[0]).all()
+    alone = population(SEEDS[1:2])
+    train_steps(*alone, batches[1:])
+    for name, value in member_state_dict(critic, 1).items():
+        assert torch.equal(value, member_state_dict(alone[1], 0)[name]), name
+
+
+def test_member_weights_round_trip_and_bad_shapes_are_refused():
+    actor, _ = population(SEEDS)
+    other, _ = population([1, 2, 3, 4])
+    load_member_state_dict(other, 2, member_state_dict(actor, 1))
+    assert torch.equal(other.loc_head.weight[2], actor.loc_head.weight[1])
+    with pytest.raises(ValueError, match="has 3 members on its first dimension, this layer 4"):
+        actor(torch.rand(3, 6))
+    with pytest.raises(ValueError, match="the weights have entries"):
+        load_member_state_dict(other, 0, {"loc_head.weight": torch.zeros(2, 100)})
