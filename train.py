@@ -1,8 +1,10 @@
-"""Train one cell of the paper's table: ``python train.py algo=spg_p er=hybrid seed=3``.
+"""Train one cell of the paper's table: ``python train.py algo=spg_p er=hybrid seed=3``, or one
+run per seed in one process: ``python train.py algo=spg_p er=hybrid 'seeds=[3,4,5]'``.
 
-Writes into the run's folder (``outputs/runs/<algo>/<er>/seed<seed>`` by default, or the
+A run writes into its folder (``outputs/runs/<algo>/<er>/seed<seed>`` by default, or the
 sweep's subfolder with ``-m``): ``metrics.csv``, ``summary.json``, ``actor.pt``, ``critic.pt``,
-TorchRL logs and Hydra's ``.hydra/``. See ``conf/config.yaml`` for every option.
+TorchRL logs and Hydra's ``.hydra/``. With ``seeds``, each member writes that into
+``outputs/runs/<algo>/<er>/seed<seed>/``. See ``conf/config.yaml`` for every option.
 """
 
 from __future__ import annotations
@@ -15,13 +17,14 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from experiment.config import ConfigError, RunConfig
+from experiment.config import ConfigError, RunConfig, register_resolvers
 
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")  # torchrl's INFO lines (set before it loads)
+register_resolvers()  # the run folder's name (conf/config.yaml) uses one
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
-def main(cfg: DictConfig) -> float | None:
+def main(cfg: DictConfig) -> float | list | None:
     settings = OmegaConf.to_container(cfg, resolve=True)
     try:
         run_cfg = RunConfig.from_mapping(settings)
@@ -29,23 +32,23 @@ def main(cfg: DictConfig) -> float | None:
         print(f"Invalid configuration: {err}", file=sys.stderr)
         raise SystemExit(2) from None
     from experiment.checkpoint import CHECKPOINT_FILE, CheckpointError
-    from experiment.runner import finished_run, train  # after validation: torch loads slowly
+    from experiment.runner import train_population  # after validation: torch loads slowly
     from experiment.version import describe
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
-        done = finished_run(out_dir, settings, overwrite=run_cfg.overwrite)
-        if done is not None:
-            print(f"{out_dir}: already {done['status']} (final_mean {done['final_mean']}, "
-                  f"{describe(done.get('code'))}); skipped", file=sys.stderr)
-            return done["final_mean"]
         if run_cfg.overwrite:
             (out_dir / CHECKPOINT_FILE).unlink(missing_ok=True)
-        return train(run_cfg, out_dir, settings)["final_mean"]
+        skipped: list[tuple[Path, dict]] = []
+        summaries = train_population(run_cfg, out_dir, settings, skipped=skipped)
     except (ConfigError, CheckpointError) as err:
         print(f"Refusing to run: {err}", file=sys.stderr)
         raise SystemExit(2) from None
-
+    for folder, summary in skipped:
+        print(f"{folder}: already {summary['status']} (final_mean {summary['final_mean']}, "
+              f"{describe(summary.get('code'))}); skipped", file=sys.stderr)
+    finals = [s["final_mean"] for s in summaries]
+    return finals[0] if run_cfg.seeds is None else finals
 
 if __name__ == "__main__":
     main()

@@ -29,16 +29,29 @@ class ReplaySchedule:
 
 
 class ReplayMemory:
-    """A ring buffer of transitions (oldest overwritten), on a TorchRL ``TensorDictReplayBuffer``."""
+    """A ring buffer of transitions (oldest overwritten), on a TorchRL ``TensorDictReplayBuffer``.
 
-    def __init__(self, capacity: int):
+    With ``members=R`` it holds one memory per member of a population in one storage: each
+    slot is a row of R transitions (one per member; members add the same number at a time),
+    ``add`` takes ``[R, T]`` and ``contents`` gives ``[R, n]``. ``capacity`` counts
+    transitions per member either way.
+    """
+
+    def __init__(self, capacity: int, members: int | None = None):
         self.capacity = capacity
+        self.members = members
         self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(capacity), sampler=RandomSampler())
 
     def __len__(self) -> int:
+        """Transitions stored (per member)."""
         return len(self.buffer)
 
     def add(self, transitions: TensorDictBase) -> None:
+        if self.members is not None:
+            if transitions.batch_dims != 2 or transitions.batch_size[0] != self.members:
+                raise ValueError(f"a population memory of {self.members} members takes [members, T] "
+                                 f"transitions, got batch size {tuple(transitions.batch_size)}")
+            transitions = transitions.transpose(0, 1)
         self.buffer.extend(transitions)
 
     def state_dict(self) -> dict:
@@ -49,13 +62,30 @@ class ReplayMemory:
         self.buffer.load_state_dict(state)
 
     def contents(self) -> TensorDictBase:
-        """Every stored transition (in slot order, not time order), as a new TensorDict."""
-        return self.buffer[:].clone()
+        """Every stored transition (in slot order, not time order), as a new TensorDict
+        (``[n]``, or ``[R, n]`` for a population)."""
+        data = self.buffer[:]
+        return data.clone() if self.members is None else data.transpose(0, 1).contiguous()
 
 
-def sample_minibatch(data: TensorDictBase, size: int, generator: torch.Generator | None = None) -> TensorDictBase:
-    """``size`` transitions drawn uniformly WITH replacement from ``data`` (a flat TensorDict)."""
-    index = torch.randint(len(data), (size,), generator=generator)
+def sample_minibatch(data: TensorDictBase, size: int,
+                     generators: torch.Generator | list[torch.Generator] | None = None) -> TensorDictBase:
+    """``size`` transitions drawn uniformly WITH replacement from ``data``.
+
+    ``data`` is flat (``[n]``; one ``generator`` or None for torch's global one), or a
+    population's ``[R, n]`` with one generator per member: member r's minibatch comes from
+    its own transitions, with indices from ``generators[r]``; the result is ``[R, size]``.
+    """
+    if isinstance(generators, (list, tuple)):
+        if data.batch_dims != 2 or data.batch_size[0] != len(generators):
+            raise ValueError(f"{len(generators)} generators need data of batch size [{len(generators)}, n], "
+                             f"got {tuple(data.batch_size)}")
+        n = data.batch_size[1]
+        index = torch.stack([torch.randint(n, (size,), generator=g) for g in generators])
+        rows = torch.arange(len(generators)).unsqueeze(1)
+        return TensorDict({key: value[rows, index] for key, value in data.items()},
+                          batch_size=[len(generators), size])
+    index = torch.randint(len(data), (size,), generator=generators)
     # Indexing each entry is cheaper than TensorDict indexing, which this is called for 10^4
     # times per run; nested entries take the general path.
     if any(isinstance(value, TensorDictBase) for value in data.values()):

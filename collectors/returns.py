@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import torch
 from tensordict import TensorDictBase
 from torchrl.objectives.value.functional import reward2go
 
@@ -18,7 +19,10 @@ def add_monte_carlo_returns(batch: TensorDictBase, gamma: float, key: str = RETU
     """
     reward = batch["next", "reward"]
     done = batch["next", "done"]
-    batch.set(key, reward2go(reward, done, gamma=gamma, time_dim=-2))
+    # One car at a time: reward2go's arithmetic depends on the batch's shape, and a member of a
+    # population must get the returns it gets alone, to the bit.
+    returns = [reward2go(reward[i:i + 1], done[i:i + 1], gamma=gamma, time_dim=-2) for i in range(reward.shape[0])]
+    batch.set(key, torch.cat(returns) if len(returns) > 1 else returns[0])
     return batch
 
 

@@ -1,10 +1,11 @@
 """Checkpoints of a training run: everything needed to continue it exactly.
 
 Saved at episode boundaries (after an episode's training; every car has just been reset for
-its next episode, by either collector): the loss module (networks and, for SPG, the
-temperature), both optimisers, the replay memory (storage and write cursor), the torch, NumPy
-and Python generators, the simulator's state (cars, tracks, random streams), the episode
-counter, the learning curve so far, the run's settings and the code version.
+its next episode, by either collector), for every member of the population at once: the loss
+module (stacked networks and, for SPG, the temperatures), both optimisers, the replay memory
+(storage and write cursor), the members' torch generators and the global ones, the
+simulator's state (cars, tracks, random streams), the episode counter, each member's learning
+curve and status (frozen members stay frozen), the run's settings and the code version.
 
 Written atomically (a temporary file, fsync, rename), so a crash mid-write leaves the previous
 checkpoint in place. Loaded with ``torch.load(weights_only=True)``: only tensors and plain
@@ -21,7 +22,7 @@ import numpy as np
 import torch
 
 CHECKPOINT_FILE = "checkpoint.pt"
-VERSION = 2  # 2: the simulator's whole state (cars, tracks, streams), not only its streams
+VERSION = 3  # 2: the simulator's whole state; 3: populations (every member, their generators)
 
 
 class CheckpointError(RuntimeError):

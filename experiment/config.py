@@ -25,6 +25,20 @@ class ConfigError(ValueError):
     """A configuration value or combination that cannot be run."""
 
 
+def seed_dir(seeds, seed) -> str:
+    """The run folder's last part (``conf/config.yaml``): ``/seed<seed>`` for one run, nothing
+    for a population (its members write ``seed<seed>/`` inside the folder)."""
+    return f"/seed{seed}" if seeds is None else ""
+
+
+def register_resolvers() -> None:
+    """Make ``${racing_seed_dir:...}`` known to OmegaConf (before Hydra composes the config)."""
+    from omegaconf import OmegaConf
+
+    if not OmegaConf.has_resolver("racing_seed_dir"):
+        OmegaConf.register_new_resolver("racing_seed_dir", seed_dir)
+
+
 def _build(cls, where: str, values: Mapping[str, Any]):
     """Instantiate dataclass ``cls`` from ``values``: every field required, no unknown keys."""
     names = [f.name for f in fields(cls)]
@@ -61,9 +75,11 @@ def _coerce(where: str, value: Any, hint: Any) -> Any:
             raise ConfigError(f"{where} must be a string, got {value!r}")
         return value
     if text.startswith("tuple[int"):
+        if value is None and "None" in text:
+            return None
         if isinstance(value, (str, bytes)) or not hasattr(value, "__iter__") or not all(
-                isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value):
-            raise ConfigError(f"{where} must be a list of positive integers, got {value!r}")
+                isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in value):
+            raise ConfigError(f"{where} must be a list of non-negative integers, got {value!r}")
         return tuple(value)
     if text.startswith("dict"):
         if value is None and "None" in text:
@@ -205,6 +221,10 @@ class NetworkConfig:
 
     def __post_init__(self) -> None:
         _choice("network.activation", self.activation, ACTIVATIONS)
+        for key in ("actor_hidden", "critic_hidden"):
+            sizes = getattr(self, key)
+            if not sizes or min(sizes) < 1:
+                raise ConfigError(f"network.{key} must be a non-empty list of positive layer sizes, got {list(sizes)}")
 
 
 @dataclass(frozen=True)
@@ -212,6 +232,7 @@ class RunConfig:
     """Everything one training run needs (``conf/config.yaml`` and its groups)."""
 
     seed: int
+    seeds: tuple[int, ...] | None
     episodes: int
     gamma: float
     final_window: int
@@ -228,6 +249,15 @@ class RunConfig:
     def __post_init__(self) -> None:
         if not 0 <= self.seed < 2**32:
             raise ConfigError(f"seed must be in [0, 2**32) (it is also the track seed), got {self.seed}")
+        if self.seeds is not None:
+            if not self.seeds:
+                raise ConfigError("seeds must be null (one run of `seed`) or a non-empty list of track seeds")
+            if max(self.seeds) >= 2**32:
+                raise ConfigError(f"seeds must be in [0, 2**32) (they are track seeds), got {max(self.seeds)}")
+            repeated = sorted({s for s in self.seeds if self.seeds.count(s) > 1})
+            if repeated:
+                raise ConfigError(f"seeds lists {repeated} more than once; each member needs its own seed "
+                                  "(and run folder)")
         _at_least("episodes", self.episodes, 1)
         if not 0 <= self.gamma <= 1:
             raise ConfigError(f"gamma must be in [0, 1], got {self.gamma}")
@@ -250,6 +280,16 @@ class RunConfig:
             raise ConfigError(f"a minibatch of {minibatch} is larger than the replay memory "
                               f"({self.er.buffer_size} transitions) that er={self.er.name} trains on")
 
+    @property
+    def members(self) -> tuple[int, ...]:
+        """The seeds of the runs trained together: ``seeds``, or ``(seed,)`` for one run."""
+        return self.seeds if self.seeds is not None else (self.seed,)
+
+    def member_settings(self, settings: dict, seed: int) -> dict:
+        """The settings of member ``seed``'s run: those of a solo run of that seed, so a run
+        trained in a population and the same run trained alone are recognised as one."""
+        return {**settings, "seed": seed, "seeds": None}
+
     # Keys that change how a run reports, not what it computes.
     PRESENTATION_KEYS = ("progress", "logger", "overwrite", "checkpoint_every")
 
@@ -263,6 +303,7 @@ class RunConfig:
         from omegaconf import OmegaConf
 
         conf = Path(__file__).resolve().parent.parent / "conf"
+        register_resolvers()
         with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
             cfg = compose("config", overrides=list(overrides))
         return cls.from_mapping(OmegaConf.to_container(cfg, resolve=True))

@@ -1,4 +1,11 @@
-"""``make_*`` factories: from a validated ``RunConfig`` to the pieces of a training run."""
+"""``make_*`` factories: from a validated ``RunConfig`` to the pieces of a training run.
+
+A run trains a population: one member per seed of ``cfg.members`` (one for a solo run), each
+with its own car (on its own track and random stream), its own networks (stacked parameters)
+and its own ``torch.Generator`` for everything random on the torch side (initial weights,
+action noise, minibatch indices, SPG's perturbations). So a member's run depends on its seed
+alone, not on the other members or their order.
+"""
 
 from __future__ import annotations
 
@@ -10,52 +17,76 @@ import torch
 
 from collectors import ReplaySchedule, make_collector
 from experiment.config import RunConfig
-from experiment.models import (CriticNet, GaussianPolicyNet, make_actor, make_critic, make_policy,
-                               make_sampler)
+from experiment.models import make_actor, make_critic
+from experiment.optim import MemberAdam
+from experiment.stacked import (MemberNormal, MemberSampler, StackedCriticNet, StackedGaussianPolicyNet,
+                                reset_parameters)
 from losses import LogClipPPOLoss, SPGLoss
 from racing.torchrl_env import RacingTorchEnv
 
 
 def seed_everything(seed: int) -> None:
-    """Seed torch's, NumPy's and Python's global generators (workers may be reused: call per run)."""
+    """Seed torch's, NumPy's and Python's global generators (workers may be reused: call per run).
+
+    Training draws from the members' own generators (``make_generators``); the global ones are
+    seeded only so that nothing else can make two runs differ."""
     torch.manual_seed(seed)
     np.random.seed(seed % 2**32)
     random.seed(seed)
 
 
+def make_generators(seeds: tuple[int, ...]) -> list[torch.Generator]:
+    """One ``torch.Generator`` per member, seeded with the member's seed."""
+    return [torch.Generator().manual_seed(seed) for seed in seeds]
+
+
 # ---------------------------------------------------------------------------- environment
-def make_env(cfg: RunConfig) -> RacingTorchEnv:
-    """One car on the run's track (``env.track=fixed``) or on a new random track per episode."""
-    track_seeds = [cfg.seed] if cfg.env.track == "fixed" else None
-    env = RacingTorchEnv(1, track_seeds=track_seeds, nearest_ray=cfg.env.nearest_ray, **cfg.env.options)
-    env.set_seed(cfg.seed)
+def make_env(cfg: RunConfig, seeds: tuple[int, ...]) -> RacingTorchEnv:
+    """One car per member: on the member's track (``env.track=fixed``) or on a new random track
+    per episode; car r's random stream is seeded with ``seeds[r]``."""
+    track_seeds = list(seeds) if cfg.env.track == "fixed" else [None] * len(seeds)
+    env = RacingTorchEnv(len(seeds), track_seeds=track_seeds, nearest_ray=cfg.env.nearest_ray, **cfg.env.options)
+    env.sim.seed(list(seeds))
     return env
 
 
 # -------------------------------------------------------------------------------- models
 @dataclass
 class Models:
-    actor_net: GaussianPolicyNet
-    critic_net: CriticNet
+    actor_net: StackedGaussianPolicyNet
+    critic_net: StackedCriticNet
     actor: torch.nn.Module  # ProbabilisticActor over actor_net
     critic: torch.nn.Module  # TensorDictModule over critic_net
+    sampler: MemberSampler  # the acting policy: observation -> clipped sampled action
 
 
-def make_models(cfg: RunConfig, env: RacingTorchEnv) -> Models:
+def make_models(cfg: RunConfig, env: RacingTorchEnv, generators: list[torch.Generator]) -> Models:
+    """The members' networks, member r's initial weights drawn from ``generators[r]`` (actor
+    first, then critic), Glorot-uniform kernels and zero biases."""
     obs_dim = env.observation_spec["observation"].shape[-1]
     action_dim = env.action_spec.shape[-1]
     state_action = cfg.algo.loss == "spg"
-    net = cfg.network
-    actor_net = GaussianPolicyNet(obs_dim, action_dim, net.actor_hidden, net.activation)
-    critic_net = CriticNet(obs_dim + action_dim * state_action, net.critic_hidden, net.activation)
-    return Models(actor_net, critic_net, make_actor(actor_net), make_critic(critic_net, state_action))
+    net, members = cfg.network, len(generators)
+    actor_net = StackedGaussianPolicyNet(members, obs_dim, action_dim, net.actor_hidden, net.activation)
+    critic_net = StackedCriticNet(members, obs_dim + action_dim * state_action, net.critic_hidden, net.activation)
+    reset_parameters(actor_net, generators)
+    reset_parameters(critic_net, generators)
+    sampler = MemberSampler(actor_net, generators, action_dim, block=cfg.env.episode_steps)
+    return Models(actor_net, critic_net, make_actor(actor_net, MemberNormal), make_critic(critic_net, state_action),
+                  sampler)
 
 
 # ------------------------------------------------------------------------------ collector
 def make_episode_collector(cfg: RunConfig, env: RacingTorchEnv, models: Models, episodes: int):
-    return make_collector(cfg.env.collector, env, policy=make_policy(models.actor),
-                          sample=make_sampler(models.actor_net), steps=cfg.env.episode_steps,
-                          episodes=episodes)
+    """Both backends act with the same sampler (the TorchRL ``Collector`` through a
+    ``TensorDictModule``), so they draw the same actions. The ``Collector`` calls its policy
+    once when it is built, to see what it writes: that call must not draw noise."""
+    from tensordict.nn import TensorDictModule
+
+    policy = TensorDictModule(models.sampler, in_keys=["observation"], out_keys=["action"])
+    with models.sampler.paused():
+        return make_collector(cfg.env.collector, env, policy=policy, sample=models.sampler,
+                              steps=cfg.env.episode_steps, episodes=episodes)
 
 
 def make_schedule(cfg: RunConfig) -> ReplaySchedule:
@@ -64,29 +95,31 @@ def make_schedule(cfg: RunConfig) -> ReplaySchedule:
 
 
 # ----------------------------------------------------------------------------------- loss
-def make_loss(cfg: RunConfig, models: Models) -> LogClipPPOLoss | SPGLoss:
+def make_loss(cfg: RunConfig, models: Models, generators: list[torch.Generator]) -> LogClipPPOLoss | SPGLoss:
     algo = cfg.algo
-    common = {"entropy_coeff": algo.entropy_coeff, "joint_log_prob": algo.joint_log_prob}
+    common = {"entropy_coeff": algo.entropy_coeff, "joint_log_prob": algo.joint_log_prob,
+              "members": len(generators)}
     if algo.loss == "ppo":
         return LogClipPPOLoss(models.actor, models.critic, clip_epsilon=algo.ppo.clip_epsilon,
                               ratio_space=algo.ppo.ratio_space, **common)
     spg = algo.spg
-    return SPGLoss(models.actor, models.critic, num_samples=spg.num_samples, temperature=spg.temperature,
+    loss = SPGLoss(models.actor, models.critic, num_samples=spg.num_samples, temperature=spg.temperature,
                    temperature_decay=spg.temperature_decay, prioritised=spg.prioritised,
                    sample_around=spg.sample_around, baseline=spg.baseline, **common)
+    loss.set_generators(generators)
+    return loss
 
 
 # ------------------------------------------------------------------------------ optimisers
 @dataclass
 class Optimisers:
-    actor: torch.optim.Adam
-    critic: torch.optim.Adam
+    actor: MemberAdam
+    critic: MemberAdam
 
 
 def make_optimisers(cfg: RunConfig, models: Models) -> Optimisers:
+    """Adam over the stacked parameters (``experiment.optim.MemberAdam``: ``torch.optim.Adam``'s
+    arithmetic, bit for bit): element-wise, so exactly one Adam per member."""
     algo = cfg.algo
-    return Optimisers(
-        actor=torch.optim.Adam(models.actor_net.parameters(), lr=algo.actor_lr, eps=algo.adam_eps, fused=True),
-        critic=torch.optim.Adam(models.critic_net.parameters(), lr=algo.critic_lr, eps=algo.adam_eps,
-                                fused=True),
-    )
+    return Optimisers(actor=MemberAdam(models.actor_net.parameters(), lr=algo.actor_lr, eps=algo.adam_eps),
+                      critic=MemberAdam(models.critic_net.parameters(), lr=algo.critic_lr, eps=algo.adam_eps))

@@ -97,16 +97,17 @@ class CriticNet(nn.Module):
         return self.net(inputs[0] if len(inputs) == 1 else torch.cat(inputs, dim=-1))
 
 
-def make_actor(net: GaussianPolicyNet) -> ProbabilisticActor:
+def make_actor(net: nn.Module, distribution: type = torch.distributions.Normal) -> ProbabilisticActor:
     """The stochastic policy as a TorchRL actor: ``observation`` -> ``loc``, ``scale``, ``action``.
 
-    The distribution is ``torch.distributions.Normal``, so log-probabilities are per action
-    dimension. Sampling (in RANDOM exploration mode) does not clip: see ``make_policy``.
+    The distribution is ``torch.distributions.Normal`` (or, for a population's stacked networks,
+    ``experiment.stacked.MemberNormal``), so log-probabilities are per action dimension.
+    Sampling (in RANDOM exploration mode) does not clip: see ``make_policy``.
     """
     return ProbabilisticActor(
         TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
         in_keys=["loc", "scale"], out_keys=["action"],
-        distribution_class=torch.distributions.Normal,
+        distribution_class=distribution,
         distribution_kwargs={"validate_args": False},  # NaNs are caught by the training loop
     )
 

@@ -1,28 +1,39 @@
-"""One training run, start to finish: ``train(cfg, out_dir) -> summary``.
+"""Training runs, start to finish: ``train_population(cfg, out_dir) -> summaries``.
 
-Per episode (see ALGO_SPEC's protocol, as ``collectors.replay`` schedules it):
+A run is a population of independent members, one per seed of ``cfg.members`` (a solo run is a
+population of one), trained in lockstep in one process (``experiment.factories``). Per episode
+(see ALGO_SPEC's protocol, as ``collectors.replay`` schedules it), for every member at once:
+
 1. if the schedule trains on memory and the memory is not empty: a phase on the memory;
 2. collect one episode with the stochastic policy; its total reward is the learning curve;
 3. Monte-Carlo returns; the episode's transitions join the replay memory;
 4. if the schedule trains on recent experience: a phase on this episode's transitions.
+
+Each member writes the folder a solo run writes (metrics.csv, summary.json, actor.pt,
+critic.pt): ``out_dir`` itself for a solo run, ``out_dir/seed<seed>/`` in a population
+(``cfg.seeds``). A member that diverges is frozen and recorded; the others go on. The
+population's checkpoint (``out_dir/checkpoint.pt``) holds every member.
 """
 
 from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
 
-from collectors import ReplayMemory, add_monte_carlo_returns, episode_transitions
+from collectors import ReplayMemory, add_monte_carlo_returns
+from collectors.returns import TRANSITION_KEYS
 from experiment import checkpoint
 from experiment.config import ConfigError, RunConfig
-from experiment.factories import (make_env, make_episode_collector, make_loss, make_models,
+from experiment.factories import (make_env, make_episode_collector, make_generators, make_loss, make_models,
                                   make_optimisers, make_schedule, seed_everything)
 from experiment.outputs import SUMMARY_FILE, MetricsWriter, metric_columns, read_summary, write_json_atomic
-from experiment.phases import Diverged, MetricTotals, PhaseRunner
+from experiment.phases import MetricTotals, PhaseRunner
+from experiment.stacked import member_state_dict
 from experiment.version import code_version, software_versions
 
 
@@ -31,7 +42,12 @@ def run_settings(settings: dict) -> dict:
     return {k: v for k, v in settings.items() if k not in RunConfig.PRESENTATION_KEYS and k != "hydra"}
 
 
-def finished_run(out_dir: Path, settings: dict, overwrite: bool = False) -> dict | None:
+def member_folder(cfg: RunConfig, out_dir: Path, seed: int) -> Path:
+    """Where member ``seed`` writes: ``out_dir`` for a solo run, ``out_dir/seed<seed>`` in a population."""
+    return Path(out_dir) if cfg.seeds is None else Path(out_dir) / f"seed{seed}"
+
+
+def finished_run(out_dir: Path, settings: dict | None, overwrite: bool = False) -> dict | None:
     """The summary of a finished run of these settings in ``out_dir``, if there is one.
 
     A finished run of other settings raises ``ConfigError`` (its results would be lost)
@@ -40,7 +56,7 @@ def finished_run(out_dir: Path, settings: dict, overwrite: bool = False) -> dict
     summary = read_summary(Path(out_dir))
     if summary is None or summary.get("status") not in ("completed", "diverged"):
         return None
-    if summary.get("settings") == run_settings(settings):
+    if summary.get("settings") == (run_settings(settings) if settings is not None else None):
         return summary
     if overwrite:
         return None
@@ -48,133 +64,212 @@ def finished_run(out_dir: Path, settings: dict, overwrite: bool = False) -> dict
                       "folder (hydra.run.dir=...) or pass overwrite=true to replace it")
 
 
-def train(cfg: RunConfig, out_dir: Path, settings: dict | None = None) -> dict:
-    """Train one run of ``cfg`` and write its outputs into ``out_dir``; returns the summary.
+@dataclass
+class Member:
+    """One run of the population: its seed, folder and results so far."""
 
-    ``settings`` (the config as a plain mapping) is stored in summary.json and checkpoints to
-    recognise the run later. If ``out_dir`` holds a checkpoint of the same settings, the run
-    continues from it, exactly as if it had never stopped.
+    seed: int
+    folder: Path
+    settings: dict | None
+    rewards: list[float] = field(default_factory=list)
+    status: str = "running"  # then "completed" or "diverged"
+    failure: dict | None = None
+    metrics: MetricsWriter | None = None
+
+    def state(self) -> dict:
+        return {"seed": self.seed, "rewards": list(self.rewards), "status": self.status, "failure": self.failure}
+
+
+def train(cfg: RunConfig, out_dir: Path, settings: dict | None = None) -> dict:
+    """Train a solo run (``cfg.seeds`` unset) into ``out_dir``; returns its summary."""
+    if cfg.seeds is not None and len(cfg.seeds) != 1:
+        raise ValueError("train() runs one seed; use train_population() for several")
+    return train_population(cfg, out_dir, settings)[0]
+
+
+def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None,
+                     skipped: list | None = None) -> list[dict]:
+    """Train one run per seed of ``cfg.members`` together; returns their summaries (in that order).
+
+    ``settings`` (the config as a plain mapping) is stored in each summary.json (as the
+    member's solo settings) and in the checkpoint, to recognise runs later. Members whose folder
+    holds a finished run of the same settings are not trained again (their summaries are
+    returned, and (folder, summary) appended to ``skipped`` if given). If ``out_dir`` holds a checkpoint
+    of the same settings, the population continues from it exactly as if it had never stopped.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     torch.set_num_threads(cfg.threads)
-    seed_everything(cfg.seed)
+    seed_everything(0)  # nothing draws from the global generators; seeded so that nothing can differ
     settings = run_settings(settings) if settings is not None else None
+    member_settings = {s: cfg.member_settings(settings, s) if settings is not None else None for s in cfg.members}
 
-    env = make_env(cfg)
-    models = make_models(cfg, env)
-    loss = make_loss(cfg, models)
+    checkpoint_path = out_dir / checkpoint.CHECKPOINT_FILE
+    payload = checkpoint.load(checkpoint_path) if checkpoint_path.exists() else None
+    if payload is not None and payload.get("settings") != settings:
+        raise ConfigError("the run folder holds a checkpoint of a different configuration; choose another "
+                          "folder (hydra.run.dir=...) or pass overwrite=true to start afresh")
+    done: dict[int, dict] = {}
+    if payload is None:  # with a checkpoint, its members go on (finished ones were never in it)
+        for seed in cfg.members:
+            summary = finished_run(member_folder(cfg, out_dir, seed), member_settings[seed], cfg.overwrite)
+            if summary is not None:
+                done[seed] = summary
+                if skipped is not None:
+                    skipped.append((member_folder(cfg, out_dir, seed), summary))
+    seeds = tuple(payload["members"]) if payload is not None else tuple(s for s in cfg.members if s not in done)
+    if seeds:
+        for summary in _train(cfg, out_dir, seeds, member_settings, settings, payload, start):
+            done[summary["seed"]] = summary
+    return [done[s] for s in cfg.members]
+
+
+def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_settings: dict, settings: dict | None,
+           payload: dict | None, start: float) -> list[dict]:
+    generators = make_generators(seeds)
+    env = make_env(cfg, seeds)
+    models = make_models(cfg, env, generators)
+    loss = make_loss(cfg, models, generators)
     optimisers = make_optimisers(cfg, models)
     schedule = make_schedule(cfg)
-    memory = ReplayMemory(cfg.er.buffer_size)
-    phases = PhaseRunner(loss, optimisers, cfg.algo.value_epochs, cfg.algo.policy_epochs)
+    memory = ReplayMemory(cfg.er.buffer_size, members=len(seeds))
+    phases = PhaseRunner(loss, optimisers, cfg.algo.value_epochs, cfg.algo.policy_epochs, generators)
     minibatch = schedule.minibatch_size(cfg.algo.minibatch_size)
+    members = [Member(s, member_folder(cfg, out_dir, s), member_settings[s]) for s in seeds]
+    for member in members:
+        member.folder.mkdir(parents=True, exist_ok=True)
 
     parts = {"loss": loss, "actor_optim": optimisers.actor, "critic_optim": optimisers.critic, "memory": memory}
-    first, rewards, timing = 0, [], {"rollout_s": 0.0, "train_s": 0.0}
+    first, timing = 0, {"rollout_s": 0.0, "train_s": 0.0}
     code = dict(code_version())
     checkpoint_path = out_dir / checkpoint.CHECKPOINT_FILE
-    if checkpoint_path.exists():
-        payload = checkpoint.load(checkpoint_path)
-        first, rewards, timing = _restore(payload, settings, parts, env)
+    if payload is not None:
+        first, timing = _restore(payload, parts, env, generators, phases, members)
         earlier = payload.get("code") or {"source": None}
         if earlier.get("source") != code["source"]:  # this run mixes two versions of the code
             code["resumed_from"] = {k: v for k, v in earlier.items() if k != "resumed_from"}
         elif earlier.get("resumed_from"):
             code["resumed_from"] = earlier["resumed_from"]
     collector = make_episode_collector(cfg, env, models, episodes=cfg.episodes - first)
-    metrics = MetricsWriter(out_dir, metric_columns(loss), cfg.logger, keep_rows=first)
+    columns = metric_columns(loss)
+    for member in members:
+        member.metrics = MetricsWriter(member.folder, columns, cfg.logger, keep_rows=len(member.rewards))
 
-    status, failure = "completed", None
-    progress = _progress_bar(cfg, initial=first)
+    progress = _progress_bar(cfg, seeds, initial=first)
     episodes = iter(collector)
     try:
         for episode in range(first, cfg.episodes):
-            totals = MetricTotals()
-            try:
-                with _timer(timing, "train_s"):
-                    if schedule.train_on_memory and len(memory):
-                        phases.run(memory.contents(), minibatch, totals)
-                with _timer(timing, "rollout_s"):
-                    batch = next(episodes)
-                    add_monte_carlo_returns(batch, cfg.gamma)
-                    recent = episode_transitions(batch)
-                    memory.add(recent)
-                with _timer(timing, "train_s"):
-                    if schedule.train_on_recent:
-                        phases.run(recent.clone(), minibatch, totals)
-            except Diverged as err:
-                status, failure = "diverged", {"episode": episode, "reason": str(err)}
+            if not any(m.status == "running" for m in members):
                 break
-            row = {**_episode_results(episode, batch), **totals.means()}
-            metrics.write(row)
-            rewards.append(row["total_reward"])
-            progress.update(1)
-            progress.set_postfix(reward=f"{rewards[-1]:.1f}", last20=f"{_mean(rewards[-20:]):.1f}")
+            totals = MetricTotals()
+            with _timer(timing, "train_s"):
+                if schedule.train_on_memory and len(memory):
+                    _freeze(phases.run(memory.contents(), minibatch, totals), episode, members, phases)
+            with _timer(timing, "rollout_s"):
+                batch = next(episodes)
+                add_monte_carlo_returns(batch, cfg.gamma)
+                recent = batch.select(*TRANSITION_KEYS)  # [members, steps]
+                memory.add(recent)
+            with _timer(timing, "train_s"):
+                if schedule.train_on_recent:
+                    _freeze(phases.run(recent.clone(), minibatch, totals), episode, members, phases)
+            diagnostics = totals.means(len(members))
+            for r, member in enumerate(members):
+                if member.status == "running":
+                    row = {**_episode_results(episode, batch, r), **diagnostics[r]}
+                    member.metrics.write(row)
+                    member.rewards.append(row["total_reward"])
+            _show(progress, members)
             done = episode + 1
             if cfg.checkpoint_every and done % cfg.checkpoint_every == 0 and done < cfg.episodes:
-                checkpoint.save(checkpoint_path, _payload(done, rewards, timing, settings, parts, env, code))
+                checkpoint.save(checkpoint_path, _payload(done, timing, settings, parts, env, code, generators,
+                                                          phases, members, models))
     finally:
         progress.close()
-        metrics.close()
+        for member in members:
+            if member.metrics is not None:
+                member.metrics.close()
         collector.shutdown()
 
-    for name, net in (("actor", models.actor_net), ("critic", models.critic_net)):
-        path = out_dir / f"{name}.pt"
-        if status == "completed":
-            torch.save(net.state_dict(), path)
-        else:  # non-finite weights are of no use; no stale file from an earlier run either
-            path.unlink(missing_ok=True)
-    window = rewards[-cfg.final_window:]
-    summary = {
-        "algo": cfg.algo.name, "er": cfg.er.name, "seed": cfg.seed,
-        "episodes": len(rewards), "episodes_planned": cfg.episodes,
-        "final_mean": _mean(window) if window else None, "final_window": len(window),
-        "status": status, "diverged": failure,
-        "wall_time_s": round(time.perf_counter() - start, 3), "resumed_at": first or None,
-        **{f"time/{key}": round(value, 3) for key, value in timing.items()},
-        "code": code, "software": software_versions(),
-        "settings": settings,
-    }
-    write_json_atomic(out_dir / SUMMARY_FILE, summary)
-    checkpoint_path.unlink(missing_ok=True)  # the run is finished: summary and weights remain
-    return summary
+    summaries = []
+    wall = round(time.perf_counter() - start, 3)
+    for r, member in enumerate(members):
+        if member.status == "running":
+            member.status = "completed"
+        for name, net in (("actor", models.actor_net), ("critic", models.critic_net)):
+            path = member.folder / f"{name}.pt"
+            if member.status == "completed":  # weights in the solo networks' layout (experiment.models)
+                torch.save(member_state_dict(net, r), path)
+            else:  # non-finite weights are of no use; no stale file from an earlier run either
+                path.unlink(missing_ok=True)
+        window = member.rewards[-cfg.final_window:]
+        summary = {
+            "algo": cfg.algo.name, "er": cfg.er.name, "seed": member.seed,
+            "episodes": len(member.rewards), "episodes_planned": cfg.episodes,
+            "final_mean": _mean(window) if window else None, "final_window": len(window),
+            "status": member.status, "diverged": member.failure,
+            "wall_time_s": wall, "resumed_at": first or None,
+            **{f"time/{key}": round(value, 3) for key, value in timing.items()},
+            "population": {"seeds": list(seeds), "size": len(seeds)},
+            "code": code, "software": software_versions(),
+            "settings": member.settings,
+        }
+        write_json_atomic(member.folder / SUMMARY_FILE, summary)
+        summaries.append(summary)
+    checkpoint_path.unlink(missing_ok=True)  # the runs are finished: summaries and weights remain
+    return summaries
 
 
-def _payload(episodes_done: int, rewards: list[float], timing: dict, settings: dict | None, parts: dict,
-             env, code: dict) -> dict:
+def _freeze(failed: dict[int, str], episode: int, members: list[Member], phases: PhaseRunner) -> None:
+    """Record and freeze the members that diverged in the last phase."""
+    for r, reason in sorted(failed.items()):
+        members[r].status, members[r].failure = "diverged", {"episode": episode, "reason": reason}
+        phases.freeze(r)
+
+
+def _payload(episodes_done: int, timing: dict, settings: dict | None, parts: dict, env, code: dict,
+             generators: list[torch.Generator], phases: PhaseRunner, members: list[Member], models) -> dict:
+    if not models.sampler.at_block_boundary:
+        raise RuntimeError("a checkpoint must be taken between episodes")
     return {
-        "settings": settings, "code": code, "episodes_done": episodes_done, "rewards": list(rewards),
-        "timing": dict(timing),
+        "settings": settings, "code": code, "episodes_done": episodes_done, "timing": dict(timing),
+        "members": [m.seed for m in members], "member_states": [m.state() for m in members],
         **{name: part.state_dict() for name, part in parts.items()},
+        "generators": [g.get_state() for g in generators], "active": phases.active.clone(),
         "rng": checkpoint.capture_rng(), "sim": checkpoint.arrays_to_tensors(env.sim.state_dict()),
     }
 
 
-def _restore(payload: dict, settings: dict | None, parts: dict, env) -> tuple[int, list[float], dict]:
-    if payload.get("settings") != settings:
-        raise ConfigError("the run folder holds a checkpoint of a different configuration; choose another "
-                          "folder (hydra.run.dir=...) or pass overwrite=true to start afresh")
+def _restore(payload: dict, parts: dict, env, generators: list[torch.Generator], phases: PhaseRunner,
+             members: list[Member]) -> tuple[int, dict]:
     try:
         for name, part in parts.items():
             part.load_state_dict(payload[name])
         env.load_sim_state(checkpoint.arrays_from_tensors(payload["sim"]))
+        for generator, state in zip(generators, payload["generators"], strict=True):
+            generator.set_state(state)
+        phases.active.copy_(payload["active"])
+        for member, state in zip(members, payload["member_states"], strict=True):
+            if state["seed"] != member.seed:
+                raise ValueError(f"member {member.seed} found {state['seed']}")
+            member.rewards, member.status, member.failure = list(state["rewards"]), state["status"], state["failure"]
         checkpoint.restore_rng(payload["rng"])
-        return int(payload["episodes_done"]), list(payload["rewards"]), dict(payload["timing"])
+        return int(payload["episodes_done"]), dict(payload["timing"])
     except (KeyError, RuntimeError, ValueError, TypeError) as err:
         raise checkpoint.CheckpointError(f"the checkpoint does not fit this run ({type(err).__name__}: "
                                          f"{str(err).splitlines()[0][:200]}); delete it to start afresh") from None
 
 
-def _episode_results(episode: int, batch: TensorDictBase) -> dict:
-    """Learning-curve values of one car's episode (the batch is [1, steps])."""
+def _episode_results(episode: int, batch: TensorDictBase, member: int) -> dict:
+    """Learning-curve values of one member's episode (the batch is [members, steps])."""
+    keys = batch.keys(True)
     return {
         "episode": episode,
-        "total_reward": float(batch["next", "reward"].sum(dtype=torch.float64)),
-        "crashes": int(batch["next", "crashed"].sum()) if ("next", "crashed") in batch.keys(True) else None,
-        "final_checkpoint": int(batch["next", "checkpoint"][..., -1, :].sum())
-        if ("next", "checkpoint") in batch.keys(True) else None,
+        "total_reward": float(batch["next", "reward"][member].sum(dtype=torch.float64)),
+        "crashes": int(batch["next", "crashed"][member].sum()) if ("next", "crashed") in keys else None,
+        "final_checkpoint": int(batch["next", "checkpoint"][member, -1].sum()) if ("next", "checkpoint") in keys
+        else None,
     }
 
 
@@ -193,8 +288,20 @@ class _timer:
         self.totals[self.key] += time.perf_counter() - self.start
 
 
-def _progress_bar(cfg: RunConfig, initial: int = 0):
+def _progress_bar(cfg: RunConfig, seeds: tuple[int, ...], initial: int = 0):
     from tqdm import tqdm
 
+    who = f"seed{seeds[0]}" if len(seeds) == 1 else f"{len(seeds)} seeds"
     return tqdm(total=cfg.episodes, initial=initial, disable=not cfg.progress, unit="ep", dynamic_ncols=True,
-                desc=f"{cfg.algo.name}/{cfg.er.name}/seed{cfg.seed}")
+                desc=f"{cfg.algo.name}/{cfg.er.name}/{who}")
+
+
+def _show(progress, members: list[Member]) -> None:
+    running = [m for m in members if m.status == "running" and m.rewards]
+    progress.update(1)
+    if running:
+        last = _mean([m.rewards[-1] for m in running])
+        last20 = _mean([_mean(m.rewards[-20:]) for m in running])
+        diverged = sum(m.status == "diverged" for m in members)
+        progress.set_postfix(reward=f"{last:.1f}", last20=f"{last20:.1f}",
+                             **({"diverged": diverged} if diverged else {}))

@@ -72,10 +72,21 @@ class PhaseLoss(LossModule):
 
     Subclasses set ``critic_attr`` (the attribute holding the critic module), ``entropy_coeff``
     and ``joint_log_prob``, define ``actor_loss`` and override the hooks they need.
+
+    Populations: with ``members=R`` the networks are a population's stacked networks
+    (``experiment.stacked``), every tensor has the members on its first dimension
+    (``[R, B, ...]``), and every loss and diagnostic is one value per member, shape ``[R]``
+    (sum the losses over members before ``backward``: each member's gradient is then its
+    own). With ``members=None`` (the default) they are scalars, as TorchRL's losses.
     """
 
     critic_attr: str
     critic_metrics = ("loss_critic", "value_mean")
+    members: int | None = None
+
+    def _mean(self, values: torch.Tensor) -> torch.Tensor:
+        """A scalar, or one mean per member in a population."""
+        return F.mean(values, self.members is not None)
 
     def before_critic_phase(self, data: TensorDictBase) -> None:
         """Called once with the phase's whole data before its critic steps."""
@@ -89,8 +100,8 @@ class PhaseLoss(LossModule):
     def critic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Mean (G - critic)^2 with G the Monte-Carlo return."""
         value = self._value(tensordict)
-        loss = F.squared_error(value, tensordict[self.tensor_keys.value_target])
-        return TensorDict({"loss_critic": loss, "value_mean": value.detach().mean()})
+        loss = F.squared_error(value, tensordict[self.tensor_keys.value_target], self.members is not None)
+        return TensorDict({"loss_critic": loss, "value_mean": self._mean(value.detach())})
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Actor and critic terms on one batch (the ``loss_*`` entries sum to the total loss)."""
@@ -98,7 +109,7 @@ class PhaseLoss(LossModule):
 
     def _entropy(self, dist: torch.distributions.Distribution) -> tuple[torch.Tensor, torch.Tensor]:
         """(mean entropy, detached; the loss term -coeff * entropy, with no gradient if coeff is 0)."""
-        entropy = F.per_dimension_or_joint(dist.entropy(), self.joint_log_prob).mean()
+        entropy = self._mean(F.per_dimension_or_joint(dist.entropy(), self.joint_log_prob))
         term = -self.entropy_coeff * (entropy if self.entropy_coeff else entropy.detach())
         return entropy.detach(), term
 
@@ -107,3 +118,9 @@ class PhaseLoss(LossModule):
 
     def _value(self, tensordict: TensorDictBase) -> torch.Tensor:
         return cached(self, getattr(self, self.critic_attr), value_function)(tensordict)
+
+
+def _members(members: int | None) -> int | None:
+    if members is not None and (isinstance(members, bool) or not isinstance(members, int) or members < 1):
+        raise ValueError(f"members must be None (no population) or an integer >= 1, got {members!r}")
+    return members

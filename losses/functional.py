@@ -1,7 +1,10 @@
 """The loss arithmetic as small pure functions on tensors (the loss modules wrap them).
 
 Shapes: B states, D action dimensions, C candidate actions. Per-dimension terms have shape
-[B, D]; the joint form sums them over the action dimensions into [B, 1].
+[B, D]; the joint form sums them over the action dimensions into [B, 1]. Every function also
+takes leading batch dimensions (a population's members: [R, B, ...]); the reductions take
+``members=True`` to average over everything but the first dimension, giving one value per
+member ([R]) instead of one scalar.
 """
 
 from __future__ import annotations
@@ -12,6 +15,25 @@ import torch
 
 RATIO_SPACES = ("linear", "log")
 SAMPLE_CENTRES = ("mean", "action")
+ALIGN = 32  # elements: a multiple of every CPU vector loop's step (2 x 16 floats with AVX-512)
+
+
+def per_member(fn, values: torch.Tensor) -> torch.Tensor:
+    """``fn(values)`` for an element-wise ``fn``, computed so that member r's results (first
+    dimension) do not depend on how many members share the tensor.
+
+    CPU kernels of functions such as exp, log, tanh and softplus compute most elements in a
+    vector loop and the last few (a tensor's tail) in scalar code that rounds differently. In
+    a stacked tensor a member's last elements would fall in the vector loop or in the tail
+    depending on the members after it. Padding each member's elements to a multiple of
+    ``ALIGN`` (with ones) leaves no tail, so every element takes the vector path, alone or in
+    a population, in the forward and the backward pass.
+    """
+    n = values[0].numel()
+    if n % ALIGN == 0:
+        return fn(values)
+    flat = torch.nn.functional.pad(values.reshape(values.shape[0], n), (0, (-n) % ALIGN), value=1.0)
+    return fn(flat)[:, :n].reshape(values.shape)
 
 
 def per_dimension_or_joint(terms: torch.Tensor, joint: bool) -> torch.Tensor:
@@ -19,9 +41,14 @@ def per_dimension_or_joint(terms: torch.Tensor, joint: bool) -> torch.Tensor:
     return terms.sum(-1, keepdim=True) if joint else terms
 
 
-def squared_error(prediction: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+def mean(values: torch.Tensor, members: bool = False) -> torch.Tensor:
+    """The mean of ``values``: a scalar, or one per member (first dimension) if ``members``."""
+    return values.reshape(values.shape[0], -1).mean(-1) if members else values.mean()
+
+
+def squared_error(prediction: torch.Tensor, target: torch.Tensor, members: bool = False) -> torch.Tensor:
     """Mean of (target - prediction)^2: the Monte-Carlo critic's loss."""
-    return (target - prediction).pow(2).mean()
+    return mean((target - prediction).pow(2), members)
 
 
 def clip_bounds(clip_epsilon: float, ratio_space: str) -> tuple[float, float]:
@@ -33,10 +60,13 @@ def clip_bounds(clip_epsilon: float, ratio_space: str) -> tuple[float, float]:
     raise ValueError(f"ratio_space must be one of {RATIO_SPACES}, got {ratio_space!r}")
 
 
-def ppo_ratio(log_prob: torch.Tensor, old_log_prob: torch.Tensor, ratio_space: str) -> torch.Tensor:
+def ppo_ratio(log_prob: torch.Tensor, old_log_prob: torch.Tensor, ratio_space: str,
+              members: bool = False) -> torch.Tensor:
     """p = exp(logp - logp_old) in linear space, p = logp - logp_old in log space."""
     log_ratio = log_prob - old_log_prob
-    return log_ratio.exp() if ratio_space == "linear" else log_ratio
+    if ratio_space != "linear":
+        return log_ratio
+    return per_member(torch.exp, log_ratio) if members else log_ratio.exp()
 
 
 def clipped_surrogate(ratio: torch.Tensor, advantage: torch.Tensor, clip_epsilon: float,
@@ -52,36 +82,39 @@ def clipped_surrogate(ratio: torch.Tensor, advantage: torch.Tensor, clip_epsilon
     return torch.minimum(unclipped, clipped), clipped < unclipped
 
 
-def approx_kl(log_prob: torch.Tensor, old_log_prob: torch.Tensor) -> torch.Tensor:
+def approx_kl(log_prob: torch.Tensor, old_log_prob: torch.Tensor, members: bool = False) -> torch.Tensor:
     """Mean of (r - 1) - log r, r = exp(logp - logp_old): a low-variance KL(old || new) estimate."""
     log_ratio = log_prob - old_log_prob
-    return (log_ratio.exp() - 1 - log_ratio).mean()
+    ratio = per_member(torch.exp, log_ratio) if members else log_ratio.exp()
+    return mean(ratio - 1 - log_ratio, members)
 
 
-def spg_candidates(action: torch.Tensor, mean: torch.Tensor, noise: torch.Tensor,
-                   temperature: float, centre: str = "mean") -> torch.Tensor:
+def spg_candidates(action: torch.Tensor, policy_mean: torch.Tensor, noise: torch.Tensor,
+                   temperature: float | torch.Tensor, centre: str = "mean") -> torch.Tensor:
     """SPG's candidate actions, [B, 2 + K, D]: the stored action, the policy mean, then K
     perturbations clip(centre + temperature * noise, -1, 1), ``noise`` ~ N(0, I) of shape [B, K, D].
 
     ``centre`` is ``"mean"`` (the reference implementation) or ``"action"`` (the paper's text).
+    ``temperature`` is a number or a tensor broadcasting against ``noise`` (one per member).
     """
     if centre not in SAMPLE_CENTRES:
         raise ValueError(f"centre must be one of {SAMPLE_CENTRES}, got {centre!r}")
-    base = mean if centre == "mean" else action
+    base = policy_mean if centre == "mean" else action
     samples = (base.unsqueeze(-2) + temperature * noise).clamp(-1.0, 1.0)
-    return torch.cat([action.unsqueeze(-2), mean.unsqueeze(-2), samples], dim=-2)
+    return torch.cat([action.unsqueeze(-2), policy_mean.unsqueeze(-2), samples], dim=-2)
 
 
 def best_candidate(candidates: torch.Tensor, scores: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The highest-scoring candidate per state (the first one on ties) and its index.
 
-    ``candidates`` [B, C, D], ``scores`` [B, C]; returns ([B, D], [B]).
+    ``candidates`` [..., B, C, D], ``scores`` [..., B, C]; returns ([..., B, D], [..., B]).
     """
     index = scores.argmax(dim=-1)
-    target = candidates.gather(-2, index[:, None, None].expand(-1, 1, candidates.shape[-1])).squeeze(-2)
-    return target, index
+    picks = index[..., None, None].expand(*index.shape, 1, candidates.shape[-1])
+    return candidates.gather(-2, picks).squeeze(-2), index
 
 
-def weighted_log_likelihood(log_prob: torch.Tensor, weight: torch.Tensor | None) -> torch.Tensor:
+def weighted_log_likelihood(log_prob: torch.Tensor, weight: torch.Tensor | None,
+                            members: bool = False) -> torch.Tensor:
     """Mean of weight * log pi(target | s) (SPG: no weight; SPG-p: weight = Q gain, [B, 1])."""
-    return (log_prob if weight is None else weight * log_prob).mean()
+    return mean(log_prob if weight is None else weight * log_prob, members)

@@ -9,7 +9,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
 
 from losses import functional as F
-from losses.common import PhaseLoss
+from losses.common import PhaseLoss, _members
 
 
 class LogClipPPOLoss(PhaseLoss):
@@ -31,6 +31,7 @@ class LogClipPPOLoss(PhaseLoss):
         ratio_space: ``"linear"`` or ``"log"``.
         entropy_coeff: beta of the entropy bonus.
         joint_log_prob: sum log-probabilities and entropies over action dimensions.
+        members: None, or the size R of a population (see ``losses.common.PhaseLoss``).
 
     Input keys: ``action``, ``value_target`` (the Monte-Carlo return G), and for the actor
     terms ``advantage`` and ``action_log_prob`` (added to a phase's data by
@@ -52,9 +53,10 @@ class LogClipPPOLoss(PhaseLoss):
 
     def __init__(self, actor_network: ProbabilisticTensorDictSequential, critic_network: TensorDictModule,
                  *, clip_epsilon: float = 0.2, ratio_space: str = "linear", entropy_coeff: float = 0.02,
-                 joint_log_prob: bool = False):
+                 joint_log_prob: bool = False, members: int | None = None):
         super().__init__()
         F.clip_bounds(clip_epsilon, ratio_space)  # validates ratio_space
+        self.members = _members(members)
         if not 0 < clip_epsilon < 1:
             raise ValueError(f"clip_epsilon must be in (0, 1), got {clip_epsilon!r}")
         self.actor_network = actor_network
@@ -89,17 +91,17 @@ class LogClipPPOLoss(PhaseLoss):
                              f"log-probabilities have shape {tuple(log_prob.shape)} (joint_log_prob="
                              f"{self.joint_log_prob}); recompute it with before_actor_phase")
         advantage = tensordict[keys.advantage]
-        ratio = F.ppo_ratio(log_prob, old_log_prob, self.ratio_space)
+        ratio = F.ppo_ratio(log_prob, old_log_prob, self.ratio_space, self.members is not None)
         objective, clipped = F.clipped_surrogate(ratio, advantage, self.clip_epsilon, self.ratio_space)
         entropy, entropy_term = self._entropy(dist)
         return TensorDict({
-            "loss_objective": -objective.mean(),
+            "loss_objective": -self._mean(objective),
             "loss_entropy": entropy_term,
             "entropy": entropy,
-            "clip_fraction": clipped.float().mean(),
-            "approx_kl": F.approx_kl(log_prob.detach(), old_log_prob),
-            "ratio_mean": ratio.detach().mean(),
-            "advantage_mean": advantage.mean(),
+            "clip_fraction": self._mean(clipped.float()),
+            "approx_kl": F.approx_kl(log_prob.detach(), old_log_prob, self.members is not None),
+            "ratio_mean": self._mean(ratio.detach()),
+            "advantage_mean": self._mean(advantage),
         })
 
     def _log_prob(self, dist: torch.distributions.Distribution, action: torch.Tensor) -> torch.Tensor:

@@ -9,7 +9,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
 
 from losses import functional as F
-from losses.common import PhaseLoss
+from losses.common import PhaseLoss, _members
 
 BASELINES = ("mean", "action")
 
@@ -35,6 +35,9 @@ class SPGLoss(PhaseLoss):
         baseline: SPG-p's baseline, ``"mean"`` (reference) or ``"action"`` (paper's text).
         entropy_coeff: optional entropy bonus (0 in the paper).
         joint_log_prob: sum log-probabilities over action dimensions instead of averaging them.
+        members: None, or the size R of a population (see ``losses.common.PhaseLoss``): then
+            each member has its own temperature, and its perturbations come from its own
+            generator (``set_generators``).
 
     Input keys: the actor's and critic's inputs, ``action`` and ``value_target`` (the
     Monte-Carlo return G, for the critic).
@@ -54,8 +57,9 @@ class SPGLoss(PhaseLoss):
     def __init__(self, actor_network: ProbabilisticTensorDictSequential, qvalue_network: TensorDictModule,
                  *, num_samples: int = 5, temperature: float = 1.0, temperature_decay: float = 0.01,
                  prioritised: bool = False, sample_around: str = "mean", baseline: str = "mean",
-                 entropy_coeff: float = 0.0, joint_log_prob: bool = False):
+                 entropy_coeff: float = 0.0, joint_log_prob: bool = False, members: int | None = None):
         super().__init__()
+        self.members = _members(members)
         if sample_around not in F.SAMPLE_CENTRES:
             raise ValueError(f"sample_around must be one of {F.SAMPLE_CENTRES}, got {sample_around!r}")
         if baseline not in BASELINES:
@@ -75,7 +79,23 @@ class SPGLoss(PhaseLoss):
         self.entropy_coeff = float(entropy_coeff)
         self.joint_log_prob = bool(joint_log_prob)
         # A buffer, so that it travels with state_dict() (checkpoints) and .to(device).
-        self.register_buffer("temperature", torch.tensor(float(temperature), dtype=torch.float64))
+        shape = () if members is None else (members,)
+        self.register_buffer("temperature", torch.full(shape, float(temperature), dtype=torch.float64))
+        self.generators: list[torch.Generator] | None = None
+
+    def set_generators(self, generators: list[torch.Generator] | None) -> None:
+        """Draw member r's perturbations from ``generators[r]`` (None: torch's global generator)."""
+        if generators is not None and len(generators) != (self.members or 1):
+            raise ValueError(f"got {len(generators)} generators for {self.members or 1} members")
+        self.generators = generators
+
+    def _noise(self, shape: torch.Size, like: torch.Tensor) -> torch.Tensor:
+        if self.generators is None:
+            return torch.randn(shape, dtype=like.dtype, device=like.device)
+        if self.members is None:
+            return torch.randn(shape, dtype=like.dtype, device=like.device, generator=self.generators[0])
+        return torch.stack([torch.randn(shape[1:], dtype=like.dtype, device=like.device, generator=g)
+                            for g in self.generators])
 
     # ------------------------------------------------------------------ phase preparation
     # Nothing to precompute before a phase: SPG scores candidates per minibatch.
@@ -90,39 +110,40 @@ class SPGLoss(PhaseLoss):
         action = tensordict[keys.action]
         with torch.no_grad():
             mean = dist.mean
-            noise = torch.randn(mean.shape[:-1] + (self.num_samples, mean.shape[-1]),
-                                dtype=mean.dtype, device=mean.device)
-            candidates = F.spg_candidates(action, mean, noise, float(self.temperature), self.sample_around)
+            noise = self._noise(mean.shape[:-1] + (self.num_samples, mean.shape[-1]), mean)
+            temperature = (self.temperature.item() if self.members is None
+                           else self.temperature.to(mean.dtype).reshape(-1, *[1] * (noise.dim() - 1)))
+            candidates = F.spg_candidates(action, mean, noise, temperature, self.sample_around)
             scores = self._score(tensordict, candidates)
             target, index = F.best_candidate(candidates, scores)
-            q_target = scores.gather(-1, index[:, None])
-            q_baseline = scores[:, 1:2] if self.baseline == "mean" else scores[:, 0:1]
+            q_target = scores.gather(-1, index.unsqueeze(-1))
+            q_baseline = scores[..., 1:2] if self.baseline == "mean" else scores[..., 0:1]
             weight = q_target - q_baseline if self.prioritised else None
         log_prob = F.per_dimension_or_joint(dist.log_prob(target), self.joint_log_prob)
         entropy, entropy_term = self._entropy(dist)
         return TensorDict({
-            "loss_objective": -F.weighted_log_likelihood(log_prob, weight),
+            "loss_objective": -F.weighted_log_likelihood(log_prob, weight, self.members is not None),
             "loss_entropy": entropy_term,
             "entropy": entropy,
-            "weight_mean": torch.ones(()) if weight is None else weight.mean(),
-            "q_target": q_target.mean(),
-            "q_gain": (q_target - q_baseline).mean(),
-            "target_is_action": (index == 0).float().mean(),
-            "target_is_mean": (index == 1).float().mean(),
+            "weight_mean": torch.ones(q_target.shape[:-2]) if weight is None else self._mean(weight),
+            "q_target": self._mean(q_target),
+            "q_gain": self._mean(q_target - q_baseline),
+            "target_is_action": self._mean((index == 0).float()),
+            "target_is_mean": self._mean((index == 1).float()),
             "temperature": self.temperature.float(),
         })
 
     def _score(self, tensordict: TensorDictBase, candidates: torch.Tensor) -> torch.Tensor:
-        """Q(s, c) for every candidate c, in one critic call: [B, C]."""
-        batch, count = candidates.shape[:2]
+        """Q(s, c) for every candidate c, in one critic call: [..., B, C]."""
+        count = candidates.shape[-2]
         keys = self.tensor_keys
         pairs = TensorDict({key: _repeat(tensordict[key], count)
                             for key in self.qvalue_network.in_keys if key != keys.action},
-                           batch_size=[batch, count])
+                           batch_size=candidates.shape[:-1])
         pairs.set(keys.action, candidates)
         return self._value(pairs).squeeze(-1)
 
 
 def _repeat(value: torch.Tensor, count: int) -> torch.Tensor:
-    """[B, ...] -> [B, count, ...] without copying."""
-    return value.unsqueeze(1).expand(value.shape[0], count, *value.shape[1:])
+    """[..., B, F] -> [..., B, count, F] without copying."""
+    return value.unsqueeze(-2).expand(*value.shape[:-1], count, value.shape[-1])

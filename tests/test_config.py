@@ -100,3 +100,21 @@ def test_tensorboard_logger_without_the_package_is_a_config_error(monkeypatch):
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "tensorboard" else real(name, *a))
     with pytest.raises(ConfigError, match=r"logger=tensorboard needs the tensorboard package: pip install"):
         load("logger=tensorboard")
+
+
+@pytest.mark.parametrize("override, message", [
+    ("seeds=[3,4,3]", "seeds lists [3] more than once"),
+    ("seeds=[]", "non-empty list of track seeds"),
+    ("seeds=[1,-2]", "seeds must be a list of non-negative integers"),
+    ("seeds=[4294967296]", "seeds must be in [0, 2**32)"),
+    ("network.critic_hidden=[]", "non-empty list of positive layer sizes"),
+])
+def test_bad_population_seeds_are_config_errors(override, message):
+    with pytest.raises(ConfigError) as err:
+        load(override)
+    assert message in str(err.value)
+
+
+def test_a_population_of_seeds():
+    cfg = load("seeds=[5,3]")
+    assert cfg.members == (5, 3) and load("seed=7").members == (7,)

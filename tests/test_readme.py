@@ -44,7 +44,7 @@ def tiny(args: list[str], out: Path) -> list[str]:
     if "-m" in args:
         extra.append(f"hydra.sweep.dir={out}")
         if any(a.startswith("+experiment=") for a in args):
-            extra.append("seed=2067791")  # one track instead of five
+            extra.append("seeds=[2067791]")  # one track per cell instead of five
     else:
         extra.append(f"hydra.run.dir={out}")
     return keep + extra
@@ -81,7 +81,7 @@ def test_readme_train_command(tmp_path, args):
             rows = read_rows(path.parent / "metrics.csv")
             assert [int(r["episode"]) for r in rows] == [0, 1]
             assert rows[1]["critic/loss_critic"] != "" and rows[1]["actor/loss_objective"] != ""
-            assert (path.parent / ".hydra" / "config.yaml").exists()
+            assert (path.parent.parent / ".hydra" / "config.yaml").exists()  # the cell's job folder
 
 
 def test_readme_report_and_evaluate_commands(tmp_path, capsys):

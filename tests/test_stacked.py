@@ -118,3 +118,30 @@ def test_member_weights_round_trip_and_bad_shapes_are_refused():
         actor(torch.rand(3, 6))
     with pytest.raises(ValueError, match="the weights have entries"):
         load_member_state_dict(other, 0, {"loc_head.weight": torch.zeros(2, 100)})
+
+
+def test_member_adam_is_torch_adam_bit_for_bit_and_restores():
+    from experiment.optim import MemberAdam
+
+    torch.set_num_threads(1)
+    nets = [population(SEEDS)[1] for _ in range(3)]
+    obs, act, ret = (torch.stack(parts) for parts in zip(*[data(s) for s in SEEDS]))
+    ours = MemberAdam(nets[0].parameters(), lr=5e-4)
+    theirs = torch.optim.Adam(nets[1].parameters(), lr=5e-4, foreach=True)
+    for step in range(12):
+        for net, opt in ((nets[0], ours), (nets[1], theirs)):
+            opt.zero_grad()
+            (ret - net(obs, act)).pow(2).flatten(1).mean(1).sum().backward()
+            opt.step()
+        if step == 5:  # a copy restored from the state at step 6 goes on identically
+            restored = MemberAdam(nets[2].parameters(), lr=5e-4)
+            nets[2].load_state_dict(nets[0].state_dict())
+            restored.load_state_dict(ours.state_dict())
+        elif step > 5:
+            restored.zero_grad()
+            (ret - nets[2](obs, act)).pow(2).flatten(1).mean(1).sum().backward()
+            restored.step()
+    for a, b, c in zip(nets[0].parameters(), nets[1].parameters(), nets[2].parameters()):
+        assert torch.equal(a, b) and torch.equal(a, c)
+    with pytest.raises(ValueError, match="optimiser state exp_avg has shapes"):
+        MemberAdam(population(SEEDS[:2])[1].parameters(), lr=1e-3).load_state_dict(ours.state_dict())

@@ -1,0 +1,70 @@
+"""Adam for a population's stacked parameters, with little per-step overhead.
+
+The update is ``torch.optim.Adam``'s (its multi-tensor, non-capturable path, no weight
+decay, no amsgrad), operation for operation, so it gives the same numbers to the bit
+(``tests/test_stacked.py``); ``torch.optim.Adam.step`` spends most of its time on Python
+bookkeeping at these sizes (about 0.7 ms a step here against 0.1 ms for the arithmetic).
+Adam is element-wise, so one optimiser over stacked parameters is exactly one Adam per member,
+and ``freeze`` stops one member without touching the others.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+
+import torch
+
+
+class MemberAdam:
+    """Adam over parameters whose first dimension is the population's members."""
+
+    def __init__(self, params: Iterable[torch.nn.Parameter], lr: float, betas: tuple[float, float] = (0.9, 0.999),
+                 eps: float = 1e-8):
+        self.params = list(params)
+        if not self.params:
+            raise ValueError("MemberAdam got no parameters")
+        self.lr, self.betas, self.eps = float(lr), (float(betas[0]), float(betas[1])), float(eps)
+        self.steps = 0
+        self.exp_avg = [torch.zeros_like(p, memory_format=torch.preserve_format) for p in self.params]
+        self.exp_avg_sq = [torch.zeros_like(p, memory_format=torch.preserve_format) for p in self.params]
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        for p in self.params:
+            p.grad = None
+
+    @torch.no_grad()
+    def step(self) -> None:
+        grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in self.params]
+        beta1, beta2 = self.betas
+        self.steps += 1
+        torch._foreach_lerp_(self.exp_avg, grads, 1 - beta1)
+        torch._foreach_mul_(self.exp_avg_sq, beta2)
+        torch._foreach_addcmul_(self.exp_avg_sq, grads, grads, 1 - beta2)
+        bias_correction1 = 1 - beta1 ** self.steps
+        bias_correction2_sqrt = math.sqrt(1 - beta2 ** self.steps)
+        denom = torch._foreach_sqrt(self.exp_avg_sq)
+        torch._foreach_div_(denom, bias_correction2_sqrt)
+        torch._foreach_add_(denom, self.eps)
+        torch._foreach_addcdiv_(self.params, self.exp_avg, denom, -self.lr / bias_correction1)
+
+    @torch.no_grad()
+    def zero_member(self, member: int) -> None:
+        """Zero ``member``'s moments (see ``experiment.phases.PhaseRunner.freeze``)."""
+        for m, v in zip(self.exp_avg, self.exp_avg_sq):
+            m[member].zero_()
+            v[member].zero_()
+
+    def state_dict(self) -> dict:
+        return {"steps": self.steps, "exp_avg": [m.clone() for m in self.exp_avg],
+                "exp_avg_sq": [v.clone() for v in self.exp_avg_sq]}
+
+    def load_state_dict(self, state: dict) -> None:
+        for key in ("exp_avg", "exp_avg_sq"):
+            if [tuple(t.shape) for t in state[key]] != [tuple(p.shape) for p in self.params]:
+                raise ValueError(f"optimiser state {key} has shapes {[tuple(t.shape) for t in state[key]]}, "
+                                 f"the parameters {[tuple(p.shape) for p in self.params]}")
+        self.steps = int(state["steps"])
+        for own, saved in ((self.exp_avg, state["exp_avg"]), (self.exp_avg_sq, state["exp_avg_sq"])):
+            for target, value in zip(own, saved):
+                target.copy_(value)

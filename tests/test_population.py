@@ -1,0 +1,128 @@
+"""Populations: several runs trained in lockstep in one process, each exactly its solo run.
+
+A solo run is a population of one, so "a member equals its solo run" is checked bit for bit
+on metrics.csv (every episode's reward and every loss diagnostic), whatever the other members
+and their order; divergence of one member leaves the others untouched; a killed population
+resumes exactly.
+"""
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+
+from experiment import checkpoint
+from experiment.phases import PhaseRunner
+from experiment.runner import train, train_population
+from tests.test_config import load
+from tests.test_train import ENV, ROOT, read_rows, run_train
+
+A, B, C = 2067791, 5468063, 773203
+CASES = [("spg_p", "hybrid"), ("ppo_log", "memory")]  # SPG and PPO, both replay phases
+
+
+def common(algo, er, episodes=4):
+    return [f"algo={algo}", f"er={er}", f"episodes={episodes}", "progress=false", "logger=none"]
+
+
+def seeds(*values):
+    return f"seeds=[{','.join(map(str, values))}]"
+
+
+@pytest.mark.parametrize("algo, er", CASES)
+def test_each_member_equals_its_solo_run_in_any_order(tmp_path, algo, er):
+    train(load(*common(algo, er), f"seed={B}"), tmp_path / "solo")
+    train_population(load(*common(algo, er), seeds(A, B, C)), tmp_path / "abc")
+    train_population(load(*common(algo, er), seeds(C, B)), tmp_path / "cb")
+    solo = (tmp_path / "solo" / "metrics.csv").read_bytes()
+    assert (tmp_path / "abc" / f"seed{B}" / "metrics.csv").read_bytes() == solo
+    assert (tmp_path / "cb" / f"seed{B}" / "metrics.csv").read_bytes() == solo
+    assert ((tmp_path / "abc" / f"seed{C}" / "metrics.csv").read_bytes()
+            == (tmp_path / "cb" / f"seed{C}" / "metrics.csv").read_bytes())
+    assert solo != (tmp_path / "abc" / f"seed{A}" / "metrics.csv").read_bytes()  # members differ
+    summary = json.loads((tmp_path / "abc" / f"seed{C}" / "summary.json").read_text())
+    assert summary["seed"] == C and summary["status"] == "completed"
+    assert summary["population"] == {"seeds": [A, B, C], "size": 3}
+    for name in ("actor", "critic"):  # saved in the solo networks' layout, the same weights
+        solo_weights = torch.load(tmp_path / "solo" / f"{name}.pt")
+        member = torch.load(tmp_path / "cb" / f"seed{B}" / f"{name}.pt")
+        assert solo_weights.keys() == member.keys()
+        assert all(torch.equal(solo_weights[k], member[k]) for k in member)
+
+
+def test_a_diverging_member_is_frozen_and_the_others_go_on(tmp_path, monkeypatch):
+    """Member A's critic is poisoned in its third phase; B ends exactly as when trained alone."""
+    run = common("spg_p", "hybrid", episodes=5)
+    train(load(*run, f"seed={B}"), tmp_path / "solo")
+    original, calls = PhaseRunner.run, []
+
+    def poisoned(self, data, minibatch_size, totals):
+        calls.append(1)
+        if len(calls) == 3:
+            with torch.no_grad():
+                self.critic_params[0][0].fill_(float("inf"))
+        return original(self, data, minibatch_size, totals)
+
+    monkeypatch.setattr(PhaseRunner, "run", poisoned)
+    summaries = train_population(load(*run, seeds(A, B)), tmp_path / "pop")
+    assert [s["status"] for s in summaries] == ["diverged", "completed"]
+    assert summaries[0]["diverged"]["episode"] == 1 and "critic" in summaries[0]["diverged"]["reason"]
+    assert len(read_rows(tmp_path / "pop" / f"seed{A}" / "metrics.csv")) == 1
+    assert not (tmp_path / "pop" / f"seed{A}" / "actor.pt").exists()
+    assert ((tmp_path / "pop" / f"seed{B}" / "metrics.csv").read_bytes()
+            == (tmp_path / "solo" / "metrics.csv").read_bytes())
+
+
+def test_sigkill_mid_population_then_resume_gives_every_member_its_uninterrupted_metrics(tmp_path):
+    run = [*common("spg_p", "hybrid", episodes=8), "checkpoint_every=2", seeds(A, B)]
+    reference = tmp_path / "reference"
+    train_population(load(*run), reference)
+    run_dir = tmp_path / "run"
+    cmd = [sys.executable, str(ROOT / "train.py"), *run, f"hydra.run.dir={run_dir}"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None:
+        if ((run_dir / checkpoint.CHECKPOINT_FILE).exists()
+                and len(read_rows(run_dir / f"seed{B}" / "metrics.csv")) >= 5):
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the population finished before it could be killed"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    resumed = subprocess.run(cmd, cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    for seed in (A, B):
+        summary = json.loads((run_dir / f"seed{seed}" / "summary.json").read_text())
+        assert summary["status"] == "completed" and summary["resumed_at"] in (2, 4, 6)
+        assert ((run_dir / f"seed{seed}" / "metrics.csv").read_bytes()
+                == (reference / f"seed{seed}" / "metrics.csv").read_bytes())
+    assert not (run_dir / checkpoint.CHECKPOINT_FILE).exists()
+
+
+def test_finished_members_are_skipped(tmp_path):
+    """A member whose folder holds the same run, finished (here: trained alone), is not trained
+    again; the others are."""
+    run = common("ppo", "recent", episodes=2)
+    solo = run_train(*run, f"seed={A}", f"hydra.run.dir={tmp_path / f'seed{A}'}")
+    assert solo.returncode == 0, solo.stderr[-2000:]
+    before = (tmp_path / f"seed{A}" / "summary.json").read_bytes()
+    result = run_train(*run, seeds(A, B), f"hydra.run.dir={tmp_path}")
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert f"seed{A}: already completed" in result.stderr
+    assert (tmp_path / f"seed{A}" / "summary.json").read_bytes() == before
+    assert json.loads((tmp_path / f"seed{B}" / "summary.json").read_text())["population"]["size"] == 1
+
+
+def test_the_default_run_folders(tmp_path):
+    """One run: .../<algo>/<er>/seed<seed>; a population: its members' seed<seed>/ under .../<algo>/<er>."""
+    result = run_train(*common("ppo", "recent", episodes=1), seeds(A, C), "checkpoint_every=0", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    for seed in (A, C):
+        assert (tmp_path / "outputs" / "runs" / "ppo" / "recent" / f"seed{seed}" / "summary.json").exists()
+    result = run_train(*common("ppo", "recent", episodes=1), f"seed={B}", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert (tmp_path / "outputs" / "runs" / "ppo" / "recent" / f"seed{B}" / "summary.json").exists()
