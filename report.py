@@ -5,8 +5,11 @@ Writes into ``SWEEP_DIR/report/``:
 - ``table.md``, ``table.csv``: Table 1's layout, mean ± standard error over seeds of each run's
   final performance, the paper's value, and the difference in units of the combined standard
   error; diverged runs counted;
-- ``iqm.md`` and ``iqm.png``: interquartile mean of the last 20 episodes per cell with 95%
-  stratified-bootstrap intervals (strata: tracks);
+- ``conclusions.md``: the paper's three conclusions as effects paired by track with 95%
+  bootstrap intervals over tracks and a verdict, on the paper's five tracks and on all tracks;
+- ``collapse.md``: per cell, the runs whose final performance is below 20 (collapsed);
+- ``iqm.md`` and ``iqm.png``: interquartile mean of the runs' final performances per cell
+  (one score per run) with 95% bootstrap intervals over runs (tracks);
 - ``curves_*.png``: learning curves, mean over tracks with a ±1 SE band, per algorithm and per
   replay mode; ``paper_tracks.png``; ``agent.png``, a frame of the best run's policy.
 Lists runs that are partial (killed or running), unreadable or diverged. The figures need the
@@ -23,8 +26,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from experiment.report import (cells, code_versions, find_runs, read_paper_table, table_markdown,
-                               versions_markdown, write_runs_csv, write_table_csv)
+from experiment.report import (cells, code_versions, collapse_markdown, conclusions_markdown, find_runs,
+                               read_paper_table, table_markdown, versions_markdown, write_runs_csv,
+                               write_table_csv)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -55,6 +59,8 @@ def main(argv: list[str] | None = None) -> int:
     (out / "table.md").write_text(markdown)
     write_table_csv(table, out / "table.csv")
     write_runs_csv(runs, out / "runs.csv", args.sweep_dir)
+    (out / "conclusions.md").write_text(versions_markdown(versions) + "\n" + conclusions_markdown(runs))
+    (out / "collapse.md").write_text(versions_markdown(versions) + "\n" + collapse_markdown(runs))
     print(markdown)
     for status in ("diverged", "partial", "unreadable"):
         listed = [r for r in runs if r.status == status]
@@ -62,7 +68,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{len(listed)} {status} run(s):")
             for r in listed:
                 print(f"  {r.path} ({len(r.rewards)} episodes in metrics.csv)")
-    print(f"{sum(r.status == 'completed' for r in runs)} completed runs; wrote {out}/table.md, table.csv, runs.csv")
+    print(f"{sum(r.status == 'completed' for r in runs)} completed runs; wrote {out}/table.md, table.csv, "
+          "runs.csv, conclusions.md, collapse.md")
     if not args.no_figures:
         write_figures(runs, out)
     return 0
@@ -76,7 +83,8 @@ def write_figures(runs, out: Path) -> None:
               "-e '.[render]'")
         return
     rows = figures.iqm_rows(runs)
-    lines = ["| cell | IQM | 95% CI | tracks |", "|---|---:|---|---:|"]
+    lines = ["IQM of the runs' final performances per cell; 95% interval from resampling runs (tracks).", "",
+             "| cell | IQM | 95% CI | runs |", "|---|---:|---|---:|"]
     lines += [f"| {label} | {point:.1f} | [{low:.1f}, {high:.1f}] | {n} |" for label, point, low, high, n in rows]
     (out / "iqm.md").write_text("\n".join(lines) + "\n")
     written = figures.learning_curve_figures(runs, out)

@@ -204,3 +204,153 @@ def write_runs_csv(runs: list[Run], path: Path, root: Path) -> None:
 
 def _num(value: float | None) -> str:
     return "" if value is None else f"{value:.4f}"
+
+
+# ------------------------------------------------------------------ the paper's conclusions
+PAPER_SEEDS = (2067791, 5468063, 5412436, 8273186, 773203)
+COLLAPSE_BELOW = 20.0  # a final performance below this: the car stands still or keeps crashing
+SPG_PAIRS = (("spg", "spg_p"), ("spg_multi", "spg_p_multi"))  # without and with prioritisation
+
+
+@dataclass
+class Effect:
+    """A paired effect between cells over tracks, with its 95% bootstrap interval over tracks."""
+
+    claim: str
+    label: str
+    value: float
+    low: float
+    high: float
+    tracks: int
+
+    @property
+    def verdict(self) -> str:
+        if self.tracks < 2:
+            return "too few tracks"
+        if self.low > 0:
+            return "holds"
+        if self.high < 0:
+            return "reversed"
+        return "undecided"
+
+
+def finals_by_track(runs: list[Run], er: str, algo: str, seeds: set[int] | None = None) -> dict[int, float]:
+    """{track seed: final performance} of a cell's completed runs (optionally only ``seeds``)."""
+    return {r.seed: r.final_mean for r in runs
+            if (r.er, r.algo) == (er, algo) and r.status == "completed" and r.final_mean is not None
+            and (seeds is None or r.seed in seeds)}
+
+
+def paired_bootstrap(a: dict[int, float], b: dict[int, float], statistic, reps: int = 10000,
+                     seed: int = 0) -> tuple[float, float, float, int]:
+    """``statistic(a_values, b_values)`` over the tracks both cells have, and its 95% percentile
+    interval from resampling tracks with replacement (the same tracks for both cells)."""
+    import numpy as np
+
+    tracks = sorted(set(a) & set(b))
+    x = np.array([a[t] for t in tracks])
+    y = np.array([b[t] for t in tracks])
+    if len(tracks) < 2:
+        value = float(statistic(x, y)) if tracks else float("nan")
+        return value, float("nan"), float("nan"), len(tracks)
+    rng = np.random.default_rng(seed)
+    picks = rng.integers(0, len(tracks), size=(reps, len(tracks)))
+    stats = np.array([statistic(x[p], y[p]) for p in picks])
+    low, high = np.percentile(stats, [2.5, 97.5])
+    return float(statistic(x, y)), float(low), float(high), len(tracks)
+
+
+def _mean_difference(x, y):
+    return (x - y).mean()
+
+
+def _sd_difference(x, y):
+    return x.std(ddof=1) - y.std(ddof=1)
+
+
+def conclusions(runs: list[Run], seeds: set[int] | None = None) -> list[Effect]:
+    """The paper's three conclusions as paired effects on the tracks ``seeds`` (None: all).
+
+    1. With recent experience only, PPO (linear) beats each SPG variant: PPO - SPG > 0.
+    2. With experience replay, each SPG cell beats the best PPO cell (among the PPO cells none
+       of whose runs diverged, the one with the highest mean on these tracks, chosen on the same
+       data): SPG - best PPO > 0.
+    3. Prioritisation steadies SPG: SD over tracks of SPG-p minus that of SPG, per pair of
+       cells (same epochs and replay mode), < 0.
+    """
+    effects = []
+    ppo = finals_by_track(runs, "recent", "ppo", seeds)
+    for algo in ("spg", "spg_multi", "spg_p", "spg_p_multi"):
+        value, low, high, n = paired_bootstrap(ppo, finals_by_track(runs, "recent", algo, seeds), _mean_difference)
+        effects.append(Effect("PPO beats SPG with recent experience only",
+                              f"PPO linear - {COLUMN_TITLES[algo]} (recent)", value, low, high, n))
+    ppo_cells = [(er, algo) for er in ER_ROWS for algo in ("ppo", "ppo_log")]
+
+    def finished(key):  # the cell's runs on these tracks, if none of them diverged
+        mine = [r for r in runs if (r.er, r.algo) == key and (seeds is None or r.seed in seeds)]
+        return finals_by_track(runs, *key, seeds) if all(r.status == "completed" for r in mine) else {}
+
+    scored = [(sum(v.values()) / len(v), key) for key in ppo_cells if (v := finished(key))]
+    if scored:
+        best = max(scored)[1]
+        best_finals = finals_by_track(runs, *best, seeds)
+        for er in ("memory", "hybrid"):
+            for algo in ("spg", "spg_multi", "spg_p", "spg_p_multi"):
+                value, low, high, n = paired_bootstrap(finals_by_track(runs, er, algo, seeds), best_finals,
+                                                       _mean_difference)
+                effects.append(Effect("SPG with experience replay beats the best PPO",
+                                      f"{COLUMN_TITLES[algo]} ({er}) - {COLUMN_TITLES[best[1]]} ({best[0]})",
+                                      value, low, high, n))
+    for er in ER_ROWS:
+        for plain, prioritised in SPG_PAIRS:
+            value, low, high, n = paired_bootstrap(finals_by_track(runs, er, prioritised, seeds),
+                                                   finals_by_track(runs, er, plain, seeds), _sd_difference)
+            # the claim is a smaller spread: flip the sign so that "holds" means SD(SPG-p) < SD(SPG)
+            effects.append(Effect("Prioritisation steadies SPG (smaller spread over tracks)",
+                                  f"SD({COLUMN_TITLES[plain]}) - SD({COLUMN_TITLES[prioritised]}) ({er})",
+                                  -value, -high, -low, n))
+    return effects
+
+
+def conclusions_markdown(runs: list[Run]) -> str:
+    """The conclusions on the paper's five tracks and on every track of the sweep, side by side."""
+    all_seeds = {r.seed for r in runs if r.seed is not None}
+    paper = set(PAPER_SEEDS) & all_seeds
+    sets = [("paper tracks", paper)] if paper else []
+    if all_seeds - paper:
+        sets.append((f"all {len(all_seeds)} tracks", all_seeds))
+    results = [(name, conclusions(runs, seeds)) for name, seeds in sets]
+    if not results:
+        return ""
+    lines = ["Each effect is a mean (or SD) difference between two cells paired by track; the 95% "
+             "interval is a percentile bootstrap over tracks (10,000 resamples). Verdict: holds if "
+             "the interval lies above 0, reversed if below, undecided otherwise. Tracks where a "
+             "cell's run diverged are left out of that comparison.", ""]
+    header = "| claim | effect | " + " | ".join(f"{name}: effect [95% CI] (n) | verdict" for name, _ in results) + " |"
+    lines += [header, "|---|---|" + "---|---|" * len(results)]
+    for i, effect in enumerate(results[0][1]):
+        cells_text = []
+        for _, effects in results:
+            e = effects[i]
+            ci = "" if math.isnan(e.low) else f" [{e.low:+.1f}, {e.high:+.1f}]"
+            cells_text += [f"{e.value:+.1f}{ci} ({e.tracks})", e.verdict]
+        lines.append(f"| {effect.claim} | {effect.label} | " + " | ".join(cells_text) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def collapse_markdown(runs: list[Run]) -> str:
+    """Per cell: runs whose final performance is below ``COLLAPSE_BELOW`` (collapsed), and diverged."""
+    lines = [f"| cell | runs | collapsed (final < {COLLAPSE_BELOW:g}) | rate | diverged | collapsed tracks |",
+             "|---|---:|---:|---:|---:|---|"]
+    for er in ER_ROWS:
+        for algo in ALGO_COLUMNS:
+            mine = [r for r in runs if (r.er, r.algo) == (er, algo) and r.status in ("completed", "diverged")]
+            if not mine:
+                continue
+            done = [r for r in mine if r.status == "completed" and r.final_mean is not None]
+            low = sorted((r for r in done if r.final_mean < COLLAPSE_BELOW), key=lambda r: r.seed)
+            rate = f"{len(low) / len(done):.0%}" if done else ""
+            tracks = ", ".join(f"{r.seed} ({r.final_mean:.1f})" for r in low)
+            lines.append(f"| {er} / {COLUMN_TITLES[algo]} | {len(done)} | {len(low)} | {rate} | "
+                         f"{len(mine) - len(done)} | {tracks} |")
+    return "\n".join(lines) + "\n"

@@ -57,18 +57,19 @@ def learning_curve_figures(runs: list[Run], out: Path) -> list[Path]:
     return written
 
 
-def iqm_rows(runs: list[Run], window: int = 20, reps: int = 2000) -> list[tuple[str, float, float, float, int]]:
-    """(cell, IQM, low, high, tracks) per cell: scores are the last ``window`` episodes' total
-    rewards, one column per track; the interval is the stratified bootstrap's 95%."""
+def iqm_rows(runs: list[Run], reps: int = 2000) -> list[tuple[str, float, float, float, int]]:
+    """(cell, IQM, low, high, runs) per cell: each completed run's final performance is one
+    score, and the 95% interval comes from resampling runs (tracks), as rliable does: it is
+    run-to-run uncertainty, not one run's episode noise."""
     rows = []
     for er in ER_ROWS:
         for algo in ALGO_COLUMNS:
-            data = curves(runs, algo, er)
-            if data is None:
+            finals = [r.final_mean for r in runs
+                      if (r.er, r.algo) == (er, algo) and r.status == "completed" and r.final_mean is not None]
+            if not finals:
                 continue
-            scores = data[:, -window:].T  # [episodes, tracks]
-            point, low, high = stratified_bootstrap_ci(scores, reps=reps)
-            rows.append((f"{er} / {COLUMN_TITLES[algo]}", point, low, high, data.shape[0]))
+            point, low, high = stratified_bootstrap_ci(np.array(finals)[:, None], reps=reps)
+            rows.append((f"{er} / {COLUMN_TITLES[algo]}", point, low, high, len(finals)))
     return rows
 
 
@@ -82,7 +83,7 @@ def iqm_figure(rows: list[tuple[str, float, float, float, int]], path: Path) -> 
         ax.plot([low, high], [yi, yi], color="tab:blue", linewidth=3, alpha=0.5)
         ax.plot(point, yi, "o", color="tab:blue")
     ax.set_yticks(y, [r[0] for r in rows], fontsize=8)
-    ax.set(xlabel="IQM of the last 20 episodes' total reward (95% stratified bootstrap CI)")
+    ax.set(xlabel="IQM of the runs' final performance (95% bootstrap CI over runs)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -134,3 +134,52 @@ def test_evaluate_refuses_a_folder_that_is_not_a_run(tmp_path, capsys):
 
     assert evaluate.main([str(tmp_path)]) == 2
     assert "holds no summary.json" in capsys.readouterr().err
+
+
+def test_conclusions_pair_by_track_and_bootstrap_over_tracks(tmp_path):
+    """Hand-made finals: PPO beats SPG by exactly 10 on every paper track (a zero-width
+    interval: holds), SPG-p's spread equals SPG's (undecided), and the other tracks reverse
+    the first claim; the two track sets are reported side by side."""
+    from experiment.report import PAPER_SEEDS, conclusions, conclusions_markdown
+
+    extra = [11, 12, 13, 14, 15]
+    for i, seed in enumerate(PAPER_SEEDS):
+        fake_run(tmp_path, "ppo", "recent", seed, 100.0 + 3 * i)
+        fake_run(tmp_path, "spg", "recent", seed, 90.0 + 3 * i)
+        fake_run(tmp_path, "spg_p", "recent", seed, 50.0 + 3 * i)
+    for i, seed in enumerate(extra):
+        fake_run(tmp_path, "ppo", "recent", seed, 100.0 + i)
+        fake_run(tmp_path, "spg", "recent", seed, 130.0 + i)
+    fake_run(tmp_path, "spg", "recent", 99, None, status="diverged")
+    runs = find_runs(tmp_path)
+    effects = {e.label: e for e in conclusions(runs, set(PAPER_SEEDS))}
+    first = effects["PPO linear - SPG single (recent)"]
+    assert (first.value, first.low, first.high, first.tracks, first.verdict) == (10.0, 10.0, 10.0, 5, "holds")
+    spread = effects["SD(SPG single) - SD(SPG-p single) (recent)"]
+    assert spread.value == pytest.approx(0.0) and spread.verdict == "undecided"
+    everything = {e.label: e for e in conclusions(runs)}["PPO linear - SPG single (recent)"]
+    assert everything.tracks == 10 and everything.value == pytest.approx((5 * 10 - 5 * 30) / 10)
+    table = conclusions_markdown(runs)
+    assert "paper tracks: effect" in table and "all 11 tracks: effect" in table
+    assert "| PPO beats SPG with recent experience only | PPO linear - SPG single (recent) | +10.0 [+10.0, +10.0] (5) | holds |" in table
+
+
+def test_collapse_rates_per_cell(tmp_path):
+    from experiment.report import collapse_markdown
+
+    for seed, final in zip(range(4), [120.0, 0.5, -12.0, 80.0]):
+        fake_run(tmp_path, "spg", "recent", seed, final)
+    fake_run(tmp_path, "spg", "recent", 9, None, status="diverged")
+    text = collapse_markdown(find_runs(tmp_path))
+    assert "| recent / SPG single | 4 | 2 | 50% | 1 | 1 (0.5), 2 (-12.0) |" in text
+
+
+def test_iqm_is_over_runs(tmp_path):
+    pytest.importorskip("matplotlib", reason="report_figures needs the render extra")
+    from experiment.report_figures import iqm_rows
+
+    for seed, final in zip(range(8), [10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 1000.0]):
+        fake_run(tmp_path, "spg", "memory", seed, final, episodes=25)
+    ((label, point, low, high, n),) = iqm_rows(find_runs(tmp_path), reps=500)
+    assert n == 8 and point == pytest.approx(45.0)  # the middle four of eight finals
+    assert low < point < high
