@@ -26,3 +26,13 @@ def test_train_speed_benchmark_prints_its_tables():
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
     assert len(rows) == (1 + 2) + (1 + 2) + (1 + 3)
     assert "| spg_p/hybrid (TorchRL Collector, baseline) |" in result.stdout
+
+
+def test_population_speed_benchmark_prints_its_tables():
+    result = subprocess.run([sys.executable, "-m", "benchmarks.population_speed", "--episodes", "2",
+                             "--sizes", "1", "2", "--cells", "ppo/recent", "--collectors", "2"],
+                            capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
+    assert len(rows) == (1 + 2) + (1 + 1)
+    assert "matmul peak here" in result.stdout and "| ppo/recent | 2 |" in result.stdout

@@ -1,0 +1,185 @@
+"""Population training speed: solo runs against populations, and training against the matmul peak.
+
+    python -m benchmarks.population_speed [--episodes 20] [--sizes 1 5 25 100]
+                                          [--cells ppo/recent spg_p_multi/hybrid spg/memory]
+                                          [--before COMMIT] [--collectors 25]
+
+Prints three tables (one thread, as training runs use; absolute numbers depend on the machine,
+compare the ratios, all measured in this run):
+
+1. per cell and population size R: wall time, time per member-episode split into collection
+   and training, throughput per core against a solo run (R = 1, the same code), training's
+   achieved GFLOP/s (matmul FLOPs counted with ``torch.utils.flop_counter`` on a population of
+   one, forward and backward, padding rows included) beside this core's matmul peak
+   (a 1024 x 1024 float32 matmul, and ``bmm`` at a training layer's shape, measured here);
+2. collection per member-step with the direct loop and with TorchRL's ``Collector`` at the
+   sizes given by ``--collectors``;
+3. with ``--before COMMIT``: the same solo runs with that commit's code (a clean export, run
+   as a subprocess of this script), the baseline of "today's solo run".
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
+
+import torch  # noqa: E402
+from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
+
+from experiment.config import RunConfig  # noqa: E402
+from experiment.runner import train_population  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+CELLS = ["ppo/recent", "spg_p_multi/hybrid", "spg/memory"]
+SEEDS = RunConfig.compose("+experiment=wide_grid").seeds  # fixed tracks; more are derived if needed
+
+
+def member_seeds(count: int) -> list[int]:
+    return [*SEEDS, *range(1000, 1000 + max(0, count - len(SEEDS)))][:count]
+
+
+def config(cell: str, members: int, episodes: int, *extra: str) -> RunConfig:
+    algo, er = cell.split("/")
+    seeds = ",".join(map(str, member_seeds(members)))
+    return RunConfig.compose(f"algo={algo}", f"er={er}", f"episodes={episodes}", "progress=false",
+                             "logger=none", "checkpoint_every=0", f"seeds=[{seeds}]", *extra)
+
+
+def timed_run(cfg: RunConfig) -> dict:
+    with tempfile.TemporaryDirectory() as out:
+        start = time.perf_counter()
+        summary = train_population(cfg, Path(out))[0]
+        wall = time.perf_counter() - start
+    return {"wall": wall, "rollout": summary["time/rollout_s"], "train": summary["time/train_s"]}
+
+
+def counted_flops(cell: str, episodes: int) -> float:
+    """Matmul FLOPs of one member's run (every member's are the same)."""
+    counter = FlopCounterMode(display=False)
+    with counter, tempfile.TemporaryDirectory() as out:
+        train_population(config(cell, 1, episodes), Path(out))
+    return float(counter.get_total_flops())
+
+
+def best_of(fn, repeats: int = 5) -> float:
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def matmul_peaks() -> dict[str, float]:
+    """GFLOP/s of a 1024^2 matmul and of bmm at a 25-member 200 x 100 x 100 layer."""
+    a, b = torch.randn(1024, 1024), torch.randn(1024, 1024)
+    x, w = torch.randn(25, 200, 100), torch.randn(25, 100, 100)
+    square = 2 * 1024 ** 3 / best_of(lambda: [a @ b for _ in range(10)]) * 10
+    batched = 2 * 25 * 200 * 100 * 100 / best_of(lambda: [torch.bmm(x, w) for _ in range(50)]) * 50
+    return {"matmul 1024^2": square / 1e9, "bmm 25x200x100x100": batched / 1e9}
+
+
+def table(title: str, header: list[str], rows: list[list]) -> None:
+    print(f"\n{title}\n")
+    print("| " + " | ".join(header) + " |")
+    print("|" + "---|" * len(header))
+    for row in rows:
+        print("| " + " | ".join(str(x) for x in row) + " |")
+    sys.stdout.flush()
+
+
+def before_solo(commit: str, cell: str, episodes: int) -> dict:
+    """A solo run of ``cell`` with ``commit``'s code (exported with clean_sweep's export)."""
+    from clean_sweep import export, resolve_commit
+
+    sha = resolve_commit(commit)
+    code = export(sha, ROOT / "outputs" / "code" / sha[:12])
+    algo, er = cell.split("/")
+    with tempfile.TemporaryDirectory() as out:
+        cmd = [sys.executable, "train.py", f"algo={algo}", f"er={er}", f"seed={member_seeds(1)[0]}",
+               f"episodes={episodes}", "progress=false", "logger=none", "checkpoint_every=0",
+               f"hydra.run.dir={out}"]
+        start = time.perf_counter()
+        subprocess.run(cmd, cwd=code, check=True, capture_output=True,
+                       env={**os.environ, "PYTHONPATH": str(code)})
+        wall = time.perf_counter() - start
+        summary = json.loads((Path(out) / "summary.json").read_text())
+    return {"wall": wall, "rollout": summary["time/rollout_s"], "train": summary["time/train_s"]}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--episodes", type=int, default=20)
+    parser.add_argument("--sizes", type=int, nargs="+", default=[1, 5, 25, 100])
+    parser.add_argument("--cells", nargs="+", default=CELLS)
+    parser.add_argument("--collectors", type=int, nargs="*", default=[25],
+                        help="population sizes at which to compare the two collectors")
+    parser.add_argument("--before", default=None, help="a commit whose solo runs are the baseline")
+    args = parser.parse_args(argv)
+    if 1 not in args.sizes:
+        parser.error("--sizes must include 1 (the solo baseline)")
+    torch.set_num_threads(1)
+    peaks = matmul_peaks()
+    print(f"episodes per run: {args.episodes}; torch {torch.__version__}, one thread; matmul peak here: "
+          + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in peaks.items()))
+    peak = peaks["matmul 1024^2"]
+
+    rows, solo, timed = [], {}, {}
+    for cell in args.cells:
+        flops = counted_flops(cell, args.episodes)
+        for size in args.sizes:
+            t = timed[cell, size] = timed_run(config(cell, size, args.episodes))
+            per = size * args.episodes
+            if size == 1:
+                solo[cell] = t
+            gflops = flops * size / t["train"] / 1e9
+            rows.append([cell, size, f"{t['wall']:.1f}", f"{1000 * t['wall'] / per:.1f}",
+                         f"{1000 * t['rollout'] / per:.1f}", f"{1000 * t['train'] / per:.1f}",
+                         f"{solo[cell]['wall'] / (t['wall'] / size):.2f}x",
+                         f"{gflops:.1f}", f"{gflops / peak:.0%}"])
+    table("Populations against a solo run (same code); per member-episode times",
+          ["cell", "R", "wall s", "ms/member-ep", "collect ms", "train ms", "throughput vs solo",
+           "train GFLOP/s", "of matmul peak"], rows)
+
+    rows = []
+    for size in args.collectors:
+        for cell in args.cells[:1]:
+            times = {}
+            for backend in ("direct", "torchrl"):
+                t = timed_run(config(cell, size, args.episodes, f"env.collector={backend}"))
+                times[backend] = 1e6 * t["rollout"] / (size * args.episodes * 200)
+            rows.append([cell, size, f"{times['direct']:.1f}", f"{times['torchrl']:.1f}",
+                         f"{times['torchrl'] / times['direct']:.2f}x"])
+    if rows:
+        table("Collection per member-step (us): the direct loop against TorchRL's Collector",
+              ["cell", "R", "direct", "torchrl", "torchrl / direct"], rows)
+
+    if args.before:
+        rows = []
+        largest = max(size for size in args.sizes if size <= 25)
+        for cell in args.cells:
+            old = before_solo(args.before, cell, args.episodes)
+            per = args.episodes
+            old_ms = 1000 * (old["rollout"] + old["train"]) / per
+            ours = {size: 1000 * (t["rollout"] + t["train"]) / (size * per) for (c, size), t in timed.items()
+                    if c == cell}
+            rows.append([cell, f"{1000 * old['rollout'] / per:.1f}", f"{1000 * old['train'] / per:.1f}",
+                         f"{old_ms:.1f}", f"{ours[1]:.1f}", f"{ours[largest]:.1f}",
+                         f"{old_ms / ours[largest]:.2f}x"])
+        table(f"Solo runs of commit {args.before} against today's code (ms per member-episode, collecting + "
+              "training; process start-up excluded)",
+              ["cell", "before: collect", "before: train", "before: total", "today solo",
+               f"today R={largest}", f"R={largest} vs before"], rows)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
