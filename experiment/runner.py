@@ -111,14 +111,20 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
         raise ConfigError("the run folder holds a checkpoint of a different configuration; choose another "
                           "folder (hydra.run.dir=...) or pass overwrite=true to start afresh")
     done: dict[int, dict] = {}
-    if payload is None:  # with a checkpoint, its members go on (finished ones were never in it)
-        for seed in cfg.members:
-            summary = finished_run(member_folder(cfg, out_dir, seed), member_settings[seed], cfg.overwrite)
-            if summary is not None:
-                done[seed] = summary
-                if skipped is not None:
-                    skipped.append((member_folder(cfg, out_dir, seed), summary))
+    resumed = set(payload["members"]) if payload is not None else set()  # they go on from the checkpoint
+    for seed in cfg.members:
+        if seed in resumed:
+            continue
+        summary = finished_run(member_folder(cfg, out_dir, seed), member_settings[seed], cfg.overwrite)
+        if summary is not None:
+            done[seed] = summary
+            if skipped is not None:
+                skipped.append((member_folder(cfg, out_dir, seed), summary))
     seeds = tuple(payload["members"]) if payload is not None else tuple(s for s in cfg.members if s not in done)
+    missing = [s for s in cfg.members if s not in done and s not in seeds]
+    if missing:
+        raise checkpoint.CheckpointError(f"the checkpoint holds members {list(seeds)} but not {missing}, whose runs "
+                                         "are not finished either; delete it to start afresh")
     if seeds:
         for summary in _train(cfg, out_dir, seeds, member_settings, settings, payload, start):
             done[summary["seed"]] = summary

@@ -126,3 +126,30 @@ def test_the_default_run_folders(tmp_path):
     result = run_train(*common("ppo", "recent", episodes=1), f"seed={B}", cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-2000:]
     assert (tmp_path / "outputs" / "runs" / "ppo" / "recent" / f"seed{B}" / "summary.json").exists()
+
+
+def test_a_population_with_a_finished_member_resumes(tmp_path, monkeypatch):
+    """Member A finished earlier (alone); B is trained, interrupted after a checkpoint, and
+    resumed: B equals its uninterrupted run and A's summary is returned untouched."""
+    from experiment import outputs
+
+    run = [*common("ppo", "recent", episodes=4), "checkpoint_every=2"]
+    train(load(*run, f"seed={A}"), tmp_path / "pop" / f"seed{A}")
+    train(load(*run, f"seed={B}"), tmp_path / "alone")
+    original = outputs.MetricsWriter.write
+
+    def write_then_stop(self, row):
+        original(self, row)
+        if row["episode"] == 2:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(outputs.MetricsWriter, "write", write_then_stop)
+    with pytest.raises(KeyboardInterrupt):
+        train_population(load(*run, seeds(A, B)), tmp_path / "pop")
+    monkeypatch.setattr(outputs.MetricsWriter, "write", original)
+    assert (tmp_path / "pop" / checkpoint.CHECKPOINT_FILE).exists()
+    summaries = train_population(load(*run, seeds(A, B)), tmp_path / "pop")
+    assert [s["seed"] for s in summaries] == [A, B] and summaries[1]["resumed_at"] == 2
+    assert summaries[0]["population"]["size"] == 1
+    assert ((tmp_path / "pop" / f"seed{B}" / "metrics.csv").read_bytes()
+            == (tmp_path / "alone" / "metrics.csv").read_bytes())
