@@ -57,7 +57,7 @@ class PhaseRunner:
         for name, params in (("critic", self.critic_params), ("actor", self.actor_params)):
             bad = ~_finite_per_member(params)
             for member in bad.nonzero().flatten().tolist():
-                failed.setdefault(member, f"a {name} parameter became NaN or infinite")
+                failed.setdefault(member, f"the {name}'s parameters became NaN or infinite")
         for name, bad in totals.non_finite_losses().items():
             for member in bad.nonzero().flatten().tolist():
                 failed.setdefault(member, f"{name} became NaN or infinite")
