@@ -35,6 +35,7 @@ import torch  # noqa: E402
 from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
 
 from experiment.config import RunConfig  # noqa: E402
+from benchmarks.train_speed import best_of, table  # noqa: E402
 from experiment.runner import train_population  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -69,31 +70,13 @@ def counted_flops(cell: str, episodes: int) -> float:
     return float(counter.get_total_flops())
 
 
-def best_of(fn, repeats: int = 5) -> float:
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - start)
-    return best
-
-
 def matmul_peaks() -> dict[str, float]:
     """GFLOP/s of a 1024^2 matmul and of bmm at a 25-member 200 x 100 x 100 layer."""
     a, b = torch.randn(1024, 1024), torch.randn(1024, 1024)
     x, w = torch.randn(25, 200, 100), torch.randn(25, 100, 100)
-    square = 2 * 1024 ** 3 / best_of(lambda: [a @ b for _ in range(10)]) * 10
-    batched = 2 * 25 * 200 * 100 * 100 / best_of(lambda: [torch.bmm(x, w) for _ in range(50)]) * 50
+    square = 2 * 1024 ** 3 / best_of(lambda: [a @ b for _ in range(10)], 5) * 10
+    batched = 2 * 25 * 200 * 100 * 100 / best_of(lambda: [torch.bmm(x, w) for _ in range(50)], 5) * 50
     return {"matmul 1024^2": square / 1e9, "bmm 25x200x100x100": batched / 1e9}
-
-
-def table(title: str, header: list[str], rows: list[list]) -> None:
-    print(f"\n{title}\n")
-    print("| " + " | ".join(header) + " |")
-    print("|" + "---|" * len(header))
-    for row in rows:
-        print("| " + " | ".join(str(x) for x in row) + " |")
-    sys.stdout.flush()
 
 
 def before_solo(commit: str, cell: str, episodes: int) -> dict:
