@@ -37,10 +37,12 @@ class ReplayMemory:
     transitions per member either way.
     """
 
-    def __init__(self, capacity: int, members: int | None = None):
+    def __init__(self, capacity: int, members: int | None = None, device: torch.device | str = "cpu"):
         self.capacity = capacity
         self.members = members
-        self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(capacity), sampler=RandomSampler())
+        self.device = torch.device(device)
+        self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(capacity, device=device),
+                                             sampler=RandomSampler())
 
     def __len__(self) -> int:
         """Transitions stored (per member)."""
@@ -59,7 +61,7 @@ class ReplayMemory:
         return self.buffer.state_dict()
 
     def load_state_dict(self, state: dict) -> None:
-        self.buffer.load_state_dict(state)
+        self.buffer.load_state_dict(_to_device(state, self.device))
 
     def contents(self) -> TensorDictBase:
         """Every stored transition (in slot order, not time order), as a new TensorDict
@@ -81,8 +83,8 @@ def sample_minibatch(data: TensorDictBase, size: int,
             raise ValueError(f"{len(generators)} generators need data of batch size [{len(generators)}, n], "
                              f"got {tuple(data.batch_size)}")
         n = data.batch_size[1]
-        index = torch.stack([torch.randint(n, (size,), generator=g) for g in generators])
-        rows = torch.arange(len(generators)).unsqueeze(1)
+        index = torch.stack([torch.randint(n, (size,), generator=g, device=g.device) for g in generators])
+        rows = torch.arange(len(generators), device=index.device).unsqueeze(1)
         return TensorDict({key: value[rows, index] for key, value in data.items()},
                           batch_size=[len(generators), size])
     index = torch.randint(len(data), (size,), generator=generators)
@@ -91,3 +93,17 @@ def sample_minibatch(data: TensorDictBase, size: int,
     if any(isinstance(value, TensorDictBase) for value in data.values()):
         return data[index]
     return TensorDict({key: value[index] for key, value in data.items()}, batch_size=[size])
+
+
+def _to_device(state, device: torch.device):
+    """A (nested) state dict with its tensors moved to ``device`` (checkpoints load on the CPU);
+    mappings are updated in place."""
+    if isinstance(state, (torch.Tensor, TensorDictBase)):
+        return state.to(device)
+    if isinstance(state, dict):  # in place: the mappings carry metadata that TorchRL reads back
+        for key, value in state.items():
+            state[key] = _to_device(value, device)
+        return state
+    if isinstance(state, (list, tuple)):
+        return type(state)(_to_device(value, device) for value in state)
+    return state

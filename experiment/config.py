@@ -90,6 +90,20 @@ def _coerce(where: str, value: Any, hint: Any) -> Any:
     return value
 
 
+def _check_device(device: str) -> None:
+    """``cpu``, or ``cuda``/``cuda:N`` when that GPU is present (checked without importing torch for cpu)."""
+    if device == "cpu":
+        return
+    if not (device == "cuda" or (device.startswith("cuda:") and device[5:].isdigit())):
+        raise ConfigError(f"device must be cpu, cuda or cuda:<index>, got {device!r}")
+    import torch
+
+    index = int(device[5:]) if ":" in device else 0
+    if not torch.cuda.is_available() or index >= torch.cuda.device_count():
+        raise ConfigError(f"device={device} but torch sees {torch.cuda.device_count()} CUDA device(s) "
+                          f"(torch {torch.__version__}); use device=cpu")
+
+
 def _choice(where: str, value: str, choices: tuple[str, ...]) -> None:
     if value not in choices:
         raise ConfigError(f"{where} must be one of {', '.join(choices)}; got {value!r}")
@@ -237,6 +251,7 @@ class RunConfig:
     gamma: float
     final_window: int
     threads: int
+    device: str
     progress: bool
     logger: str
     overwrite: bool
@@ -264,6 +279,7 @@ class RunConfig:
         _at_least("final_window", self.final_window, 1)
         _at_least("checkpoint_every", self.checkpoint_every, 0, " (0: never)")
         _at_least("threads", self.threads, 1)
+        _check_device(self.device)
         _choice("logger", self.logger, LOGGERS)
         if self.logger == "tensorboard":
             import importlib.util

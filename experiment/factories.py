@@ -35,9 +35,9 @@ def seed_everything(seed: int) -> None:
     random.seed(seed)
 
 
-def make_generators(seeds: tuple[int, ...]) -> list[torch.Generator]:
-    """One ``torch.Generator`` per member, seeded with the member's seed."""
-    return [torch.Generator().manual_seed(seed) for seed in seeds]
+def make_generators(seeds: tuple[int, ...], device: str = "cpu") -> list[torch.Generator]:
+    """One ``torch.Generator`` per member (on ``device``), seeded with the member's seed."""
+    return [torch.Generator(device=device).manual_seed(seed) for seed in seeds]
 
 
 # ---------------------------------------------------------------------------- environment
@@ -45,7 +45,8 @@ def make_env(cfg: RunConfig, seeds: tuple[int, ...]) -> RacingTorchEnv:
     """One car per member: on the member's track (``env.track=fixed``) or on a new random track
     per episode; car r's random stream is seeded with ``seeds[r]``."""
     track_seeds = list(seeds) if cfg.env.track == "fixed" else [None] * len(seeds)
-    env = RacingTorchEnv(len(seeds), track_seeds=track_seeds, nearest_ray=cfg.env.nearest_ray, **cfg.env.options)
+    env = RacingTorchEnv(len(seeds), track_seeds=track_seeds, device=cfg.device, nearest_ray=cfg.env.nearest_ray,
+                         **cfg.env.options)
     env.sim.seed(list(seeds))
     return env
 
@@ -67,8 +68,10 @@ def make_models(cfg: RunConfig, env: RacingTorchEnv, generators: list[torch.Gene
     action_dim = env.action_spec.shape[-1]
     state_action = cfg.algo.loss == "spg"
     net, members = cfg.network, len(generators)
-    actor_net = StackedGaussianPolicyNet(members, obs_dim, action_dim, net.actor_hidden, net.activation)
-    critic_net = StackedCriticNet(members, obs_dim + action_dim * state_action, net.critic_hidden, net.activation)
+    device = generators[0].device
+    actor_net = StackedGaussianPolicyNet(members, obs_dim, action_dim, net.actor_hidden, net.activation).to(device)
+    critic_net = StackedCriticNet(members, obs_dim + action_dim * state_action, net.critic_hidden,
+                                  net.activation).to(device)
     reset_parameters(actor_net, generators)
     reset_parameters(critic_net, generators)
     sampler = MemberSampler(actor_net, generators, action_dim, block=cfg.env.episode_steps)
@@ -101,13 +104,13 @@ def make_loss(cfg: RunConfig, models: Models, generators: list[torch.Generator])
               "members": len(generators)}
     if algo.loss == "ppo":
         return LogClipPPOLoss(models.actor, models.critic, clip_epsilon=algo.ppo.clip_epsilon,
-                              ratio_space=algo.ppo.ratio_space, **common)
+                              ratio_space=algo.ppo.ratio_space, **common).to(generators[0].device)
     spg = algo.spg
     loss = SPGLoss(models.actor, models.critic, num_samples=spg.num_samples, temperature=spg.temperature,
                    temperature_decay=spg.temperature_decay, prioritised=spg.prioritised,
                    sample_around=spg.sample_around, baseline=spg.baseline, **common)
     loss.set_generators(generators)
-    return loss
+    return loss.to(generators[0].device)
 
 
 # ------------------------------------------------------------------------------ optimisers

@@ -37,7 +37,7 @@ class PhaseRunner:
         self.generators = list(generators)
         self.critic_params = list(optimisers.critic.params)
         self.actor_params = list(optimisers.actor.params)
-        self.active = torch.ones(len(self.generators))  # 0 for frozen members
+        self.active = torch.ones(len(self.generators), device=self.critic_params[0].device)  # 0: frozen
 
     def run(self, data: TensorDictBase, minibatch_size: int, totals: "MetricTotals") -> dict[int, str]:
         """One phase on ``data`` (``[R, n]``); returns {member: reason} for members that diverged."""
@@ -88,7 +88,7 @@ class PhaseRunner:
 
 
 def _finite_per_member(params: list[torch.Tensor]) -> torch.Tensor:
-    finite = torch.ones(params[0].shape[0], dtype=torch.bool)
+    finite = torch.ones(params[0].shape[0], dtype=torch.bool, device=params[0].device)
     for p in params:
         finite &= torch.isfinite(p.detach()).reshape(p.shape[0], -1).all(-1)
     return finite

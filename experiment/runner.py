@@ -133,13 +133,13 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
 
 def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_settings: dict, settings: dict | None,
            payload: dict | None, start: float) -> list[dict]:
-    generators = make_generators(seeds)
+    generators = make_generators(seeds, cfg.device)
     env = make_env(cfg, seeds)
     models = make_models(cfg, env, generators)
     loss = make_loss(cfg, models, generators)
     optimisers = make_optimisers(cfg, models)
     schedule = make_schedule(cfg)
-    memory = ReplayMemory(cfg.er.buffer_size, members=len(seeds))
+    memory = ReplayMemory(cfg.er.buffer_size, members=len(seeds), device=cfg.device)
     phases = PhaseRunner(loss, optimisers, cfg.algo.value_epochs, cfg.algo.policy_epochs, generators)
     minibatch = schedule.minibatch_size(cfg.algo.minibatch_size)
     members = [Member(s, member_folder(cfg, out_dir, s), member_settings[s]) for s in seeds]

@@ -78,11 +78,15 @@ class _Tanh(torch.autograd.Function):
     """tanh as 2 sigmoid(2x) - 1 (float32 ``torch.tanh`` is about 3x slower than sigmoid in CPU
     builds that do not vectorise it), with tanh's own one-pass backward, 1 - y^2."""
 
+    generate_vmap_rule = True  # usable under torch.vmap (TorchRL's losses vmap over Q-networks)
+
     @staticmethod
-    def forward(ctx, x: torch.Tensor) -> torch.Tensor:
-        y = torch.sigmoid(x * 2.0).mul_(2.0).sub_(1.0)
-        ctx.save_for_backward(y)
-        return y
+    def forward(x: torch.Tensor) -> torch.Tensor:
+        return torch.sigmoid(x * 2.0).mul(2.0).sub(1.0)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        ctx.save_for_backward(output)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
@@ -206,7 +210,7 @@ def member_state_dict(net: nn.Module, member: int) -> dict[str, torch.Tensor]:
     """Member ``member``'s parameters under the names of the solo network of
     ``experiment.models`` (``StackedGaussianPolicyNet`` -> ``GaussianPolicyNet``, ...), so a
     member's saved weights load into the solo network (``evaluate.py``)."""
-    return {name: value[member].detach().clone() for name, value in net.state_dict().items()}
+    return {name: value[member].detach().cpu().clone() for name, value in net.state_dict().items()}
 
 
 def load_member_state_dict(net: nn.Module, member: int, state: dict[str, torch.Tensor]) -> None:
@@ -216,7 +220,7 @@ def load_member_state_dict(net: nn.Module, member: int, state: dict[str, torch.T
         raise ValueError(f"the weights have entries {sorted(state)}, this network {sorted(own)}")
     with torch.no_grad():
         for name, value in state.items():
-            own[name][member].copy_(value)
+            own[name][member].copy_(value.to(own[name].device))
 
 
 class MemberSampler:
@@ -258,7 +262,7 @@ class MemberSampler:
         if self._paused:
             return self.net(observation)[0]
         if self._step == self.block:
-            self._noise = torch.stack([torch.randn(self.block, self.action_dim, generator=g)
+            self._noise = torch.stack([torch.randn(self.block, self.action_dim, generator=g, device=g.device)
                                        for g in self.generators])
             self._step = 0
         loc, scale = self.net(observation)

@@ -153,3 +153,42 @@ def test_a_population_with_a_finished_member_resumes(tmp_path, monkeypatch):
     assert summaries[0]["population"]["size"] == 1
     assert ((tmp_path / "pop" / f"seed{B}" / "metrics.csv").read_bytes()
             == (tmp_path / "alone" / "metrics.csv").read_bytes())
+
+
+def test_device_cpu_is_the_default_and_cuda_needs_a_gpu():
+    from experiment.config import ConfigError
+
+    assert load().device == "cpu"
+    with pytest.raises(ConfigError, match="device must be cpu, cuda or cuda:<index>"):
+        load("device=gpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="CUDA device"):
+            load("device=cuda")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (none visible to torch)")
+def test_a_population_trains_and_resumes_on_a_gpu(tmp_path, monkeypatch):
+    """Networks, losses, generators and replay memory on the GPU (the simulator on the CPU): the
+    run completes, resumes exactly from a checkpoint, and its weights load on the CPU."""
+    from experiment import outputs
+
+    run = [*common("spg_p", "hybrid", episodes=4), "checkpoint_every=2", "device=cuda", seeds(A, B)]
+    reference = train_population(load(*run), tmp_path / "reference")
+    assert all(s["status"] == "completed" for s in reference)
+    original = outputs.MetricsWriter.write
+
+    def write_then_stop(self, row):
+        original(self, row)
+        if row["episode"] == 2:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(outputs.MetricsWriter, "write", write_then_stop)
+    with pytest.raises(KeyboardInterrupt):
+        train_population(load(*run), tmp_path / "run")
+    monkeypatch.setattr(outputs.MetricsWriter, "write", original)
+    train_population(load(*run), tmp_path / "run")
+    for seed in (A, B):
+        assert ((tmp_path / "run" / f"seed{seed}" / "metrics.csv").read_bytes()
+                == (tmp_path / "reference" / f"seed{seed}" / "metrics.csv").read_bytes())
+        weights = torch.load(tmp_path / "run" / f"seed{seed}" / "actor.pt", weights_only=True)
+        assert all(t.device.type == "cpu" for t in weights.values())
