@@ -14,6 +14,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
 
+from collectors.prioritised import ProportionalSampler
+
 
 @dataclass(frozen=True)
 class ReplaySchedule:
@@ -37,12 +39,18 @@ class ReplayMemory:
     transitions per member either way.
     """
 
-    def __init__(self, capacity: int, members: int | None = None, device: torch.device | str = "cpu"):
+    def __init__(self, capacity: int, members: int | None = None, device: torch.device | str = "cpu",
+                 priority=None):
+        """``priority``: None (uniform sampling) or options with ``alpha``, ``beta``, ``eps`` for
+        proportional prioritised sampling (``collectors.prioritised``; then ``sampler`` holds the
+        priorities, saved with the memory)."""
         self.capacity = capacity
         self.members = members
         self.device = torch.device(device)
+        self.sampler = (ProportionalSampler(capacity, priority.alpha, priority.beta, priority.eps, members=members)
+                        if priority is not None else None)
         self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(capacity, device=device),
-                                             sampler=RandomSampler())
+                                             sampler=self.sampler if self.sampler is not None else RandomSampler())
 
     def __len__(self) -> int:
         """Transitions stored (per member)."""

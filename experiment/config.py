@@ -8,11 +8,15 @@ design does not allow, each in one sentence naming what was expected.
 from __future__ import annotations
 
 import math
+import typing
 from collections.abc import Mapping
 from dataclasses import MISSING, dataclass, fields
 from typing import Any, get_type_hints
 
-LOSSES = ("ppo", "spg")
+LOSSES = ("ppo", "spg", "sac", "td3")
+PAPER_LOSSES = ("ppo", "spg")  # the paper's protocol: Monte-Carlo critic, critic phase then actor phase
+TD_LOSSES = ("sac", "td3")  # TorchRL's off-policy losses: bootstrapped targets, gradient steps per env step
+TARGET_ENTROPY = "auto"
 RATIO_SPACES = ("linear", "log")
 CENTRES = ("mean", "action")
 TRACK_SOURCES = ("fixed", "random")
@@ -57,6 +61,11 @@ def _build(cls, where: str, values: Mapping[str, Any]):
 
 
 def _coerce(where: str, value: Any, hint: Any) -> Any:
+    options = typing.get_args(hint)
+    if type(None) in options and len(options) == 2 and not str(hint).startswith(("tuple", "dict")):
+        if value is None:
+            return None
+        hint = next(o for o in options if o is not type(None))
     text = str(hint)
     if hint is bool:
         if not isinstance(value, bool):
@@ -121,37 +130,107 @@ def _at_least(where: str, value: float, low: float, note: str = "") -> None:
 
 @dataclass(frozen=True)
 class AlgoConfig:
-    """One algorithm column of the paper's table (``conf/algo/*.yaml``)."""
+    """One algorithm (``conf/algo/*.yaml``): the paper's (``loss: ppo|spg``, a critic phase then an
+    actor phase per episode on Monte-Carlo returns) or TorchRL's off-policy losses (``loss:
+    sac|td3``, bootstrapped TD targets, gradient steps per environment step, options in ``td:``)."""
 
     name: str
     loss: str
     critic_lr: float
     actor_lr: float
     adam_eps: float
-    value_epochs: int
-    policy_epochs: int
     minibatch_size: int
-    entropy_coeff: float
-    joint_log_prob: bool
+    value_epochs: int | None = None  # the paper's protocol only (ppo, spg)
+    policy_epochs: int | None = None
+    entropy_coeff: float | None = None
+    joint_log_prob: bool | None = None
     ppo: dict | None = None  # options of the PPO losses (loss: ppo only)
     spg: dict | None = None  # options of the SPG losses (loss: spg only)
+    td: dict | None = None  # the off-policy schedule and targets (loss: sac or td3)
+    sac: dict | None = None  # options of TorchRL's SACLoss (loss: sac only)
+    td3: dict | None = None  # options of TorchRL's TD3Loss (loss: td3 only)
 
     def __post_init__(self) -> None:
         w = f"algo {self.name}"
         _choice(f"{w}: loss", self.loss, LOSSES)
         for key in ("critic_lr", "actor_lr", "adam_eps"):
             _positive(f"{w}: {key}", getattr(self, key))
-        for key in ("value_epochs", "policy_epochs", "entropy_coeff"):
-            _at_least(f"{w}: {key}", getattr(self, key), 0)
         _at_least(f"{w}: minibatch_size", self.minibatch_size, 1)
-        for kind, options in (("ppo", PPOOptions), ("spg", SPGOptions)):
+        paper = ("value_epochs", "policy_epochs", "entropy_coeff", "joint_log_prob")
+        if self.loss in PAPER_LOSSES:
+            missing = [key for key in paper if getattr(self, key) is None]
+            if missing:
+                raise ConfigError(f"{w}: loss {self.loss} needs {missing}")
+            for key in ("value_epochs", "policy_epochs", "entropy_coeff"):
+                _at_least(f"{w}: {key}", getattr(self, key), 0)
+        else:
+            given = [key for key in paper if getattr(self, key) is not None]
+            if given:
+                raise ConfigError(f"{w}: {given} belong to the paper's protocol (loss ppo or spg), not to "
+                                  f"loss {self.loss}; remove them (its schedule is in the td: block)")
+        blocks = {"ppo": ("ppo", PPOOptions), "spg": ("spg", SPGOptions), "td": (TD_LOSSES, TDOptions),
+                  "sac": ("sac", SACOptions), "td3": ("td3", TD3Options)}
+        for kind, (losses, options) in blocks.items():
             block = getattr(self, kind)
-            if kind == self.loss:
+            if self.loss in losses if isinstance(losses, tuple) else self.loss == losses:
                 if block is None:
-                    raise ConfigError(f"{w}: loss {kind} needs an '{kind}:' block of options")
+                    raise ConfigError(f"{w}: loss {self.loss} needs a '{kind}:' block of options")
                 object.__setattr__(self, kind, _build(options, f"{w}: {kind}", block))
             elif block is not None:
-                raise ConfigError(f"{w}: an '{kind}:' block does not apply to loss {self.loss}; remove it")
+                raise ConfigError(f"{w}: a '{kind}:' block does not apply to loss {self.loss}; remove it")
+
+    @property
+    def bootstrapped(self) -> bool:
+        """TorchRL's off-policy losses (TD targets) rather than the paper's protocol."""
+        return self.loss in TD_LOSSES
+
+
+@dataclass(frozen=True)
+class TDOptions:
+    """The off-policy schedule of ``loss: sac|td3`` (``conf/algo/sac.yaml`` explains each key)."""
+
+    updates_per_step: float
+    warmup_episodes: int
+    tau: float
+    loss_function: str
+
+    def __post_init__(self) -> None:
+        _positive("algo.td.updates_per_step", self.updates_per_step)
+        _at_least("algo.td.warmup_episodes", self.warmup_episodes, 0)
+        if not 0 < self.tau <= 1:
+            raise ConfigError(f"algo.td.tau must be in (0, 1], got {self.tau}")
+        _choice("algo.td.loss_function", self.loss_function, ("l2", "l1", "smooth_l1"))
+
+    def updates_before(self, episode: int, steps: int) -> int:
+        """Gradient steps taken in all, up to the start of episode ``episode`` (``episode`` episodes of
+        ``steps`` transitions collected): none while only warm-up episodes are collected, then
+        ``updates_per_step`` for every step collected since the last warm-up episode began
+        (fractions carry over)."""
+        first = max(self.warmup_episodes, 1)  # the first episode preceded by gradient steps
+        return math.floor(max(0, episode - first + 1) * steps * self.updates_per_step + 1e-9)
+
+
+@dataclass(frozen=True)
+class SACOptions:
+    alpha_init: float
+    target_entropy: float | None  # None: TorchRL's "auto", minus the action dimension
+    fixed_alpha: bool
+
+    def __post_init__(self) -> None:
+        _positive("algo.sac.alpha_init", self.alpha_init)
+
+
+@dataclass(frozen=True)
+class TD3Options:
+    exploration_noise: float
+    policy_noise: float
+    noise_clip: float
+    policy_delay: int
+
+    def __post_init__(self) -> None:
+        for key in ("exploration_noise", "policy_noise", "noise_clip"):
+            _at_least(f"algo.td3.{key}", getattr(self, key), 0)
+        _at_least("algo.td3.policy_delay", self.policy_delay, 1)
 
 
 @dataclass(frozen=True)
@@ -192,8 +271,13 @@ class ERConfig:
     train_on_recent: bool
     minibatch_fraction: float
     buffer_size: int
+    priority: dict | None = None  # proportional prioritised sampling of the memory (er=prioritised)
 
     def __post_init__(self) -> None:
+        if self.priority is not None:
+            object.__setattr__(self, "priority", _build(PriorityOptions, f"er {self.name}: priority", self.priority))
+            if not self.train_on_memory:
+                raise ConfigError(f"er {self.name}: priority needs train_on_memory: true (it samples the memory)")
         if not (self.train_on_memory or self.train_on_recent):
             raise ConfigError(f"er {self.name}: at least one of train_on_memory and train_on_recent "
                               "must be true")
@@ -201,6 +285,22 @@ class ERConfig:
             raise ConfigError(f"er {self.name}: minibatch_fraction must be in (0, 1], "
                               f"got {self.minibatch_fraction}")
         _at_least(f"er {self.name}: buffer_size", self.buffer_size, 1)
+
+
+@dataclass(frozen=True)
+class PriorityOptions:
+    """Proportional prioritised replay (``collectors.prioritised``): P(i) ~ (|delta_i| + eps)^alpha,
+    importance weights (N P(i))^-beta / max."""
+
+    alpha: float
+    beta: float
+    eps: float
+
+    def __post_init__(self) -> None:
+        _at_least("er.priority.alpha", self.alpha, 0)
+        if not 0 <= self.beta <= 1:
+            raise ConfigError(f"er.priority.beta must be in [0, 1], got {self.beta}")
+        _positive("er.priority.eps", self.eps)
 
 
 @dataclass(frozen=True)
@@ -287,6 +387,12 @@ class RunConfig:
             if importlib.util.find_spec("tensorboard") is None:
                 raise ConfigError("logger=tensorboard needs the tensorboard package: "
                                   "pip install -c constraints/cpu.txt -e '.[tensorboard]' (or use logger=csv)")
+        if self.algo.bootstrapped and (self.er.train_on_recent or not self.er.train_on_memory):
+            raise ConfigError(f"algo {self.algo.name} trains off-policy on a replay memory; use er=memory or "
+                              f"er=prioritised, not er={self.er.name}")
+        if self.er.priority is not None and not self.algo.bootstrapped:
+            raise ConfigError(f"er={self.er.name} (prioritised replay) is built for algo=sac and algo=td3; "
+                              f"algo {self.algo.name} uses er=recent, memory or hybrid")
         minibatch = max(1, round(self.algo.minibatch_size * self.er.minibatch_fraction))
         steps = self.env.episode_steps
         if self.er.train_on_recent and minibatch > steps:

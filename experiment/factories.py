@@ -15,12 +15,14 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from collectors import ReplaySchedule, make_collector
+from collectors import ReplayMemory, ReplaySchedule, make_collector
+from collectors.returns import TRANSITION_KEYS
 from experiment.config import RunConfig
 from experiment.models import make_actor, make_critic
 from experiment.optim import MemberAdam
+from experiment.phases import PhaseRunner
 from experiment.stacked import (MemberNormal, MemberSampler, StackedCriticNet, StackedGaussianPolicyNet,
-                                reset_parameters)
+                                member_state_dict, reset_parameters)
 from losses import LogClipPPOLoss, SPGLoss
 from racing.torchrl_env import RacingTorchEnv
 
@@ -126,3 +128,52 @@ def make_optimisers(cfg: RunConfig, models: Models) -> Optimisers:
     algo = cfg.algo
     return Optimisers(actor=MemberAdam(models.actor_net.parameters(), lr=algo.actor_lr, eps=algo.adam_eps),
                       critic=MemberAdam(models.critic_net.parameters(), lr=algo.critic_lr, eps=algo.adam_eps))
+
+
+# ------------------------------------------------------------------------- everything at once
+@dataclass
+class Training:
+    """What the runner trains with, for either family of algorithms."""
+
+    models: object  # Models or experiment.offpolicy.OffPolicyModels (actor_net, critic_net, sampler)
+    loss: torch.nn.Module
+    optimisers: object  # .actor and .critic MemberAdam
+    memory: ReplayMemory
+    phases: object  # PhaseRunner or experiment.offpolicy.TDPhaseRunner
+    transition_keys: tuple  # what the replay memory keeps of each step
+    monte_carlo: bool  # the memory's transitions carry Monte-Carlo returns (the paper's protocol)
+
+    def member_weights(self, member: int) -> dict[str, dict[str, torch.Tensor]]:
+        """Member ``member``'s trained weights, {"actor": ..., "critic": ...}, on the CPU."""
+        if hasattr(self.phases, "member_weights"):
+            return self.phases.member_weights(member)
+        return {"actor": member_state_dict(self.models.actor_net, member),
+                "critic": member_state_dict(self.models.critic_net, member)}
+
+    def state_parts(self) -> dict:
+        """The stateful parts a checkpoint saves, by name."""
+        parts = {"loss": self.loss, "actor_optim": self.optimisers.actor, "critic_optim": self.optimisers.critic,
+                 "memory": self.memory}
+        if hasattr(self.models.sampler, "state_dict"):
+            parts["sampler"] = self.models.sampler
+        return parts
+
+
+def make_training(cfg: RunConfig, env: RacingTorchEnv, generators: list[torch.Generator]) -> Training:
+    """Networks, loss, optimisers, replay memory and update schedule of ``cfg.algo``: the paper's
+    protocol (ppo, spg) or TorchRL's off-policy losses (sac, td3, ``experiment.offpolicy``)."""
+    members = len(generators)
+    memory = ReplayMemory(cfg.er.buffer_size, members=members, device=cfg.device, priority=cfg.er.priority)
+    if cfg.algo.bootstrapped:
+        from experiment import offpolicy
+
+        models = offpolicy.make_offpolicy_models(cfg, env, generators)
+        loss = offpolicy.make_offpolicy_loss(cfg, models, members, env.action_spec.shape[-1])
+        optimisers = offpolicy.make_offpolicy_optimisers(cfg, loss)
+        phases = offpolicy.TDPhaseRunner(cfg, loss, optimisers, generators, memory if cfg.er.priority else None)
+        return Training(models, loss, optimisers, memory, phases, offpolicy.TD_TRANSITION_KEYS, False)
+    models = make_models(cfg, env, generators)
+    loss = make_loss(cfg, models, generators)
+    optimisers = make_optimisers(cfg, models)
+    phases = PhaseRunner(loss, optimisers, cfg.algo.value_epochs, cfg.algo.policy_epochs, generators)
+    return Training(models, loss, optimisers, memory, phases, TRANSITION_KEYS, True)

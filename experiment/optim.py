@@ -20,10 +20,15 @@ class MemberAdam:
     """Adam over parameters whose first dimension is the population's members."""
 
     def __init__(self, params: Iterable[torch.nn.Parameter], lr: float, betas: tuple[float, float] = (0.9, 0.999),
-                 eps: float = 1e-8):
+                 eps: float = 1e-8, member_dims: Iterable[int] | None = None):
+        """``member_dims``: the members' dimension of each parameter (default: all 0; TorchRL's
+        ensembles of Q-networks have theirs at 1, after the ensemble's)."""
         self.params = list(params)
         if not self.params:
             raise ValueError("MemberAdam got no parameters")
+        self.member_dims = list(member_dims) if member_dims is not None else [0] * len(self.params)
+        if len(self.member_dims) != len(self.params):
+            raise ValueError(f"got {len(self.member_dims)} member dims for {len(self.params)} parameters")
         self.lr, self.betas, self.eps = float(lr), (float(betas[0]), float(betas[1])), float(eps)
         self.steps = 0
         self.exp_avg = [torch.zeros_like(p, memory_format=torch.preserve_format) for p in self.params]
@@ -51,9 +56,9 @@ class MemberAdam:
     @torch.no_grad()
     def zero_member(self, member: int) -> None:
         """Zero ``member``'s moments (see ``experiment.phases.PhaseRunner.freeze``)."""
-        for m, v in zip(self.exp_avg, self.exp_avg_sq):
-            m[member].zero_()
-            v[member].zero_()
+        for m, v, dim in zip(self.exp_avg, self.exp_avg_sq, self.member_dims):
+            m.select(dim, member).zero_()
+            v.select(dim, member).zero_()
 
     def state_dict(self) -> dict:
         return {"steps": self.steps, "exp_avg": [m.clone() for m in self.exp_avg],

@@ -14,11 +14,12 @@ SUMMARY_FILE = "summary.json"
 EPISODE_COLUMNS = ("episode", "total_reward", "crashes", "final_checkpoint")
 
 
-def metric_columns(loss) -> list[str]:
-    """metrics.csv's columns: per-episode results, then the loss's diagnostics per phase type."""
+def metric_columns(source) -> list[str]:
+    """metrics.csv's columns: per-episode results, then the diagnostics of the updates (a loss's
+    or phase runner's ``critic_metrics`` and ``actor_metrics``)."""
     return (list(EPISODE_COLUMNS)
-            + [f"critic/{key}" for key in loss.critic_metrics]
-            + [f"actor/{key}" for key in loss.actor_metrics])
+            + [f"critic/{key}" for key in source.critic_metrics]
+            + [f"actor/{key}" for key in source.actor_metrics])
 
 
 class MetricsWriter:

@@ -35,12 +35,12 @@ class PhaseRunner:
         self.value_epochs = value_epochs
         self.policy_epochs = policy_epochs
         self.generators = list(generators)
-        self.critic_params = list(optimisers.critic.params)
-        self.actor_params = list(optimisers.actor.params)
-        self.active = torch.ones(len(self.generators), device=self.critic_params[0].device)  # 0: frozen
+        self.active = torch.ones(len(self.generators), device=optimisers.critic.params[0].device)  # 0: frozen
+        self.critic_metrics, self.actor_metrics = loss.critic_metrics, loss.actor_metrics
 
-    def run(self, data: TensorDictBase, minibatch_size: int, totals: "MetricTotals") -> dict[int, str]:
-        """One phase on ``data`` (``[R, n]``); returns {member: reason} for members that diverged."""
+    def run(self, data: TensorDictBase, minibatch_size: int, totals: "MetricTotals", episode: int = 0) -> dict[int, str]:
+        """One phase on ``data`` (``[R, n]``) before or after episode ``episode`` (unused: every phase
+        is alike); returns {member: reason} for members that diverged."""
         loss = self.loss
         loss.before_critic_phase(data)
         for _ in range(self.value_epochs):
@@ -53,15 +53,7 @@ class PhaseRunner:
         loss.after_actor_phase()
         # Checked once per phase: a NaN or inf loss or gradient leaves non-finite parameters
         # (Adam propagates it), and one check per phase costs little per step.
-        failed: dict[int, str] = {}
-        for name, params in (("critic", self.critic_params), ("actor", self.actor_params)):
-            bad = ~_finite_per_member(params)
-            for member in bad.nonzero().flatten().tolist():
-                failed.setdefault(member, f"the {name}'s parameters became NaN or infinite")
-        for name, bad in totals.non_finite_losses().items():
-            for member in bad.nonzero().flatten().tolist():
-                failed.setdefault(member, f"{name} became NaN or infinite")
-        return {m: reason for m, reason in failed.items() if self.active[m]}
+        return diverged_members(self.optimisers, totals, self.active)
 
     def _step(self, optimiser, out: TensorDictBase, prefix: str, totals: "MetricTotals") -> None:
         entries = dict(out.items())
@@ -81,17 +73,41 @@ class PhaseRunner:
         networks stay finite (its car keeps driving, unrecorded) and cost the others nothing.
         """
         self.active[member] = 0.0
-        for optimiser in (self.optimisers.critic, self.optimisers.actor):
-            for param in optimiser.params:
-                param[member].zero_()
+        freeze_member(self.optimisers, member)
+
+
+def freeze_member(optimisers, member: int, others: list[tuple[torch.Tensor, int]] = ()) -> None:
+    """Zero ``member``'s parameters and Adam moments in ``optimisers`` (and the (tensor, member
+    dim) pairs of ``others``, e.g. target networks)."""
+    with torch.no_grad():
+        for optimiser in (optimisers.critic, optimisers.actor):
+            for param, dim in zip(optimiser.params, optimiser.member_dims):
+                param.select(dim, member).zero_()
             optimiser.zero_member(member)
+        for tensor, dim in others:
+            tensor.select(dim, member).zero_()
 
 
-def _finite_per_member(params: list[torch.Tensor]) -> torch.Tensor:
-    finite = torch.ones(params[0].shape[0], dtype=torch.bool, device=params[0].device)
-    for p in params:
-        finite &= torch.isfinite(p.detach()).reshape(p.shape[0], -1).all(-1)
+def _finite_per_member(params: list[torch.Tensor], member_dims: list[int] | None = None) -> torch.Tensor:
+    member_dims = member_dims or [0] * len(params)
+    members = params[0].shape[member_dims[0]]
+    finite = torch.ones(members, dtype=torch.bool, device=params[0].device)
+    for p, dim in zip(params, member_dims):
+        finite &= torch.isfinite(p.detach()).movedim(dim, 0).reshape(members, -1).all(-1)
     return finite
+
+
+def diverged_members(optimisers, totals: "MetricTotals", active: torch.Tensor) -> dict[int, str]:
+    """{member: reason} for active members whose parameters or losses are NaN or infinite."""
+    failed: dict[int, str] = {}
+    for name, optimiser in (("critic", optimisers.critic), ("actor", optimisers.actor)):
+        bad = ~_finite_per_member(optimiser.params, optimiser.member_dims)
+        for member in bad.nonzero().flatten().tolist():
+            failed.setdefault(member, f"the {name}'s parameters became NaN or infinite")
+    for name, bad in totals.non_finite_losses().items():
+        for member in bad.nonzero().flatten().tolist():
+            failed.setdefault(member, f"{name} became NaN or infinite")
+    return {m: reason for m, reason in failed.items() if active[m]}
 
 
 class MetricTotals:

@@ -25,15 +25,12 @@ from pathlib import Path
 import torch
 from tensordict import TensorDictBase
 
-from collectors import ReplayMemory, add_monte_carlo_returns
-from collectors.returns import TRANSITION_KEYS
+from collectors import add_monte_carlo_returns
 from experiment import checkpoint
 from experiment.config import ConfigError, RunConfig
-from experiment.factories import (make_env, make_episode_collector, make_generators, make_loss, make_models,
-                                  make_optimisers, make_schedule, seed_everything)
+from experiment.factories import make_env, make_episode_collector, make_generators, make_schedule, make_training, seed_everything
 from experiment.outputs import SUMMARY_FILE, MetricsWriter, metric_columns, read_summary, write_json_atomic
-from experiment.phases import MetricTotals, PhaseRunner
-from experiment.stacked import member_state_dict
+from experiment.phases import MetricTotals
 from experiment.version import code_version, software_versions
 
 
@@ -101,7 +98,6 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
     out_dir.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     torch.set_num_threads(cfg.threads)
-    seed_everything(0)  # nothing draws from the global generators; seeded so that nothing can differ
     settings = run_settings(settings) if settings is not None else None
     member_settings = {s: cfg.member_settings(settings, s) if settings is not None else None for s in cfg.members}
 
@@ -133,20 +129,20 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
 
 def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_settings: dict, settings: dict | None,
            payload: dict | None, start: float) -> list[dict]:
+    # The paper's algorithms draw only from the members' generators; TorchRL's SAC and TD3 losses
+    # draw their inner noise from torch's global generator, seeded here with the first member's seed.
+    seed_everything(seeds[0])
     generators = make_generators(seeds, cfg.device)
     env = make_env(cfg, seeds)
-    models = make_models(cfg, env, generators)
-    loss = make_loss(cfg, models, generators)
-    optimisers = make_optimisers(cfg, models)
+    training = make_training(cfg, env, generators)
+    models, memory, phases = training.models, training.memory, training.phases
     schedule = make_schedule(cfg)
-    memory = ReplayMemory(cfg.er.buffer_size, members=len(seeds), device=cfg.device)
-    phases = PhaseRunner(loss, optimisers, cfg.algo.value_epochs, cfg.algo.policy_epochs, generators)
     minibatch = schedule.minibatch_size(cfg.algo.minibatch_size)
     members = [Member(s, member_folder(cfg, out_dir, s), member_settings[s]) for s in seeds]
     for member in members:
         member.folder.mkdir(parents=True, exist_ok=True)
 
-    parts = {"loss": loss, "actor_optim": optimisers.actor, "critic_optim": optimisers.critic, "memory": memory}
+    parts = training.state_parts()
     first, timing = 0, {"rollout_s": 0.0, "train_s": 0.0}
     code = dict(code_version())
     checkpoint_path = out_dir / checkpoint.CHECKPOINT_FILE
@@ -158,7 +154,7 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
         elif earlier.get("resumed_from"):
             code["resumed_from"] = earlier["resumed_from"]
     collector = make_episode_collector(cfg, env, models, episodes=cfg.episodes - first)
-    columns = metric_columns(loss)
+    columns = metric_columns(phases)
     for member in members:
         member.metrics = MetricsWriter(member.folder, columns, cfg.logger, keep_rows=len(member.rewards))
 
@@ -171,15 +167,16 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             totals = MetricTotals()
             with _timer(timing, "train_s"):
                 if schedule.train_on_memory and len(memory):
-                    _freeze(phases.run(memory.contents(), minibatch, totals), episode, members, phases)
+                    _freeze(phases.run(memory.contents(), minibatch, totals, episode), episode, members, phases)
             with _timer(timing, "rollout_s"):
                 batch = next(episodes)
-                add_monte_carlo_returns(batch, cfg.gamma)
-                recent = batch.select(*TRANSITION_KEYS)  # [members, steps]
+                if training.monte_carlo:
+                    add_monte_carlo_returns(batch, cfg.gamma)
+                recent = batch.select(*training.transition_keys)  # [members, steps]
                 memory.add(recent)
             with _timer(timing, "train_s"):
                 if schedule.train_on_recent:
-                    _freeze(phases.run(recent.clone(), minibatch, totals), episode, members, phases)
+                    _freeze(phases.run(recent.clone(), minibatch, totals, episode), episode, members, phases)
             diagnostics = totals.means(len(members))
             for r, member in enumerate(members):
                 if member.status == "running":
@@ -203,10 +200,11 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
     for r, member in enumerate(members):
         if member.status == "running":
             member.status = "completed"
-        for name, net in (("actor", models.actor_net), ("critic", models.critic_net)):
+        weights = training.member_weights(r) if member.status == "completed" else {}
+        for name in ("actor", "critic"):
             path = member.folder / f"{name}.pt"
-            if member.status == "completed":  # weights in the solo networks' layout (experiment.models)
-                torch.save(member_state_dict(net, r), path)
+            if member.status == "completed":  # the paper's: in the solo networks' layout (experiment.models)
+                torch.save(weights[name], path)
             else:  # non-finite weights are of no use; no stale file from an earlier run either
                 path.unlink(missing_ok=True)
         window = member.rewards[-cfg.final_window:]
@@ -227,7 +225,7 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
     return summaries
 
 
-def _freeze(failed: dict[int, str], episode: int, members: list[Member], phases: PhaseRunner) -> None:
+def _freeze(failed: dict[int, str], episode: int, members: list[Member], phases) -> None:
     """Record and freeze the members that diverged in the last phase."""
     for r, reason in sorted(failed.items()):
         members[r].status, members[r].failure = "diverged", {"episode": episode, "reason": reason}
@@ -235,7 +233,7 @@ def _freeze(failed: dict[int, str], episode: int, members: list[Member], phases:
 
 
 def _payload(episodes_done: int, timing: dict, settings: dict | None, parts: dict, env, code: dict,
-             generators: list[torch.Generator], phases: PhaseRunner, members: list[Member], models) -> dict:
+             generators: list[torch.Generator], phases, members: list[Member], models) -> dict:
     if not models.sampler.at_block_boundary:
         raise RuntimeError("a checkpoint must be taken between episodes")
     return {
@@ -247,7 +245,7 @@ def _payload(episodes_done: int, timing: dict, settings: dict | None, parts: dic
     }
 
 
-def _restore(payload: dict, parts: dict, env, generators: list[torch.Generator], phases: PhaseRunner,
+def _restore(payload: dict, parts: dict, env, generators: list[torch.Generator], phases,
              members: list[Member]) -> tuple[int, dict]:
     try:
         for name, part in parts.items():

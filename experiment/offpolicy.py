@@ -1,0 +1,266 @@
+"""SAC and TD3 (TorchRL's losses) in the population pipeline: networks, acting policy, updates.
+
+The same run as the paper's algorithms (``experiment.runner``: env, collector, replay memory,
+run folders, checkpoints, divergence, populations); what differs is built here:
+
+- networks: stacked members (``experiment.stacked``) of the sizes in ``network.*``; SAC's actor
+  outputs a tanh-squashed Gaussian (``TanhNormal``), TD3's a deterministic tanh action; two
+  Q-networks Q(s, a), each member's initial weights drawn from its own generator;
+- the acting policy (``OffPolicySampler``): uniform random actions for ``td.warmup_episodes``
+  episodes, then SAC samples its policy and TD3 adds Gaussian noise, each member's noise from
+  its own generator;
+- the updates (``TDPhaseRunner``): before each episode, the gradient steps owed to the
+  environment steps collected since the last ones (``td.updates_per_step``), each on a
+  minibatch per member from its memory (uniform or prioritised), with TorchRL's soft target
+  updates (``SoftUpdate``); TD3 steps its actor (and targets) every ``policy_delay`` critic steps.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torch import nn
+from torchrl.data import Bounded
+from torchrl.modules import ProbabilisticActor, TanhNormal
+from torchrl.objectives import SoftUpdate
+
+from collectors import sample_minibatch
+from collectors.prioritised import WEIGHT_KEY
+from experiment.optim import MemberAdam
+from experiment.phases import MetricTotals, diverged_members, freeze_member
+from experiment.stacked import StackedCriticNet, StackedMLP, reset_parameters
+from losses.td import PRIORITY_KEY, MemberSACLoss, make_td3_loss, member_means
+
+TD_TRANSITION_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
+                      ("next", "terminated"))
+
+
+@dataclass
+class OffPolicyModels:
+    actor_net: nn.Module  # stacked: observation -> SAC (loc, scale) / TD3 action
+    qvalue_nets: list[nn.Module]  # the Q-networks as built (their trained copies live in the loss)
+    actor: nn.Module  # the TensorDict actor TorchRL's loss takes
+    qvalues: list[TensorDictModule]
+    sampler: "OffPolicySampler"
+
+    @property
+    def critic_net(self) -> nn.Module:
+        return nn.ModuleList(self.qvalue_nets)
+
+
+class _Tanh(nn.Module):
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.tanh(x)
+
+
+def make_offpolicy_models(cfg, env, generators: Sequence[torch.Generator]) -> OffPolicyModels:
+    """Actor, then the Q-networks, each member's weights from its generator (Glorot, zero biases)."""
+    algo, net, members = cfg.algo, cfg.network, len(generators)
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    action_dim = env.action_spec.shape[-1]
+    device = generators[0].device
+    if algo.loss == "sac":
+        body = StackedMLP(members, [obs_dim, *net.actor_hidden, 2 * action_dim], net.activation, linear_output=True)
+        actor_net = nn.Sequential(body, NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4))
+        actor = ProbabilisticActor(TensorDictModule(actor_net, ["observation"], ["loc", "scale"]),
+                                   in_keys=["loc", "scale"], distribution_class=TanhNormal,
+                                   distribution_kwargs={"low": -1.0, "high": 1.0}, return_log_prob=False)
+    else:
+        body = StackedMLP(members, [obs_dim, *net.actor_hidden, action_dim], net.activation, linear_output=True)
+        actor_net = nn.Sequential(body, _Tanh())
+        actor = TensorDictModule(actor_net, ["observation"], ["action"])
+    actor_net.to(device)
+    reset_parameters(actor_net, generators)
+    qvalue_nets = []
+    for _ in range(2):
+        q = StackedCriticNet(members, obs_dim + action_dim, net.critic_hidden, net.activation).to(device)
+        reset_parameters(q, generators)
+        qvalue_nets.append(q)
+    qvalues = [TensorDictModule(q, ["observation", "action"], ["state_action_value"]) for q in qvalue_nets]
+    noise = algo.td3.exploration_noise if algo.loss == "td3" else None
+    sampler = OffPolicySampler(actor_net, generators, action_dim, block=cfg.env.episode_steps,
+                               warmup_blocks=algo.td.warmup_episodes, noise=noise)
+    return OffPolicyModels(actor_net, qvalue_nets, actor, qvalues, sampler)
+
+
+class OffPolicySampler:
+    """The acting policy of a population, ``[R, obs] -> [R, D]`` in [-1, 1]: uniform random for
+    the first ``warmup_blocks`` episodes, then SAC's policy sample tanh(loc + scale * n) or TD3's
+    clip(mu + noise * n, -1, 1) (``noise`` set), with n ~ N(0, 1) from member r's generator.
+
+    Noise is drawn an episode (``block`` steps) at a time per member, as ``MemberSampler`` does;
+    ``blocks`` counts the episodes begun (saved by checkpoints: it decides the warm-up)."""
+
+    def __init__(self, net: nn.Module, generators: Sequence[torch.Generator], action_dim: int, block: int,
+                 warmup_blocks: int, noise: float | None = None):
+        self.net, self.generators, self.action_dim, self.block = net, list(generators), action_dim, block
+        self.warmup_blocks, self.noise = warmup_blocks, noise
+        self.blocks = 0
+        self._draws: torch.Tensor | None = None
+        self._step = block
+        self._paused = False
+
+    @property
+    def at_block_boundary(self) -> bool:
+        return self._step == self.block
+
+    @contextlib.contextmanager
+    def paused(self):
+        """Calls return the deterministic action and draw nothing (for probes of the policy)."""
+        self._paused = True
+        try:
+            yield self
+        finally:
+            self._paused = False
+
+    def deterministic(self, observation: torch.Tensor) -> torch.Tensor:
+        out = self.net(observation)
+        return torch.tanh(out[0]) if isinstance(out, tuple) else out
+
+    @torch.no_grad()
+    def __call__(self, observation: torch.Tensor) -> torch.Tensor:
+        if self._paused:
+            return self.deterministic(observation)
+        if self._step == self.block:
+            warmup = self.blocks < self.warmup_blocks
+            self._draws = torch.stack([
+                torch.rand(self.block, self.action_dim, generator=g, device=g.device) * 2 - 1 if warmup
+                else torch.randn(self.block, self.action_dim, generator=g, device=g.device) for g in self.generators])
+            self._warmup, self._step = warmup, 0
+            self.blocks += 1
+        draw = self._draws[:, self._step]
+        self._step += 1
+        if self._warmup:
+            return draw
+        if self.noise is None:  # SAC: a sample of the tanh-squashed Gaussian
+            loc, scale = self.net(observation)
+            return torch.tanh(loc + scale * draw)
+        return (self.net(observation) + self.noise * draw).clamp_(-1.0, 1.0)
+
+    def state_dict(self) -> dict:
+        if not self.at_block_boundary:
+            raise RuntimeError("the acting policy's state is saved between episodes")
+        return {"blocks": self.blocks}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.blocks, self._step = int(state["blocks"]), self.block
+
+
+def make_offpolicy_loss(cfg, models: OffPolicyModels, members: int, action_dim: int):
+    algo, td = cfg.algo, cfg.algo.td
+    spec = Bounded(-1.0, 1.0, (action_dim,), device=models.sampler.generators[0].device)
+    if algo.loss == "sac":
+        sac = algo.sac
+        target_entropy = sac.target_entropy if sac.target_entropy is not None else -float(action_dim)
+        loss = MemberSACLoss(models.actor, models.qvalues, members=members, num_qvalue_nets=len(models.qvalues),
+                             loss_function=td.loss_function, alpha_init=sac.alpha_init, fixed_alpha=sac.fixed_alpha,
+                             target_entropy=target_entropy, action_spec=spec, deactivate_vmap=True)
+    else:
+        loss = make_td3_loss(models.actor, models.qvalues, spec, policy_noise=algo.td3.policy_noise,
+                             noise_clip=algo.td3.noise_clip, loss_function=td.loss_function)
+    loss.make_value_estimator(gamma=cfg.gamma)
+    return loss.to(models.sampler.generators[0].device)
+
+
+@dataclass
+class OffPolicyOptimisers:
+    actor: MemberAdam  # the actor's parameters (and SAC's per-member temperature)
+    critic: MemberAdam  # the Q-networks' (stacked [Q-net, member, ...])
+
+
+def make_offpolicy_optimisers(cfg, loss) -> OffPolicyOptimisers:
+    algo = cfg.algo
+    actor = list(loss.actor_network_params.values(True, True))
+    if isinstance(getattr(loss, "log_alpha", None), nn.Parameter):
+        actor.append(loss.log_alpha)
+    critic = list(loss.qvalue_network_params.values(True, True))
+    return OffPolicyOptimisers(
+        actor=MemberAdam(actor, lr=algo.actor_lr, eps=algo.adam_eps),
+        critic=MemberAdam(critic, lr=algo.critic_lr, eps=algo.adam_eps, member_dims=[1] * len(critic)))
+
+
+class TDPhaseRunner:
+    """The gradient steps of SAC or TD3 before an episode (``run``), with ``PhaseRunner``'s
+    interface (``active``, ``freeze``, the metrics' names)."""
+
+    def __init__(self, cfg, loss, optimisers: OffPolicyOptimisers, generators: Sequence[torch.Generator],
+                 memory=None):
+        self.loss, self.optimisers, self.generators = loss, optimisers, list(generators)
+        self.kind, self.td = cfg.algo.loss, cfg.algo.td
+        self.steps = cfg.env.episode_steps
+        self.policy_delay = cfg.algo.td3.policy_delay if self.kind == "td3" else 1
+        self.updater = SoftUpdate(loss, tau=self.td.tau)
+        self.sampler = memory.sampler if memory is not None else None  # prioritised replay, or None
+        self.active = torch.ones(len(self.generators), device=optimisers.critic.params[0].device)
+        self.critic_metrics = ("loss_qvalue",)
+        self.actor_metrics = ("loss_actor", "loss_alpha", "alpha") if self.kind == "sac" else ("loss_actor",)
+
+    def updates(self, episode: int) -> tuple[int, int]:
+        """(steps taken before, steps to take now) before episode ``episode``."""
+        before = self.td.updates_before(episode - 1, self.steps) if episode > 0 else 0
+        return before, self.td.updates_before(episode, self.steps) - before
+
+    def run(self, data: TensorDictBase, minibatch_size: int, totals: MetricTotals, episode: int = 0) -> dict[int, str]:
+        done, todo = self.updates(episode)
+        rows = torch.arange(len(self.generators), device=self.active.device).unsqueeze(1)
+        for step in range(done, done + todo):
+            if self.sampler is not None:
+                index, weight = self.sampler.sample_members(data.batch_size[1], minibatch_size, self.generators)
+                index = index.to(self.active.device)
+                batch = data[rows, index]
+                batch.set(WEIGHT_KEY, weight.to(self.active.device, torch.float32))
+            else:
+                batch = sample_minibatch(data, minibatch_size, self.generators)
+            priority = self._sac_step(batch, totals) if self.kind == "sac" else self._td3_step(batch, step, totals)
+            if self.sampler is not None:
+                self.sampler.update_priority(index.cpu(), priority.detach().cpu())
+        return diverged_members(self.optimisers, totals, self.active)
+
+    def _sac_step(self, batch: TensorDictBase, totals: MetricTotals) -> torch.Tensor:
+        out = self.loss(batch)
+        losses = {key: member_means(out[key]) for key in ("loss_qvalue", "loss_actor", "loss_alpha")}
+        self._minimise(sum(losses.values()), self.optimisers.critic, self.optimisers.actor)
+        self.updater.step()
+        totals.add("critic", {"loss_qvalue": losses["loss_qvalue"]})
+        totals.add("actor", {"loss_actor": losses["loss_actor"], "loss_alpha": losses["loss_alpha"],
+                             "alpha": self.loss.alpha})
+        return batch.get(PRIORITY_KEY)
+
+    def _td3_step(self, batch: TensorDictBase, step: int, totals: MetricTotals) -> torch.Tensor:
+        loss_qvalue, meta = self.loss.value_loss(batch)
+        loss_qvalue = member_means(loss_qvalue)
+        self._minimise(loss_qvalue, self.optimisers.critic)
+        totals.add("critic", {"loss_qvalue": loss_qvalue})
+        if (step + 1) % self.policy_delay == 0:
+            loss_actor, _ = self.loss.actor_loss(batch)
+            loss_actor = member_means(loss_actor)
+            self._minimise(loss_actor, self.optimisers.actor)
+            self.updater.step()
+            totals.add("actor", {"loss_actor": loss_actor})
+        return meta["td_error"].max(0).values.sqrt()  # TorchRL's TD3 reports squared errors per Q-network
+
+    def _minimise(self, per_member: torch.Tensor, *optimisers: MemberAdam) -> None:
+        for optimiser in optimisers:
+            optimiser.zero_grad()
+        (per_member * self.active).sum().backward()
+        for optimiser in optimisers:
+            optimiser.step()
+
+    def freeze(self, member: int) -> None:
+        """As ``PhaseRunner.freeze``, target networks included."""
+        self.active[member] = 0.0
+        targets = [(t, 0) for t in getattr(self.loss, "target_actor_network_params", {}).values(True, True)]
+        targets += [(t, 1) for t in self.loss.target_qvalue_network_params.values(True, True)]
+        freeze_member(self.optimisers, member, targets)
+
+    def member_weights(self, member: int) -> dict[str, dict[str, torch.Tensor]]:
+        """Member ``member``'s trained actor and Q-networks (online, on the CPU)."""
+        actor = {k: v[member].detach().cpu().clone() for k, v in self.loss.actor_network_params.flatten_keys(".").items()}
+        critic = {k: v[:, member].detach().cpu().clone()
+                  for k, v in self.loss.qvalue_network_params.flatten_keys(".").items()}
+        return {"actor": actor, "critic": critic}
