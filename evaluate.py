@@ -1,49 +1,112 @@
-"""Evaluate a trained run's deterministic policy and film it:
+"""Evaluate trained runs' deterministic policies, and film one:
 
     python evaluate.py RUN_DIR [--tracks 2067791 773203] [--episodes 5] [--video agent.gif]
+    python evaluate.py SWEEP_DIR [RUN_DIR ...] [--tracks ...] [--table evaluation.csv]
 
-RUN_DIR is a finished train.py run folder (summary.json and actor.pt). The policy acts with
-its mean action (no exploration). Prints the mean total reward per track; ``--video`` writes
-one episode on the first track as a GIF or MP4 (needs the ``render`` extra).
+A RUN_DIR is a finished train.py run folder (summary.json and actor.pt); any other folder
+stands for every finished run inside it (a sweep, a population). Policies act without
+exploration noise (the Gaussian's mean; SAC: tanh of it; TD3: its actor). Each run is evaluated
+on its own track and on ``--tracks``; the table (printed, and written as CSV with ``--table``)
+has one row per run and track. ``--video`` films one episode of the first run on the first
+track as a GIF or MP4 (needs the ``render`` extra).
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
+import math
 import sys
 from pathlib import Path
 
 from experiment.evaluate import RunFolderError, evaluate, film, load_policy
 
 
+def find_runs(paths: list[Path]) -> list[Path]:
+    """The run folders named by ``paths``: each one itself if it holds summary.json, else every
+    folder below it that holds one (sorted)."""
+    runs: list[Path] = []
+    for path in paths:
+        if not path.is_dir():
+            raise RunFolderError(f"{path} is not a folder")
+        found = [path] if (path / "summary.json").exists() else sorted(p.parent for p in path.rglob("summary.json"))
+        if not found:
+            raise RunFolderError(f"{path} holds no finished train.py run (no summary.json in it or below it)")
+        runs.extend(found)
+    return runs
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("run_dir", type=Path)
-    parser.add_argument("--tracks", type=int, nargs="+", default=None,
-                        help="track seeds (default: the run's own track)")
+    parser.add_argument("paths", type=Path, nargs="+", metavar="RUN_OR_SWEEP_DIR")
+    parser.add_argument("--tracks", type=int, nargs="+", default=[],
+                        help="track seeds to evaluate on, besides each run's own track")
     parser.add_argument("--episodes", type=int, default=5, help="episodes per track (start states vary)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the start states")
-    parser.add_argument("--video", type=Path, default=None, help="write one episode to this .gif or .mp4")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the first start state")
+    parser.add_argument("--table", type=Path, default=None, help="write the table to this CSV file")
+    parser.add_argument("--video", type=Path, default=None, help="film the first run on the first track (.gif/.mp4)")
     args = parser.parse_args(argv)
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     try:
-        net, settings = load_policy(args.run_dir)
+        runs = find_runs(args.paths)
     except RunFolderError as err:
         print(f"evaluate: {err}", file=sys.stderr)
         return 2
-    tracks = args.tracks or [settings["seed"]]
-    results = evaluate(net, settings, tracks, args.episodes, args.seed)
-    for track, mean in results.items():
-        print(f"track {track}: mean total reward {mean:.1f} over {args.episodes} episodes")
-    if args.video is not None:
+    rows, skipped, first = [], [], None
+    for run in runs:
         try:
-            frames = film(net, settings, tracks[0], args.video, args.seed)
+            policy, settings = load_policy(run)
+        except RunFolderError as err:
+            if len(runs) == 1:
+                print(f"evaluate: {err}", file=sys.stderr)
+                return 2
+            skipped.append(f"{run}: {err}")  # e.g. a diverged run of a sweep: no actor to evaluate
+            continue
+        own = settings["seed"]
+        tracks = [own, *[t for t in args.tracks if t != own]]
+        results = evaluate(policy, settings, tracks, args.episodes, args.seed)
+        for track, mean in results.items():
+            rows.append({"run": str(run), "algo": settings["algo"]["name"], "er": settings["er"]["name"],
+                         "train_seed": own, "train_tracks": settings["env"]["track"], "track": track,
+                         "own_track": track == own, "episodes": args.episodes, "mean_reward": round(mean, 6)})
+        if first is None:
+            first = (policy, settings, tracks)
+    _print(rows, len(runs) > 1)
+    for line in skipped:
+        print(f"skipped {line}", file=sys.stderr)
+    if args.table is not None and rows:
+        args.table.parent.mkdir(parents=True, exist_ok=True)
+        with open(args.table, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+        print(f"wrote {args.table} ({len(rows)} rows)")
+    if args.video is not None and first is not None:
+        policy, settings, tracks = first
+        try:
+            frames = film(policy, settings, (args.tracks or tracks)[0], args.video, args.seed)
         except (RuntimeError, ValueError) as err:
             print(f"evaluate: {err}", file=sys.stderr)
             return 2
         print(f"wrote {args.video} ({frames} frames)")
-    return 0
+    return 0 if rows else 2
+
+
+def _print(rows: list[dict], several: bool) -> None:
+    if not several:
+        for row in rows:
+            print(f"track {row['track']}: mean total reward {row['mean_reward']:.1f} over {row['episodes']} episodes"
+                  + (" (its own track)" if row["own_track"] else ""))
+        return
+    print("| run | own track | other tracks (mean) |\n|---|---:|---:|")
+    by_run: dict[str, list[dict]] = {}
+    for row in rows:
+        by_run.setdefault(row["run"], []).append(row)
+    for run, items in by_run.items():
+        own = next(r["mean_reward"] for r in items if r["own_track"])
+        others = [r["mean_reward"] for r in items if not r["own_track"]]
+        print(f"| {run} | {own:.1f} | {math.fsum(others) / len(others):.1f} |" if others else f"| {run} | {own:.1f} | |")
 
 
 if __name__ == "__main__":

@@ -10,6 +10,10 @@ Writes into ``SWEEP_DIR/report/``:
 - ``collapse.md``: per cell, the runs whose final performance is below 20 (collapsed);
 - ``iqm.md`` and ``iqm.png``: interquartile mean of the runs' final performances per cell
   (one score per run) with 95% bootstrap intervals over runs (tracks);
+- ``beyond.md`` (if the sweep has SAC, TD3 or prioritised-replay runs): those cells and the paper's
+  best and PPO cells, with IQM intervals over runs, paired differences from the paper's best cell and
+  wall time per run; ``generalisation.md`` (if runs were evaluated on ``eval_seeds``): own-track and
+  unseen-track scores and their gap, for fixed- and random-track training;
 - ``curves_*.png``: learning curves, mean over tracks with a ±1 SE band, per algorithm and per
   replay mode; ``paper_tracks.png``; ``agent.png``, a frame of the best run's policy.
 Lists runs that are partial (killed or running), unreadable or diverged. The figures need the
@@ -29,6 +33,7 @@ from pathlib import Path
 from experiment.report import (cells, code_versions, collapse_markdown, conclusions_markdown, find_runs,
                                read_paper_table, table_markdown, versions_markdown, write_runs_csv,
                                write_table_csv)
+from experiment.report_beyond import beyond_markdown, generalisation_markdown
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -54,11 +59,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     out = args.sweep_dir / "report"
     out.mkdir(exist_ok=True)
+    every = runs
+    runs = [r for r in runs if r.track_mode == "fixed"]  # Table 1 and its conclusions: fixed-track training
     table = cells(runs, read_paper_table())
     markdown = versions_markdown(versions) + "\n" + table_markdown(table)
     (out / "table.md").write_text(markdown)
     write_table_csv(table, out / "table.csv")
-    write_runs_csv(runs, out / "runs.csv", args.sweep_dir)
+    write_runs_csv(every, out / "runs.csv", args.sweep_dir)
     (out / "conclusions.md").write_text(versions_markdown(versions) + "\n" + conclusions_markdown(runs))
     (out / "collapse.md").write_text(versions_markdown(versions) + "\n" + collapse_markdown(runs))
     print(markdown)
@@ -68,8 +75,14 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{len(listed)} {status} run(s):")
             for r in listed:
                 print(f"  {r.path} ({len(r.rewards)} episodes in metrics.csv)")
-    print(f"{sum(r.status == 'completed' for r in runs)} completed runs; wrote {out}/table.md, table.csv, "
-          "runs.csv, conclusions.md, collapse.md")
+    extra = []
+    for name, text in (("beyond.md", beyond_markdown(every)), ("generalisation.md", generalisation_markdown(every))):
+        if text:
+            (out / name).write_text(versions_markdown(versions) + "\n" + text)
+            print(text)
+            extra.append(name)
+    print(f"{sum(r.status == 'completed' for r in every)} completed runs; wrote {out}/table.md, table.csv, "
+          "runs.csv, conclusions.md, collapse.md" + "".join(f", {name}" for name in extra))
     if not args.no_figures:
         write_figures(runs, out)
     return 0

@@ -276,8 +276,9 @@ class ERConfig:
     def __post_init__(self) -> None:
         if self.priority is not None:
             object.__setattr__(self, "priority", _build(PriorityOptions, f"er {self.name}: priority", self.priority))
-            if not self.train_on_memory:
-                raise ConfigError(f"er {self.name}: priority needs train_on_memory: true (it samples the memory)")
+            if not self.train_on_memory or self.train_on_recent:
+                raise ConfigError(f"er {self.name}: priority samples the replay memory: it needs train_on_memory: "
+                                  "true and train_on_recent: false")
         if not (self.train_on_memory or self.train_on_recent):
             raise ConfigError(f"er {self.name}: at least one of train_on_memory and train_on_recent "
                               "must be true")
@@ -356,6 +357,8 @@ class RunConfig:
     logger: str
     overwrite: bool
     checkpoint_every: int
+    eval_seeds: tuple[int, ...] | None
+    eval_episodes: int
     algo: AlgoConfig
     er: ERConfig
     env: EnvConfig
@@ -380,6 +383,9 @@ class RunConfig:
         _at_least("checkpoint_every", self.checkpoint_every, 0, " (0: never)")
         _at_least("threads", self.threads, 1)
         _check_device(self.device)
+        _at_least("eval_episodes", self.eval_episodes, 1)
+        if self.eval_seeds is not None and not self.eval_seeds:
+            raise ConfigError("eval_seeds must be null (no evaluation) or a non-empty list of track seeds")
         _choice("logger", self.logger, LOGGERS)
         if self.logger == "tensorboard":
             import importlib.util
@@ -390,9 +396,6 @@ class RunConfig:
         if self.algo.bootstrapped and (self.er.train_on_recent or not self.er.train_on_memory):
             raise ConfigError(f"algo {self.algo.name} trains off-policy on a replay memory; use er=memory or "
                               f"er=prioritised, not er={self.er.name}")
-        if self.er.priority is not None and not self.algo.bootstrapped:
-            raise ConfigError(f"er={self.er.name} (prioritised replay) is built for algo=sac and algo=td3; "
-                              f"algo {self.algo.name} uses er=recent, memory or hybrid")
         minibatch = max(1, round(self.algo.minibatch_size * self.er.minibatch_fraction))
         steps = self.env.episode_steps
         if self.er.train_on_recent and minibatch > steps:

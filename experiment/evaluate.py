@@ -18,8 +18,32 @@ class RunFolderError(ValueError):
     """A folder that does not hold a usable trained run."""
 
 
-def load_policy(run_dir: Path) -> tuple[GaussianPolicyNet, dict]:
-    """The run's final actor network and its settings (from summary.json)."""
+class Policy:
+    """A trained run's deterministic policy: ``observation (numpy) -> action in [-1, 1]``.
+
+    The paper's algorithms act with the Gaussian's mean (clipped); SAC with tanh of its
+    Gaussian's mean; TD3 with its actor's output. SAC's and TD3's actors are rebuilt as a
+    population of one (``experiment.offpolicy``), the networks they were trained as."""
+
+    def __init__(self, net: torch.nn.Module, kind: str):
+        self.net, self.kind = net, kind
+
+    @torch.no_grad()
+    def __call__(self, observation: np.ndarray) -> np.ndarray:
+        x = torch.as_tensor(observation, dtype=torch.float32).unsqueeze(0)
+        if self.kind == "paper":
+            loc, _ = self.net(x)
+            return loc.clamp(-1.0, 1.0).squeeze(0).numpy()
+        out = self.net(x.unsqueeze(0))  # [member, batch, obs]
+        action = torch.tanh(out[0]) if isinstance(out, tuple) else out
+        return action.clamp(-1.0, 1.0)[0, 0].numpy()
+
+    def parameters(self):
+        return self.net.parameters()
+
+
+def load_policy(run_dir: Path) -> tuple[Policy, dict]:
+    """The run's final policy and its settings (from summary.json)."""
     run_dir = Path(run_dir)
     summary_path, actor_path = run_dir / "summary.json", run_dir / "actor.pt"
     for path in (summary_path, actor_path):
@@ -28,27 +52,40 @@ def load_policy(run_dir: Path) -> tuple[GaussianPolicyNet, dict]:
                                  "(e.g. outputs/runs/spg_p_multi/memory/seed2067791)")
     try:
         settings = json.loads(summary_path.read_text())["settings"]
-        network, env = settings["network"], settings["env"]
+        network, env, loss = settings["network"], settings["env"], settings["algo"]["loss"]
     except (json.JSONDecodeError, KeyError, TypeError):
         raise RunFolderError(f"{summary_path} is not a summary written by train.py") from None
-    config = RacingConfig(**env.get("options", {}))
-    net = GaussianPolicyNet(config.obs_size, 2, network["actor_hidden"], network["activation"])
     try:
-        net.load_state_dict(torch.load(actor_path, weights_only=True, map_location="cpu"))
+        policy = make_policy(loss, network, RacingConfig(**env.get("options", {})).obs_size,
+                             torch.load(actor_path, weights_only=True, map_location="cpu"))
     except Exception as err:  # unpickling errors of several types, or mismatched shapes
         raise RunFolderError(f"{actor_path} is not this run's actor ({type(err).__name__}: "
                              f"{str(err).splitlines()[0][:200]})") from None
-    if not all(torch.isfinite(p).all() for p in net.parameters()):
+    if not all(torch.isfinite(p).all() for p in policy.parameters()):
         raise RunFolderError(f"{actor_path} holds non-finite weights (the run diverged)")
+    return policy, settings
+
+
+def make_policy(loss: str, network: dict, obs_size: int, state: dict) -> Policy:
+    """The deterministic policy of an actor's saved weights (``actor.pt``) for ``algo.loss``."""
+    if loss in ("sac", "td3"):
+        from experiment.offpolicy import make_actor_net
+        from experiment.stacked import load_member_state_dict
+
+        net = make_actor_net(loss, 1, obs_size, 2, network["actor_hidden"], network["activation"])
+        load_member_state_dict(net, 0, state)
+        kind = loss
+    else:
+        net = GaussianPolicyNet(obs_size, 2, network["actor_hidden"], network["activation"])
+        net.load_state_dict(state)
+        kind = "paper"
     net.eval()
-    return net, settings
+    return Policy(net, kind)
 
 
-def deterministic_action(net: GaussianPolicyNet, observation: np.ndarray) -> np.ndarray:
-    """The policy's mean action (clipped to [-1, 1]): no exploration noise."""
-    with torch.no_grad():
-        loc, _ = net(torch.as_tensor(observation, dtype=torch.float32).unsqueeze(0))
-    return loc.clamp(-1.0, 1.0).squeeze(0).numpy()
+def deterministic_action(policy: Policy, observation: np.ndarray) -> np.ndarray:
+    """The policy's action without exploration noise."""
+    return policy(observation)
 
 
 def make_env(settings: dict, track_seed: int, render_mode: str | None = None) -> RacingEnv:
@@ -58,7 +95,7 @@ def make_env(settings: dict, track_seed: int, render_mode: str | None = None) ->
                      **env.get("options", {}))
 
 
-def run_episode(net: GaussianPolicyNet, env: RacingEnv, seed: int, frames: list | None = None) -> float:
+def run_episode(net: Policy, env: RacingEnv, seed: int, frames: list | None = None) -> float:
     """One deterministic episode from the start state of ``seed``; its total reward.
 
     With ``frames``, every rendered frame (the start included) is appended to it.
@@ -76,7 +113,7 @@ def run_episode(net: GaussianPolicyNet, env: RacingEnv, seed: int, frames: list 
     return total
 
 
-def evaluate(net: GaussianPolicyNet, settings: dict, track_seeds: list[int], episodes: int,
+def evaluate(net: Policy, settings: dict, track_seeds: list[int], episodes: int,
              seed: int = 0) -> dict[int, float]:
     """Mean total reward of ``episodes`` episodes on each track (start states from ``seed``)."""
     results = {}
@@ -88,7 +125,7 @@ def evaluate(net: GaussianPolicyNet, settings: dict, track_seeds: list[int], epi
     return results
 
 
-def film(net: GaussianPolicyNet, settings: dict, track_seed: int, path: Path, seed: int = 0, fps: int = 30) -> int:
+def film(net: Policy, settings: dict, track_seed: int, path: Path, seed: int = 0, fps: int = 30) -> int:
     """Write one deterministic episode on ``track_seed`` as a GIF or MP4 (by suffix); returns frames."""
     try:
         import imageio.v2 as imageio

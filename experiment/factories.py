@@ -145,10 +145,9 @@ class Training:
 
     def member_weights(self, member: int) -> dict[str, dict[str, torch.Tensor]]:
         """Member ``member``'s trained weights, {"actor": ..., "critic": ...}, on the CPU."""
-        if hasattr(self.phases, "member_weights"):
-            return self.phases.member_weights(member)
-        return {"actor": member_state_dict(self.models.actor_net, member),
-                "critic": member_state_dict(self.models.critic_net, member)}
+        critic = (self.phases.member_critic(member) if hasattr(self.phases, "member_critic")  # TorchRL's Q ensemble
+                  else member_state_dict(self.models.critic_net, member))
+        return {"actor": member_state_dict(self.models.actor_net, member), "critic": critic}
 
     def state_parts(self) -> dict:
         """The stateful parts a checkpoint saves, by name."""
@@ -175,5 +174,6 @@ def make_training(cfg: RunConfig, env: RacingTorchEnv, generators: list[torch.Ge
     models = make_models(cfg, env, generators)
     loss = make_loss(cfg, models, generators)
     optimisers = make_optimisers(cfg, models)
-    phases = PhaseRunner(loss, optimisers, cfg.algo.value_epochs, cfg.algo.policy_epochs, generators)
+    phases = PhaseRunner(loss, optimisers, cfg.algo.value_epochs, cfg.algo.policy_epochs, generators,
+                         sampler=memory.sampler)
     return Training(models, loss, optimisers, memory, phases, TRANSITION_KEYS, True)

@@ -30,9 +30,8 @@ from torchrl.modules import ProbabilisticActor, TanhNormal
 from torchrl.objectives import SoftUpdate
 
 from collectors import sample_minibatch
-from collectors.prioritised import WEIGHT_KEY
 from experiment.optim import MemberAdam
-from experiment.phases import MetricTotals, diverged_members, freeze_member
+from experiment.phases import MetricTotals, diverged_members, freeze_member, prioritised_minibatch
 from experiment.stacked import StackedCriticNet, StackedMLP, reset_parameters
 from losses.td import PRIORITY_KEY, MemberSACLoss, make_td3_loss, member_means
 
@@ -58,23 +57,30 @@ class _Tanh(nn.Module):
         return torch.tanh(x)
 
 
+def make_actor_net(loss: str, members: int, obs_dim: int, action_dim: int, hidden: Sequence[int],
+                   activation: str) -> nn.Module:
+    """The members' stacked actor: SAC's ``[R, ..., obs] -> (loc, scale)`` of a Gaussian (squashed by
+    tanh when sampled), TD3's ``[R, ..., obs] -> tanh action``."""
+    if loss == "sac":
+        body = StackedMLP(members, [obs_dim, *hidden, 2 * action_dim], activation, linear_output=True)
+        return nn.Sequential(body, NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4))
+    body = StackedMLP(members, [obs_dim, *hidden, action_dim], activation, linear_output=True)
+    return nn.Sequential(body, _Tanh())
+
+
 def make_offpolicy_models(cfg, env, generators: Sequence[torch.Generator]) -> OffPolicyModels:
     """Actor, then the Q-networks, each member's weights from its generator (Glorot, zero biases)."""
     algo, net, members = cfg.algo, cfg.network, len(generators)
     obs_dim = env.observation_spec["observation"].shape[-1]
     action_dim = env.action_spec.shape[-1]
     device = generators[0].device
+    actor_net = make_actor_net(algo.loss, members, obs_dim, action_dim, net.actor_hidden, net.activation).to(device)
     if algo.loss == "sac":
-        body = StackedMLP(members, [obs_dim, *net.actor_hidden, 2 * action_dim], net.activation, linear_output=True)
-        actor_net = nn.Sequential(body, NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4))
         actor = ProbabilisticActor(TensorDictModule(actor_net, ["observation"], ["loc", "scale"]),
                                    in_keys=["loc", "scale"], distribution_class=TanhNormal,
                                    distribution_kwargs={"low": -1.0, "high": 1.0}, return_log_prob=False)
     else:
-        body = StackedMLP(members, [obs_dim, *net.actor_hidden, action_dim], net.activation, linear_output=True)
-        actor_net = nn.Sequential(body, _Tanh())
         actor = TensorDictModule(actor_net, ["observation"], ["action"])
-    actor_net.to(device)
     reset_parameters(actor_net, generators)
     qvalue_nets = []
     for _ in range(2):
@@ -207,13 +213,9 @@ class TDPhaseRunner:
 
     def run(self, data: TensorDictBase, minibatch_size: int, totals: MetricTotals, episode: int = 0) -> dict[int, str]:
         done, todo = self.updates(episode)
-        rows = torch.arange(len(self.generators), device=self.active.device).unsqueeze(1)
         for step in range(done, done + todo):
             if self.sampler is not None:
-                index, weight = self.sampler.sample_members(data.batch_size[1], minibatch_size, self.generators)
-                index = index.to(self.active.device)
-                batch = data[rows, index]
-                batch.set(WEIGHT_KEY, weight.to(self.active.device, torch.float32))
+                batch, index = prioritised_minibatch(data, minibatch_size, self.generators, self.sampler)
             else:
                 batch = sample_minibatch(data, minibatch_size, self.generators)
             priority = self._sac_step(batch, totals) if self.kind == "sac" else self._td3_step(batch, step, totals)
@@ -258,9 +260,7 @@ class TDPhaseRunner:
         targets += [(t, 1) for t in self.loss.target_qvalue_network_params.values(True, True)]
         freeze_member(self.optimisers, member, targets)
 
-    def member_weights(self, member: int) -> dict[str, dict[str, torch.Tensor]]:
-        """Member ``member``'s trained actor and Q-networks (online, on the CPU)."""
-        actor = {k: v[member].detach().cpu().clone() for k, v in self.loss.actor_network_params.flatten_keys(".").items()}
-        critic = {k: v[:, member].detach().cpu().clone()
-                  for k, v in self.loss.qvalue_network_params.flatten_keys(".").items()}
-        return {"actor": actor, "critic": critic}
+    def member_critic(self, member: int) -> dict[str, torch.Tensor]:
+        """Member ``member``'s trained Q-networks (``[Q-net, ...]`` per entry), on the CPU."""
+        return {k: v[:, member].detach().cpu().clone()
+                for k, v in self.loss.qvalue_network_params.flatten_keys(".").items()}

@@ -16,6 +16,7 @@ import torch
 from tensordict import TensorDictBase
 
 from collectors import sample_minibatch
+from losses.common import PRIORITY_KEY, PRIORITY_WEIGHT_KEY
 
 
 class Diverged(RuntimeError):
@@ -29,12 +30,16 @@ class PhaseRunner:
     loss's diagnostics per member."""
 
     def __init__(self, loss, optimisers, value_epochs: int, policy_epochs: int,
-                 generators: list[torch.Generator]):
+                 generators: list[torch.Generator], sampler=None):
+        """``sampler``: a ``collectors.prioritised.ProportionalSampler`` holding the replay
+        memory's priorities (prioritised replay: every minibatch is drawn by priority, the critic's
+        loss weighted by importance and its errors |G - critic| become the new priorities), or None."""
         self.loss = loss
         self.optimisers = optimisers
         self.value_epochs = value_epochs
         self.policy_epochs = policy_epochs
         self.generators = list(generators)
+        self.sampler = sampler
         self.active = torch.ones(len(self.generators), device=optimisers.critic.params[0].device)  # 0: frozen
         self.critic_metrics, self.actor_metrics = loss.critic_metrics, loss.actor_metrics
 
@@ -44,16 +49,25 @@ class PhaseRunner:
         loss = self.loss
         loss.before_critic_phase(data)
         for _ in range(self.value_epochs):
-            out = loss.critic_loss(sample_minibatch(data, minibatch_size, self.generators))
+            batch, index = self._minibatch(data, minibatch_size)
+            out = loss.critic_loss(batch)
+            if index is not None:
+                self.sampler.update_priority(index.cpu(), out.pop(PRIORITY_KEY).cpu())
             self._step(self.optimisers.critic, out, "critic", totals)
         loss.before_actor_phase(data)
         for _ in range(self.policy_epochs):
-            out = loss.actor_loss(sample_minibatch(data, minibatch_size, self.generators))
+            out = loss.actor_loss(self._minibatch(data, minibatch_size)[0])
             self._step(self.optimisers.actor, out, "actor", totals)
         loss.after_actor_phase()
         # Checked once per phase: a NaN or inf loss or gradient leaves non-finite parameters
         # (Adam propagates it), and one check per phase costs little per step.
         return diverged_members(self.optimisers, totals, self.active)
+
+    def _minibatch(self, data: TensorDictBase, size: int) -> tuple[TensorDictBase, torch.Tensor | None]:
+        """A minibatch per member, uniform (and no index) or by priority (with its slot indices)."""
+        if self.sampler is None:
+            return sample_minibatch(data, size, self.generators), None
+        return prioritised_minibatch(data, size, self.generators, self.sampler)
 
     def _step(self, optimiser, out: TensorDictBase, prefix: str, totals: "MetricTotals") -> None:
         entries = dict(out.items())
@@ -74,6 +88,18 @@ class PhaseRunner:
         """
         self.active[member] = 0.0
         freeze_member(self.optimisers, member)
+
+
+def prioritised_minibatch(data: TensorDictBase, size: int, generators, sampler) -> tuple[TensorDictBase, torch.Tensor]:
+    """``size`` transitions per member of ``data`` (``[R, n]``, the memory in slot order) drawn by
+    the sampler's priorities, with their importance weights; and their slot indices ``[R, size]``."""
+    index, weight = sampler.sample_members(data.batch_size[1], size, generators)
+    device = data.device if data.device is not None else index.device
+    index = index.to(device)
+    rows = torch.arange(len(generators), device=device).unsqueeze(1)
+    batch = data[rows, index]
+    batch.set(PRIORITY_WEIGHT_KEY, weight.to(device, torch.float32))
+    return batch, index
 
 
 def freeze_member(optimisers, member: int, others: list[tuple[torch.Tensor, int]] = ()) -> None:

@@ -32,6 +32,9 @@ class Run:
     final_mean: float | None = None
     rewards: list[float] = field(default_factory=list)
     code: dict | None = None  # summary.json's "code" (experiment.version.code_version())
+    track_mode: str = "fixed"  # env.track: fixed (the seed's track) or random (a new track per episode)
+    evaluation: dict | None = None  # summary.json's "evaluation" (eval_seeds set), or None
+    wall_time: float | None = None  # seconds per run: the population's wall time over its size
 
     @property
     def version(self) -> str:
@@ -96,8 +99,13 @@ def read_run(folder: Path) -> Run:
         return Run(folder, "partial", rewards=rewards)
     try:
         summary = json.loads(summary_path.read_text())
+        settings = summary.get("settings") or {}
+        size = (summary.get("population") or {}).get("size") or 1
+        wall = summary.get("wall_time_s")
         return Run(folder, summary["status"], summary["algo"], summary["er"], int(summary["seed"]),
-                   summary.get("final_mean"), rewards, summary.get("code"))
+                   summary.get("final_mean"), rewards, summary.get("code"),
+                   (settings.get("env") or {}).get("track", "fixed"), summary.get("evaluation"),
+                   wall / size if wall is not None else None)
     except (json.JSONDecodeError, KeyError, TypeError, ValueError):
         return Run(folder, "unreadable", rewards=rewards)
 
@@ -195,11 +203,14 @@ def write_runs_csv(runs: list[Run], path: Path, root: Path) -> None:
     """One row per run folder: cell, track seed, final performance, status, code version."""
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["er", "algo", "seed", "status", "final_mean", "episodes", "code", "folder"])
+        writer.writerow(["er", "algo", "seed", "status", "final_mean", "episodes", "code", "folder", "train_tracks",
+                         "eval_own_track", "eval_unseen_mean"])
         for r in sorted(runs, key=lambda r: (r.er or "", r.algo or "", r.seed or -1, str(r.path))):
             final = "" if r.final_mean is None else repr(float(r.final_mean))
+            own, unseen = ((repr(float(r.evaluation["own_track"])), repr(float(r.evaluation["mean"])))
+                           if r.evaluation else ("", ""))
             writer.writerow([r.er or "", r.algo or "", "" if r.seed is None else r.seed, r.status, final,
-                             len(r.rewards), r.version, r.path.relative_to(root).as_posix()])
+                             len(r.rewards), r.version, r.path.relative_to(root).as_posix(), r.track_mode, own, unseen])
 
 
 def _num(value: float | None) -> str:

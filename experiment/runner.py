@@ -208,6 +208,8 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             else:  # non-finite weights are of no use; no stale file from an earlier run either
                 path.unlink(missing_ok=True)
         window = member.rewards[-cfg.final_window:]
+        evaluation = (_evaluate(cfg, member.seed, weights["actor"])
+                      if cfg.eval_seeds is not None and member.status == "completed" else None)
         summary = {
             "algo": cfg.algo.name, "er": cfg.er.name, "seed": member.seed,
             "episodes": len(member.rewards), "episodes_planned": cfg.episodes,
@@ -216,6 +218,7 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             "wall_time_s": wall, "resumed_at": first or None,
             **{f"time/{key}": round(value, 3) for key, value in timing.items()},
             "population": {"seeds": list(seeds), "size": len(seeds)},
+            **({"evaluation": evaluation} if evaluation is not None else {}),
             "code": code, "software": software_versions(),
             "settings": member.settings,
         }
@@ -223,6 +226,20 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
         summaries.append(summary)
     checkpoint_path.unlink(missing_ok=True)  # the runs are finished: summaries and weights remain
     return summaries
+
+
+def _evaluate(cfg: RunConfig, seed: int, actor: dict) -> dict:
+    """The final deterministic policy's mean total reward on its own track and on ``cfg.eval_seeds``."""
+    from experiment.evaluate import evaluate, make_policy
+    from racing.config import RacingConfig
+
+    network = {"actor_hidden": list(cfg.network.actor_hidden), "activation": cfg.network.activation}
+    policy = make_policy(cfg.algo.loss, network, RacingConfig(**cfg.env.options).obs_size, actor)
+    settings = {"env": {"options": dict(cfg.env.options), "nearest_ray": cfg.env.nearest_ray}}
+    own = evaluate(policy, settings, [seed], cfg.eval_episodes)[seed]
+    others = evaluate(policy, settings, list(cfg.eval_seeds), cfg.eval_episodes)
+    return {"episodes": cfg.eval_episodes, "own_track": own, "tracks": {str(k): v for k, v in others.items()},
+            "mean": _mean(list(others.values()))}
 
 
 def _freeze(failed: dict[int, str], episode: int, members: list[Member], phases) -> None:

@@ -24,6 +24,9 @@ from torchrl.objectives import LossModule
 
 from losses import functional as F
 
+PRIORITY_WEIGHT_KEY = "priority_weight"  # importance weights of a prioritised minibatch (TorchRL's key)
+PRIORITY_KEY = "td_error"  # where a loss leaves per-transition errors for the sampler's priorities
+
 
 def value_function(module: TensorDictModule) -> Callable[[TensorDictBase], torch.Tensor]:
     """``td -> module's single output``, not written into ``td``."""
@@ -98,10 +101,21 @@ class PhaseLoss(LossModule):
         """Called once after the phase's actor steps."""
 
     def critic_loss(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Mean (G - critic)^2 with G the Monte-Carlo return."""
+        """Mean (G - critic)^2 with G the Monte-Carlo return.
+
+        With importance weights in ``tensordict`` (``"priority_weight"``, prioritised replay) the
+        mean is weighted, and the output also holds each transition's |G - critic| under
+        ``"td_error"`` (the sampler's new priorities; not a loss term)."""
         value = self._value(tensordict)
-        loss = F.squared_error(value, tensordict[self.tensor_keys.value_target], self.members is not None)
-        return TensorDict({"loss_critic": loss, "value_mean": self._mean(value.detach())})
+        target = tensordict[self.tensor_keys.value_target]
+        weight = tensordict.get(PRIORITY_WEIGHT_KEY, None)
+        if weight is None:
+            loss = F.squared_error(value, target, self.members is not None)
+            return TensorDict({"loss_critic": loss, "value_mean": self._mean(value.detach())})
+        error = target - value
+        loss = self._mean(weight.reshape(error.shape) * error.pow(2))
+        return TensorDict({"loss_critic": loss, "value_mean": self._mean(value.detach()),
+                           PRIORITY_KEY: error.detach().abs().reshape(weight.shape)})
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Actor and critic terms on one batch (the ``loss_*`` entries sum to the total loss)."""

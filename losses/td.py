@@ -25,7 +25,8 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.objectives import SACLoss, TD3Loss
 
-PRIORITY_KEY = "td_error"  # where the losses leave each transition's |TD error| (prioritised replay)
+from losses.common import PRIORITY_KEY  # noqa: F401  (TorchRL's SAC writes each transition's |TD error| there)
+
 
 
 class MemberSACLoss(SACLoss):

@@ -12,8 +12,10 @@ CONF = Path(__file__).resolve().parent.parent / "conf"
 BEYOND_ALGOS, BEYOND_ERS = ("sac", "td3"), ("prioritised",)  # not the paper's (tests/test_offpolicy.py)
 ALGOS = sorted(p.stem for p in (CONF / "algo").glob("*.yaml") if p.stem not in BEYOND_ALGOS)
 ERS = sorted(p.stem for p in (CONF / "er").glob("*.yaml") if p.stem not in BEYOND_ERS)
-CELLS = sorted(p.stem for p in (CONF / "cell").glob("*.yaml") if not p.stem.endswith(BEYOND_ALGOS))
-BEYOND_CELLS = sorted(p.stem for p in (CONF / "cell").glob("*.yaml") if p.stem.endswith(BEYOND_ALGOS))
+CELLS = sorted(p.stem for p in (CONF / "cell").glob("*.yaml")
+               if not p.stem.endswith(BEYOND_ALGOS) and not p.stem.startswith(BEYOND_ERS))
+BEYOND_CELLS = sorted(p.stem for p in (CONF / "cell").glob("*.yaml")
+                      if p.stem.endswith(BEYOND_ALGOS) or p.stem.startswith(BEYOND_ERS))
 
 
 def load(*overrides: str) -> RunConfig:
@@ -24,13 +26,14 @@ def test_the_groups_hold_the_papers_columns_and_rows():
     assert ALGOS == ["ppo", "ppo_log", "spg", "spg_multi", "spg_p", "spg_p_multi"]
     assert ERS == ["hybrid", "memory", "recent"]
     assert len(CELLS) == 15
-    assert BEYOND_CELLS == ["memory-sac", "memory-td3", "prioritised-sac", "prioritised-td3"]
+    assert BEYOND_CELLS == ["memory-sac", "memory-td3", "prioritised-sac", "prioritised-spg_p_multi",
+                            "prioritised-td3"]
 
 
 @pytest.mark.parametrize("cell", BEYOND_CELLS)
 def test_the_beyond_the_paper_cells_compose(cell):
     cfg = load(f"+cell={cell}")
-    assert cell == f"{cfg.er.name}-{cfg.algo.name}" and cfg.algo.bootstrapped
+    assert cell == f"{cfg.er.name}-{cfg.algo.name}" and (cfg.algo.bootstrapped or cfg.er.priority is not None)
 
 
 @pytest.mark.parametrize("algo, er", list(itertools.product(ALGOS, ERS)))
@@ -98,7 +101,7 @@ def test_options_of_the_other_loss_are_rejected():
 
 def test_unknown_algorithm_names_the_choices():
     with pytest.raises(MissingConfigException) as err:
-        load("algo=sac")
+        load("algo=a2c")
     assert "spg_p_multi" in str(err.value)
 
 

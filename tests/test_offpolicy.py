@@ -186,7 +186,7 @@ def test_the_sampler_plugs_into_a_torchrl_replay_buffer():
 @pytest.mark.parametrize("override, message", [
     (["algo=sac", "er=recent"], "trains off-policy on a replay memory"),
     (["algo=td3", "er=hybrid"], "trains off-policy on a replay memory"),
-    (["algo=spg", "er=prioritised"], "is built for algo=sac and algo=td3"),
+    (["er=prioritised", "er.train_on_recent=true"], "priority samples the replay memory"),
     (["algo=sac", "+algo.value_epochs=3"], "belong to the paper's protocol"),
     (["algo=td3", "algo.td3.policy_delay=0"], "policy_delay must be >= 1"),
     (["algo=sac", "algo.td.tau=0"], "tau must be in (0, 1]"),
@@ -250,3 +250,79 @@ def test_a_diverging_sac_member_is_frozen_and_the_other_finishes(tmp_path, monke
     assert [s["status"] for s in summaries] == ["diverged", "completed"]
     assert "critic" in summaries[0]["diverged"]["reason"] or "loss" in summaries[0]["diverged"]["reason"]
     assert len(read_rows(tmp_path / f"seed{B}" / "metrics.csv")) == 4
+
+
+def test_a_population_evaluates_itself_and_evaluate_py_tables_a_sweep(tmp_path, capsys):
+    """eval_seeds: each member's summary holds its deterministic policy's scores; evaluate.py on
+    the population's folder evaluates every member (SAC's actor rebuilt from actor.pt)."""
+    import evaluate
+
+    result = run_train("algo=sac", f"seeds=[{A},{B}]", *FAST[1:], "episodes=2", "eval_seeds=[11,12]",
+                       "eval_episodes=1", f"hydra.run.dir={tmp_path / 'pop'}")
+    assert result.returncode == 0, result.stderr[-3000:]
+    summary = json.loads((tmp_path / "pop" / f"seed{A}" / "summary.json").read_text())
+    evaluation = summary["evaluation"]
+    assert set(evaluation["tracks"]) == {"11", "12"} and evaluation["episodes"] == 1
+    assert evaluation["mean"] == pytest.approx(sum(evaluation["tracks"].values()) / 2)
+    table = tmp_path / "evaluation.csv"
+    assert evaluate.main([str(tmp_path / "pop"), "--tracks", "11", "--episodes", "1", "--table", str(table)]) == 0
+    rows = read_rows(table)
+    assert len(rows) == 4 and {r["algo"] for r in rows} == {"sac"}
+    own = {int(r["train_seed"]): float(r["mean_reward"]) for r in rows if r["own_track"] == "True"}
+    assert own[A] == pytest.approx(evaluation["own_track"], abs=1e-5)  # the same policy, episodes and start states
+    assert "| run | own track |" in capsys.readouterr().out
+
+
+def test_the_generalisation_preset_shares_its_fixed_runs_with_beyond_paper_and_reports(tmp_path):
+    """+experiment=generalisation (4 cells x fixed/random tracks), then +experiment=beyond_paper in
+    the same folder skips the fixed-track runs already made; report.py writes both tables."""
+    import report
+
+    tiny = ["episodes=1", f"seeds=[{A}]", "eval_seeds=[11]", "eval_episodes=1", "hydra/launcher=basic",
+            f"hydra.sweep.dir={tmp_path}"]
+    result = run_train("-m", "+experiment=generalisation", *tiny)
+    assert result.returncode == 0, result.stderr[-3000:]
+    made = sorted(p.parent.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("summary.json"))
+    assert len(made) == 8 and f"random/sac/memory/seed{A}" in made and f"fixed/td3/memory/seed{A}" in made
+    result = run_train("-m", "+experiment=beyond_paper", *tiny)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert result.stdout.count("skipped") + result.stderr.count("skipped") == 4
+    assert len(list(tmp_path.rglob("summary.json"))) == 8 + 4
+    assert report.main([str(tmp_path), "--no-figures"]) == 0
+    assert "| SAC, prioritised |" in (tmp_path / "report" / "beyond.md").read_text()
+    assert "| TD3, memory | random | 1 |" in (tmp_path / "report" / "generalisation.md").read_text()
+
+
+def test_spg_p_with_prioritised_replay_weights_its_critic_and_updates_priorities(tmp_path):
+    """The paper's conjecture, testable: SPG-p on a prioritised memory. Priorities move away from
+    their initial value, and a run is reproducible and resumable like any other."""
+    from experiment.factories import make_training as build
+
+    cfg = load("algo=spg_p", "er=prioritised", f"seeds=[{A},{B}]")
+    t = build(cfg, make_env(cfg, (A, B)), make_generators((A, B)))
+    assert t.phases.sampler is t.memory.sampler is not None
+    run = ["algo=spg_p", "er=prioritised", "episodes=3", "progress=false", "logger=none", f"seeds=[{A},{B}]"]
+    first = train_population(load(*run), tmp_path / "a")
+    second = train_population(load(*run), tmp_path / "b")
+    assert [s["final_mean"] for s in first] == [s["final_mean"] for s in second]
+    uniform = train_population(load(*run[:1], "er=memory", *run[2:]), tmp_path / "c")
+    assert [s["final_mean"] for s in uniform] != [s["final_mean"] for s in first]
+
+
+def test_the_critic_loss_is_importance_weighted_and_reports_errors():
+    from losses.common import PRIORITY_KEY, PRIORITY_WEIGHT_KEY
+
+    cfg = load("algo=spg_p", "er=prioritised", f"seeds=[{A},{B}]")
+    t = make_training(cfg, make_env(cfg, (A, B)), make_generators((A, B)))
+    data = transitions(2, 8)
+    data["value_target"] = torch.rand(2, 8, 1)
+    plain = t.loss.critic_loss(data.clone())
+    assert PRIORITY_KEY not in plain.keys()
+    weights = torch.rand(2, 8)
+    data[PRIORITY_WEIGHT_KEY] = weights
+    weighted = t.loss.critic_loss(data)
+    value = t.loss._value(data)
+    error = (data["value_target"] - value).squeeze(-1)
+    torch.testing.assert_close(weighted["loss_critic"], (weights * error ** 2).mean(-1))
+    torch.testing.assert_close(weighted[PRIORITY_KEY], error.abs().detach())
+    torch.testing.assert_close(plain["loss_critic"], (error ** 2).mean(-1))

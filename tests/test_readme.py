@@ -99,7 +99,7 @@ def test_readme_report_and_evaluate_commands(tmp_path, capsys):
             assert report.main([str(sweep), *args[1:]]) == 0
     for args in readme_commands("evaluate.py"):
         args = [str(sweep / Path(args[0]).relative_to("outputs/sweeps/paper_grid")), *args[1:]]
-        args = [str(tmp_path / a) if a.endswith((".gif", ".mp4")) else a for a in args]
+        args = [str(tmp_path / Path(a).name) if a.endswith((".gif", ".mp4", ".csv")) else a for a in args]
         args[args.index("--episodes") + 1] = "1"
         assert evaluate.main(args) == 0
     assert (sweep / "report" / "table.md").exists() and list(tmp_path.glob("*.gif"))

@@ -57,10 +57,11 @@ def test_report_lists_partial_unreadable_and_diverged_runs(tmp_path, capsys):
     assert "95.0 ± 5.0 (n=2)" in table and "paper 94.4 ± 3.8" in table
     assert "1 diverged" in table
     runs_csv = (tmp_path / "report" / "runs.csv").read_text().splitlines()
-    assert runs_csv[0] == "er,algo,seed,status,final_mean,episodes,code,folder"
-    assert "hybrid,ppo_log,1,diverged,,3,0123456789abcdef,ppo_log/hybrid/seed1" in runs_csv
-    assert "recent,spg,1,completed,90.0,3,0123456789abcdef,spg/recent/seed1" in runs_csv
-    assert ",,,partial,,3,not recorded,spg/recent/seed3" in runs_csv
+    assert runs_csv[0] == ("er,algo,seed,status,final_mean,episodes,code,folder,train_tracks,eval_own_track,"
+                           "eval_unseen_mean")
+    assert "hybrid,ppo_log,1,diverged,,3,0123456789abcdef,ppo_log/hybrid/seed1,fixed,," in runs_csv
+    assert "recent,spg,1,completed,90.0,3,0123456789abcdef,spg/recent/seed1,fixed,," in runs_csv
+    assert ",,,partial,,3,not recorded,spg/recent/seed3,fixed,," in runs_csv
     csv_rows = (tmp_path / "report" / "table.csv").read_text().splitlines()
     assert csv_rows[0] == "er,algo,n,mean,sem,diverged,paper_mean,paper_sem,z"
     assert any(r.startswith("hybrid,ppo_log,0,,,1,,,") for r in csv_rows)
@@ -133,7 +134,7 @@ def test_evaluate_refuses_a_folder_that_is_not_a_run(tmp_path, capsys):
     import evaluate
 
     assert evaluate.main([str(tmp_path)]) == 2
-    assert "holds no summary.json" in capsys.readouterr().err
+    assert "no summary.json" in capsys.readouterr().err
 
 
 def test_conclusions_pair_by_track_and_bootstrap_over_tracks(tmp_path):
@@ -183,3 +184,37 @@ def test_iqm_is_over_runs(tmp_path):
     ((label, point, low, high, n),) = iqm_rows(find_runs(tmp_path), reps=500)
     assert n == 8 and point == pytest.approx(45.0)  # the middle four of eight finals
     assert low < point < high
+
+
+def test_beyond_the_paper_and_generalisation_tables_by_hand(tmp_path, capsys):
+    """SAC is 10 above the paper's best cell on every paper track (a zero-width interval, verdict
+    higher); a population's wall time is split over its members; random-track runs stay out of
+    Table 1 and appear in the generalisation table with their own-track and unseen scores."""
+    from experiment.report import PAPER_SEEDS
+
+    def summary(folder, track="fixed", evaluation=None, wall=50.0, size=5):
+        data = json.loads((folder / "summary.json").read_text())
+        data.update(settings={"env": {"track": track}}, wall_time_s=wall, population={"size": size})
+        if evaluation:
+            data["evaluation"] = evaluation
+        (folder / "summary.json").write_text(json.dumps(data))
+
+    for i, seed in enumerate(PAPER_SEEDS):
+        best = fake_run(tmp_path / "fixed", "spg_p_multi", "memory", seed, 120.0 + i)
+        summary(best, wall=100.0)
+        sac = fake_run(tmp_path / "fixed", "sac", "memory", seed, 130.0 + i)
+        summary(sac, evaluation={"own_track": 140.0, "mean": 100.0 + i, "episodes": 2, "tracks": {"1": 0, "2": 0}})
+        moved = fake_run(tmp_path / "random", "sac", "memory", seed, 5.0)  # random tracks: not Table 1's
+        summary(moved, track="random", evaluation={"own_track": 120.0, "mean": 118.0, "episodes": 2,
+                                                    "tracks": {"1": 0, "2": 0}})
+    assert report.main([str(tmp_path), "--no-figures"]) == 0
+    beyond = (tmp_path / "report" / "beyond.md").read_text()
+    assert "| SAC, memory | 5 | 132.0 ± 0.7 | 132.0 [" in beyond
+    assert "+10.0 [+10.0, +10.0] higher | 0 | 0.2 min |" in beyond
+    assert "| SPG-p multiple, memory | 5 | 122.0 ± 0.7 |" in beyond and "(reference) | 0 | 0.3 min |" in beyond
+    general = (tmp_path / "report" / "generalisation.md").read_text()
+    assert "| SAC, memory | fixed | 5 | 140.0 ± 0.0 | 102.0 ± 0.7 (2 tracks x 2 episodes) | 38.0 ± 0.7 |" in general
+    assert "| SAC, memory | random | 5 | 120.0 ± 0.0 | 118.0 ± 0.0 (2 tracks x 2 episodes) | 2.0 ± 0.0 |" in general
+    table = (tmp_path / "report" / "table.md").read_text()
+    assert "122.0 ± 0.7 (n=5)" in table  # only the fixed-track runs of the paper's cell
+    capsys.readouterr()

@@ -1,0 +1,142 @@
+"""Beyond the paper: other algorithms against the paper's best cell, and generalisation.
+
+``beyond_markdown``: per cell (SAC, TD3, with uniform or prioritised replay, the paper's best
+cell and its PPO cells, and any other cell in the sweep), on the paper's five tracks and on all
+tracks: runs, mean ± SE of the final performance, IQM with a 95% bootstrap interval over runs,
+the difference from the paper's best cell paired by track (95% bootstrap interval over tracks,
+with a verdict), and wall time per run. Only runs trained on fixed tracks count here.
+
+``generalisation_markdown``: per cell and training-track mode (``env.track`` fixed or random),
+the final deterministic policy's score on its own track and on the unseen evaluation tracks
+(``eval_seeds``, from summary.json's "evaluation"), and the gap between them.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from experiment.aggregate import iqm, stratified_bootstrap_ci
+from experiment.report import COLUMN_TITLES, PAPER_SEEDS, Run, _mean_difference, paired_bootstrap
+
+REFERENCE = ("memory", "spg_p_multi")  # the paper's best cell (Table 1: 141.1)
+ROWS = (("memory", "sac"), ("prioritised", "sac"), ("memory", "td3"), ("prioritised", "td3"),
+        ("memory", "spg_p_multi"), ("prioritised", "spg_p_multi"), ("memory", "ppo_log"), ("recent", "ppo"))
+TITLES = {**COLUMN_TITLES, "sac": "SAC", "td3": "TD3"}
+
+
+def label(er: str, algo: str) -> str:
+    return f"{TITLES.get(algo, algo)}, {'both' if er == 'hybrid' else er}"
+
+
+def _finals(runs: list[Run], er: str, algo: str, seeds: set[int] | None) -> dict[int, float]:
+    return {r.seed: r.final_mean for r in runs
+            if (r.er, r.algo) == (er, algo) and r.track_mode == "fixed" and r.status == "completed"
+            and r.final_mean is not None and (seeds is None or r.seed in seeds)}
+
+
+def _mean_se(values: list[float]) -> str:
+    if not values:
+        return ""
+    mean = math.fsum(values) / len(values)
+    if len(values) < 2:
+        return f"{mean:.1f}"
+    se = float(np.std(values, ddof=1)) / math.sqrt(len(values))
+    return f"{mean:.1f} ± {se:.1f}"
+
+
+def _cells_present(runs: list[Run]) -> list[tuple[str, str]]:
+    present = {(r.er, r.algo) for r in runs if r.track_mode == "fixed" and r.algo is not None}
+    return [c for c in ROWS if c in present] + sorted(present - set(ROWS))
+
+
+def beyond_rows(runs: list[Run], seeds: set[int] | None) -> list[dict]:
+    reference = _finals(runs, *REFERENCE, seeds)
+    rows = []
+    for er, algo in _cells_present(runs):
+        finals = _finals(runs, er, algo, seeds)
+        if not finals:
+            continue
+        scores = np.array(list(finals.values()))[:, None]
+        point, low, high = stratified_bootstrap_ci(scores, iqm) if len(finals) > 1 else (iqm(scores), None, None)
+        row = {"cell": label(er, algo), "er": er, "algo": algo, "runs": len(finals),
+               "mean_se": _mean_se(list(finals.values())), "iqm": point, "iqm_low": low, "iqm_high": high,
+               "diverged": sum(r.status == "diverged" for r in runs if (r.er, r.algo) == (er, algo)
+                               and r.track_mode == "fixed" and (seeds is None or r.seed in seeds))}
+        if (er, algo) != REFERENCE and reference:
+            value, lo, hi, tracks = paired_bootstrap(finals, reference, _mean_difference)
+            row.update(diff=value, diff_low=lo, diff_high=hi, diff_tracks=tracks)
+        walls = [r.wall_time for r in runs if (r.er, r.algo) == (er, algo) and r.track_mode == "fixed"
+                 and r.wall_time is not None and (seeds is None or r.seed in seeds)]
+        row["wall_s"] = math.fsum(walls) / len(walls) if walls else None
+        rows.append(row)
+    return rows
+
+
+def _diff_text(row: dict) -> str:
+    if "diff" not in row:
+        return "(reference)"
+    if row["diff_tracks"] < 2 or math.isnan(row["diff_low"]):
+        return f"{row['diff']:+.1f}"
+    verdict = "higher" if row["diff_low"] > 0 else "lower" if row["diff_high"] < 0 else "undecided"
+    return f"{row['diff']:+.1f} [{row['diff_low']:+.1f}, {row['diff_high']:+.1f}] {verdict}"
+
+
+def beyond_markdown(runs: list[Run]) -> str:
+    """The beyond-the-paper table (see the module docstring), or '' if the sweep has no such cells."""
+    if not any(r.algo in ("sac", "td3") or r.er == "prioritised" for r in runs):
+        return ""
+    parts = ["Beyond the paper: final performance (mean total reward of the last 20 training episodes) per run, "
+             f"on fixed tracks. IQM intervals resample runs (tracks); \"vs {label(*REFERENCE)}\" is the mean "
+             "difference from the paper's best cell on the same tracks, with a 95% bootstrap interval over "
+             "tracks. Wall time: per run (a population's wall time over its members).", ""]
+    all_seeds = {r.seed for r in runs if r.track_mode == "fixed" and r.seed is not None}
+    sets = [("the paper's five tracks", set(PAPER_SEEDS))]
+    if all_seeds - set(PAPER_SEEDS):
+        sets.append((f"all {len(all_seeds)} tracks", None))
+    for title, seeds in sets:
+        rows = beyond_rows(runs, seeds)
+        parts += [f"### On {title}", "",
+                  f"| cell | runs | mean ± SE | IQM [95% CI] | vs {label(*REFERENCE)} | diverged | wall time per run |",
+                  "|---|---:|---:|---|---|---:|---:|"]
+        for row in rows:
+            ci = (f"{row['iqm']:.1f} [{row['iqm_low']:.1f}, {row['iqm_high']:.1f}]" if row["iqm_low"] is not None
+                  else f"{row['iqm']:.1f}")
+            wall = f"{row['wall_s'] / 60:.1f} min" if row["wall_s"] is not None else ""
+            parts.append(f"| {row['cell']} | {row['runs']} | {row['mean_se']} | {ci} | {_diff_text(row)} | "
+                         f"{row['diverged']} | {wall} |")
+        parts.append("")
+    return "\n".join(parts)
+
+
+def generalisation_rows(runs: list[Run]) -> list[dict]:
+    groups: dict[tuple[str, str, str], list[Run]] = {}
+    for r in runs:
+        if r.status == "completed" and r.evaluation:
+            groups.setdefault((r.er, r.algo, r.track_mode), []).append(r)
+    order = {cell: i for i, cell in enumerate(ROWS)}
+    rows = []
+    for (er, algo, mode), members in sorted(groups.items(), key=lambda kv: (order.get(kv[0][:2], 99), kv[0])):
+        own = [r.evaluation["own_track"] for r in members]
+        unseen = [r.evaluation["mean"] for r in members]
+        rows.append({"cell": label(er, algo), "train_tracks": mode, "runs": len(members),
+                     "unseen_tracks": len(members[0].evaluation["tracks"]), "episodes": members[0].evaluation["episodes"],
+                     "own": _mean_se(own), "unseen": _mean_se(unseen),
+                     "gap": _mean_se([a - b for a, b in zip(own, unseen)])})
+    return rows
+
+
+def generalisation_markdown(runs: list[Run]) -> str:
+    rows = generalisation_rows(runs)
+    if not rows:
+        return ""
+    lines = ["Generalisation: the final deterministic policy of each run, evaluated on its own track (for "
+             "random-track training, the track of its seed: one of its training tracks) and on unseen tracks "
+             "(eval_seeds: never used in training); mean ± SE over runs. Gap = own - unseen, per run.", "",
+             "| cell | training tracks | runs | own track | unseen tracks (mean) | gap |",
+             "|---|---|---:|---:|---:|---:|"]
+    for row in rows:
+        lines.append(f"| {row['cell']} | {row['train_tracks']} | {row['runs']} | {row['own']} | "
+                     f"{row['unseen']} ({row['unseen_tracks']} tracks x {row['episodes']} episodes) | {row['gap']} |")
+    return "\n".join(lines) + "\n"
