@@ -32,7 +32,8 @@ from pathlib import Path
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
 
 import torch  # noqa: E402
-from torch.utils.flop_counter import FlopCounterMode  # noqa: E402
+from torch.utils._python_dispatch import TorchDispatchMode  # noqa: E402
+from torch.utils.flop_counter import flop_registry  # noqa: E402
 
 from experiment.config import RunConfig  # noqa: E402
 from benchmarks.train_speed import best_of, table  # noqa: E402
@@ -62,12 +63,29 @@ def timed_run(cfg: RunConfig) -> dict:
     return {"wall": wall, "rollout": summary["time/rollout_s"], "train": summary["time/train_s"]}
 
 
+class _FlopCount(TorchDispatchMode):
+    """``FlopCounterMode``'s per-operator counts (``flop_registry``) without its module tracker,
+    which cannot walk TorchRL's TensorDict-held parameters (SAC, TD3)."""
+
+    def __init__(self):
+        super().__init__()
+        self.total = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        out = func(*args, **kwargs)
+        count = flop_registry.get(func._overloadpacket)
+        if count is not None:
+            self.total += count(*args, **kwargs, out_val=out)
+        return out
+
+
 def counted_flops(cell: str, episodes: int) -> float:
     """Matmul FLOPs of one member's run (every member's are the same)."""
-    counter = FlopCounterMode(display=False)
+    counter = _FlopCount()
     with counter, tempfile.TemporaryDirectory() as out:
         train_population(config(cell, 1, episodes), Path(out))
-    return float(counter.get_total_flops())
+    return float(counter.total)
 
 
 def matmul_peaks() -> dict[str, float]:
