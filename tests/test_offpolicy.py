@@ -15,12 +15,12 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import SACLoss, SoftUpdate
 
 from collectors.prioritised import WEIGHT_KEY, ProportionalSampler
-from experiment import outputs
 from experiment.config import ConfigError
 from experiment.factories import make_env, make_generators, make_training
 from experiment.phases import MetricTotals
 from experiment.runner import train_population
 from tests.test_config import load
+from tests.test_resilience import interrupted_after
 from tests.test_train import read_rows, run_train
 
 A, B = 2067791, 5468063
@@ -212,20 +212,11 @@ def test_train_py_trains_two_episodes(tmp_path, algo, er):
 
 
 @pytest.mark.parametrize("algo, er", [("sac", "prioritised"), ("td3", "memory")])
-def test_an_interrupted_population_resumes_exactly(tmp_path, monkeypatch, algo, er):
+def test_an_interrupted_population_resumes_exactly(tmp_path, algo, er):
     run = [f"algo={algo}", f"er={er}", *FAST, "episodes=5", "checkpoint_every=2", f"seeds=[{A},{B}]"]
     train_population(load(*run), tmp_path / "reference")
-    original = outputs.MetricsWriter.write
-
-    def write_then_stop(self, row):
-        original(self, row)
-        if row["episode"] == 3:
-            raise KeyboardInterrupt
-
-    monkeypatch.setattr(outputs.MetricsWriter, "write", write_then_stop)
-    with pytest.raises(KeyboardInterrupt):
+    with interrupted_after(3):
         train_population(load(*run), tmp_path / "run")
-    monkeypatch.setattr(outputs.MetricsWriter, "write", original)
     summaries = train_population(load(*run), tmp_path / "run")
     assert [s["resumed_at"] for s in summaries] == [2, 2]
     for seed in (A, B):

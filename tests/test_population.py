@@ -19,6 +19,7 @@ from experiment import checkpoint
 from experiment.phases import PhaseRunner
 from experiment.runner import train, train_population
 from tests.test_config import load
+from tests.test_resilience import interrupted_after
 from tests.test_train import ENV, ROOT, read_rows, run_train
 
 A, B, C = 2067791, 5468063, 773203
@@ -128,25 +129,14 @@ def test_the_default_run_folders(tmp_path):
     assert (tmp_path / "outputs" / "runs" / "ppo" / "recent" / f"seed{B}" / "summary.json").exists()
 
 
-def test_a_population_with_a_finished_member_resumes(tmp_path, monkeypatch):
+def test_a_population_with_a_finished_member_resumes(tmp_path):
     """Member A finished earlier (alone); B is trained, interrupted after a checkpoint, and
     resumed: B equals its uninterrupted run and A's summary is returned untouched."""
-    from experiment import outputs
-
     run = [*common("ppo", "recent", episodes=4), "checkpoint_every=2"]
     train(load(*run, f"seed={A}"), tmp_path / "pop" / f"seed{A}")
     train(load(*run, f"seed={B}"), tmp_path / "alone")
-    original = outputs.MetricsWriter.write
-
-    def write_then_stop(self, row):
-        original(self, row)
-        if row["episode"] == 2:
-            raise KeyboardInterrupt
-
-    monkeypatch.setattr(outputs.MetricsWriter, "write", write_then_stop)
-    with pytest.raises(KeyboardInterrupt):
+    with interrupted_after(2):
         train_population(load(*run, seeds(A, B)), tmp_path / "pop")
-    monkeypatch.setattr(outputs.MetricsWriter, "write", original)
     assert (tmp_path / "pop" / checkpoint.CHECKPOINT_FILE).exists()
     summaries = train_population(load(*run, seeds(A, B)), tmp_path / "pop")
     assert [s["seed"] for s in summaries] == [A, B] and summaries[1]["resumed_at"] == 2
@@ -167,25 +157,14 @@ def test_device_cpu_is_the_default_and_cuda_needs_a_gpu():
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (none visible to torch)")
-def test_a_population_trains_and_resumes_on_a_gpu(tmp_path, monkeypatch):
+def test_a_population_trains_and_resumes_on_a_gpu(tmp_path):
     """Networks, losses, generators and replay memory on the GPU (the simulator on the CPU): the
     run completes, resumes exactly from a checkpoint, and its weights load on the CPU."""
-    from experiment import outputs
-
     run = [*common("spg_p", "hybrid", episodes=4), "checkpoint_every=2", "device=cuda", seeds(A, B)]
     reference = train_population(load(*run), tmp_path / "reference")
     assert all(s["status"] == "completed" for s in reference)
-    original = outputs.MetricsWriter.write
-
-    def write_then_stop(self, row):
-        original(self, row)
-        if row["episode"] == 2:
-            raise KeyboardInterrupt
-
-    monkeypatch.setattr(outputs.MetricsWriter, "write", write_then_stop)
-    with pytest.raises(KeyboardInterrupt):
+    with interrupted_after(2):
         train_population(load(*run), tmp_path / "run")
-    monkeypatch.setattr(outputs.MetricsWriter, "write", original)
     train_population(load(*run), tmp_path / "run")
     for seed in (A, B):
         assert ((tmp_path / "run" / f"seed{seed}" / "metrics.csv").read_bytes()

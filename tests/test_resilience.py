@@ -1,5 +1,6 @@
 """Runs that survive: kill and resume, corrupt checkpoints, divergence."""
 
+import contextlib
 import json
 import signal
 import subprocess
@@ -15,6 +16,25 @@ from tests.test_config import load
 from tests.test_train import ENV, ROOT, read_rows, run_train
 
 RUN = ["algo=spg_p", "er=hybrid", "episodes=8", "progress=false", "logger=none", "checkpoint_every=2"]
+
+
+@contextlib.contextmanager
+def interrupted_after(episode: int):
+    """Within the block, a run raises KeyboardInterrupt (as Ctrl-C would) right after writing
+    ``episode``'s row of metrics.csv; the block expects that interruption."""
+    original = outputs.MetricsWriter.write
+
+    def write_then_stop(self, row):
+        original(self, row)
+        if row["episode"] == episode:
+            raise KeyboardInterrupt
+
+    outputs.MetricsWriter.write = write_then_stop
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            yield
+    finally:
+        outputs.MetricsWriter.write = original
 
 
 def uninterrupted(tmp_path, *extra):
@@ -45,21 +65,12 @@ def test_sigkill_then_resume_gives_the_uninterrupted_metrics(tmp_path):
 
 
 @pytest.mark.parametrize("collector", ["direct", "torchrl"])
-def test_resume_after_an_interruption_in_process(tmp_path, monkeypatch, collector):
+def test_resume_after_an_interruption_in_process(tmp_path, collector):
     """Stopped after episode 5 (checkpoint at 4): the resumed run equals the uninterrupted one,
     with either collector."""
-    original = outputs.MetricsWriter.write
-
-    def write_then_stop(self, row):
-        original(self, row)
-        if row["episode"] == 5:
-            raise KeyboardInterrupt
-
-    monkeypatch.setattr(outputs.MetricsWriter, "write", write_then_stop)
     run = [*RUN, f"env.collector={collector}"]
-    with pytest.raises(KeyboardInterrupt):
+    with interrupted_after(5):
         train(load(*run), tmp_path / "run")
-    monkeypatch.setattr(outputs.MetricsWriter, "write", original)
     assert len(read_rows(tmp_path / "run" / "metrics.csv")) == 6
     payload = checkpoint.load(tmp_path / "run" / checkpoint.CHECKPOINT_FILE)
     assert payload["episodes_done"] == 4 and payload["loss"]["temperature"] < 1.0
