@@ -17,7 +17,6 @@ run folders, checkpoints, divergence, populations); what differs is built here:
 
 from __future__ import annotations
 
-import contextlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -32,7 +31,7 @@ from torchrl.objectives import SoftUpdate
 from collectors import sample_minibatch
 from experiment.optim import MemberAdam
 from experiment.phases import MetricTotals, diverged_members, freeze_member, prioritised_minibatch
-from experiment.stacked import StackedCriticNet, StackedMLP, reset_parameters
+from experiment.stacked import BlockSampler, StackedCriticNet, StackedMLP, reset_parameters
 from losses.td import PRIORITY_KEY, MemberSACLoss, make_td3_loss, member_means
 
 TD_TRANSITION_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
@@ -94,35 +93,20 @@ def make_offpolicy_models(cfg, env, generators: Sequence[torch.Generator]) -> Of
     return OffPolicyModels(actor_net, qvalue_nets, actor, qvalues, sampler)
 
 
-class OffPolicySampler:
+class OffPolicySampler(BlockSampler):
     """The acting policy of a population, ``[R, obs] -> [R, D]`` in [-1, 1]: uniform random for
     the first ``warmup_blocks`` episodes, then SAC's policy sample tanh(loc + scale * n) or TD3's
     clip(mu + noise * n, -1, 1) (``noise`` set), with n ~ N(0, 1) from member r's generator.
 
-    Noise is drawn an episode (``block`` steps) at a time per member, as ``MemberSampler`` does;
+    Noise is drawn an episode (``block`` steps) at a time per member (``BlockSampler``);
     ``blocks`` counts the episodes begun (saved by checkpoints: it decides the warm-up)."""
 
     def __init__(self, net: nn.Module, generators: Sequence[torch.Generator], action_dim: int, block: int,
                  warmup_blocks: int, noise: float | None = None):
-        self.net, self.generators, self.action_dim, self.block = net, list(generators), action_dim, block
+        super().__init__(net, generators, action_dim, block)
         self.warmup_blocks, self.noise = warmup_blocks, noise
         self.blocks = 0
         self._draws: torch.Tensor | None = None
-        self._step = block
-        self._paused = False
-
-    @property
-    def at_block_boundary(self) -> bool:
-        return self._step == self.block
-
-    @contextlib.contextmanager
-    def paused(self):
-        """Calls return the deterministic action and draw nothing (for probes of the policy)."""
-        self._paused = True
-        try:
-            yield self
-        finally:
-            self._paused = False
 
     def deterministic(self, observation: torch.Tensor) -> torch.Tensor:
         out = self.net(observation)

@@ -223,24 +223,15 @@ def load_member_state_dict(net: nn.Module, member: int, state: dict[str, torch.T
             own[name][member].copy_(value.to(own[name].device))
 
 
-class MemberSampler:
-    """The acting policy of a population: observations ``[R, obs]`` -> actions ``[R, D]``,
-    a + sigma * noise clipped to [-1, 1], member r's noise from ``generators[r]``.
+class BlockSampler:
+    """What a population's acting policies share: member r's random draws come from
+    ``generators[r]``, ``block`` steps (one episode) at a time, so that at episode boundaries
+    (where checkpoints are taken) the block is used up and the generators hold the whole state;
+    and a pause for callers that only probe the policy's output (TorchRL's ``Collector`` when built)."""
 
-    Each member's noise is drawn ``block`` steps at a time (one episode: one generator call per
-    member per episode instead of per step). A collector calls it once per step; at episode
-    boundaries (where checkpoints are taken) the block is used up and the generators hold the
-    whole state.
-    """
-
-    def __init__(self, net: StackedGaussianPolicyNet, generators: Sequence[torch.Generator], action_dim: int,
-                 block: int):
-        if len(generators) != net.loc_head.members:
-            raise ValueError(f"got {len(generators)} generators for {net.loc_head.members} members")
+    def __init__(self, net: nn.Module, generators: Sequence[torch.Generator], action_dim: int, block: int):
         self.net, self.generators, self.action_dim, self.block = net, list(generators), action_dim, block
-        self._noise: torch.Tensor | None = None
         self._step = block
-
         self._paused = False
 
     @property
@@ -249,13 +240,26 @@ class MemberSampler:
 
     @contextlib.contextmanager
     def paused(self):
-        """Within this block, calls return the policy's mean without drawing noise (for
-        callers that only probe the policy's output, as TorchRL's ``Collector`` does when built)."""
+        """Within this block, calls return the deterministic action without drawing anything."""
         self._paused = True
         try:
             yield self
         finally:
             self._paused = False
+
+
+class MemberSampler(BlockSampler):
+    """The acting policy of a population: observations ``[R, obs]`` -> actions ``[R, D]``,
+    a + sigma * noise clipped to [-1, 1], member r's noise from ``generators[r]``, drawn an
+    episode at a time (``BlockSampler``). A collector calls it once per step.
+    """
+
+    def __init__(self, net: StackedGaussianPolicyNet, generators: Sequence[torch.Generator], action_dim: int,
+                 block: int):
+        if len(generators) != net.loc_head.members:
+            raise ValueError(f"got {len(generators)} generators for {net.loc_head.members} members")
+        super().__init__(net, generators, action_dim, block)
+        self._noise: torch.Tensor | None = None
 
     @torch.no_grad()
     def __call__(self, observation: torch.Tensor) -> torch.Tensor:
