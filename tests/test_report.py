@@ -189,7 +189,8 @@ def test_iqm_is_over_runs(tmp_path):
 def test_beyond_the_paper_and_generalisation_tables_by_hand(tmp_path, capsys):
     """SAC is 10 above the paper's best cell on every paper track (a zero-width interval, verdict
     higher); a population's wall time is split over its members; random-track runs stay out of
-    Table 1 and appear in the generalisation table with their own-track and unseen scores."""
+    Table 1 and appear in the generalisation table with their own-track and unseen scores; a track
+    beyond the paper's adds an all-tracks section to both tables."""
     from experiment.report import PAPER_SEEDS
 
     def summary(folder, track="fixed", evaluation=None, wall=50.0, size=5):
@@ -207,14 +208,20 @@ def test_beyond_the_paper_and_generalisation_tables_by_hand(tmp_path, capsys):
         moved = fake_run(tmp_path / "random", "sac", "memory", seed, 5.0)  # random tracks: not Table 1's
         summary(moved, track="random", evaluation={"own_track": 120.0, "mean": 118.0, "episodes": 2,
                                                     "tracks": {"1": 0, "2": 0}})
+    extra = fake_run(tmp_path / "fixed", "sac", "memory", 77, 136.0)  # a sixth track, fixed only
+    summary(extra, evaluation={"own_track": 140.0, "mean": 108.0, "episodes": 2, "tracks": {"1": 0, "2": 0}})
     assert report.main([str(tmp_path), "--no-figures"]) == 0
     beyond = (tmp_path / "report" / "beyond.md").read_text()
     assert "| SAC, memory | 5 | 132.0 ± 0.7 | 132.0 [" in beyond
+    assert "### On all 6 tracks" in beyond and "| SAC, memory | 6 | 132.7 ± 0.9 |" in beyond
     assert "+10.0 [+10.0, +10.0] higher | 0 | 0.2 min |" in beyond
     assert "| SPG-p multiple, memory | 5 | 122.0 ± 0.7 |" in beyond and "(reference) | 0 | 0.3 min |" in beyond
     general = (tmp_path / "report" / "generalisation.md").read_text()
     assert "| SAC, memory | fixed | 5 | 140.0 ± 0.0 | 102.0 ± 0.7 (2 tracks x 2 episodes) | 38.0 ± 0.7 |" in general
     assert "| SAC, memory | random | 5 | 120.0 ± 0.0 | 118.0 ± 0.0 (2 tracks x 2 episodes) | 2.0 ± 0.0 |" in general
+    paper, everything = general.split("### Trained on all 6 tracks")
+    assert "| SAC, memory | fixed | 6 | 140.0 ± 0.0 | 103.0 ± 1.2 (2 tracks x 2 episodes) | 37.0 ± 1.2 |" in everything
+    assert "| fixed | 6 |" not in paper and "| random |" not in everything  # random runs: paper tracks only
     table = (tmp_path / "report" / "table.md").read_text()
     assert "122.0 ± 0.7 (n=5)" in table  # only the fixed-track runs of the paper's cell
     capsys.readouterr()
