@@ -34,7 +34,7 @@ class Run:
     code: dict | None = None  # summary.json's "code" (experiment.version.code_version())
     track_mode: str = "fixed"  # env.track: fixed (the seed's track) or random (a new track per episode)
     evaluation: dict | None = None  # summary.json's "evaluation" (eval_seeds set), or None
-    wall_time: float | None = None  # seconds per run: the population's wall time over its size
+    wall_time: float | None = None  # seconds per run: the population's wall time (all sessions) over its size
 
     @property
     def version(self) -> str:
@@ -102,6 +102,10 @@ def read_run(folder: Path) -> Run:
         settings = summary.get("settings") or {}
         size = (summary.get("population") or {}).get("size") or 1
         wall = summary.get("wall_time_s")
+        if summary.get("resumed_at") and (wall is None or "wall_time_session_s" not in summary):
+            # a resumed run whose earlier sessions' wall time was not recorded: its timed phases
+            # (collection and training), which are summed over sessions and are nearly all of it
+            wall = math.fsum(v for k, v in summary.items() if k.startswith("time/")) or None
         return Run(folder, summary["status"], summary["algo"], summary["er"], int(summary["seed"]),
                    summary.get("final_mean"), rewards, summary.get("code"),
                    (settings.get("env") or {}).get("track", "fixed"), summary.get("evaluation"),

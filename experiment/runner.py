@@ -144,10 +144,12 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
 
     parts = training.state_parts()
     first, timing = 0, {"rollout_s": 0.0, "train_s": 0.0}
+    earlier_wall: float | None = 0.0  # wall time of the sessions before a resume (None: not recorded)
     code = dict(code_version())
     checkpoint_path = out_dir / checkpoint.CHECKPOINT_FILE
     if payload is not None:
         first, timing = _restore(payload, parts, env, generators, phases, members)
+        earlier_wall = timing.pop("wall_s", None)
         earlier = payload.get("code") or {"source": None}
         if earlier.get("source") != code["source"]:  # this run mixes two versions of the code
             code["resumed_from"] = {k: v for k, v in earlier.items() if k != "resumed_from"}
@@ -186,8 +188,9 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             _show(progress, members)
             done = episode + 1
             if cfg.checkpoint_every and done % cfg.checkpoint_every == 0 and done < cfg.episodes:
-                checkpoint.save(checkpoint_path, _payload(done, timing, settings, parts, env, code, generators,
-                                                          phases, members, models))
+                so_far = {} if earlier_wall is None else {"wall_s": earlier_wall + time.perf_counter() - start}
+                checkpoint.save(checkpoint_path, _payload(done, {**timing, **so_far}, settings, parts, env, code,
+                                                          generators, phases, members, models))
     finally:
         progress.close()
         for member in members:
@@ -196,7 +199,10 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
         collector.shutdown()
 
     summaries = []
-    wall = round(time.perf_counter() - start, 3)
+    session = round(time.perf_counter() - start, 3)
+    # wall_time_s covers every session of a resumed run (None if its checkpoint did not record them)
+    wall = round(session + earlier_wall, 3) if earlier_wall is not None else None
+    session_wall = {"wall_time_session_s": session} if first else {}
     for r, member in enumerate(members):
         if member.status == "running":
             member.status = "completed"
@@ -215,7 +221,8 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             "episodes": len(member.rewards), "episodes_planned": cfg.episodes,
             "final_mean": _mean(window) if window else None, "final_window": len(window),
             "status": member.status, "diverged": member.failure,
-            "wall_time_s": wall, "resumed_at": first or None,
+            "wall_time_s": wall, **session_wall,
+            "resumed_at": first or None,
             **{f"time/{key}": round(value, 3) for key, value in timing.items()},
             "population": {"seeds": list(seeds), "size": len(seeds)},
             **({"evaluation": evaluation} if evaluation is not None else {}),

@@ -75,7 +75,7 @@ def test_resume_after_an_interruption_in_process(tmp_path, collector):
     payload = checkpoint.load(tmp_path / "run" / checkpoint.CHECKPOINT_FILE)
     assert payload["episodes_done"] == 4 and payload["loss"]["temperature"] < 1.0
     summary = train(load(*run), tmp_path / "run")
-    assert summary["resumed_at"] == 4
+    assert summary["resumed_at"] == 4 and summary["wall_time_s"] > summary["wall_time_session_s"] > 0
     assert (tmp_path / "run" / "metrics.csv").read_bytes() == uninterrupted(tmp_path, f"env.collector={collector}")
 
 
