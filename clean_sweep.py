@@ -23,6 +23,7 @@ import shutil
 import subprocess
 import sys
 import tarfile
+import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent
@@ -55,16 +56,25 @@ def export(commit: str, code_dir: Path) -> Path:
     if code_dir.exists():
         raise SweepError(f"{code_dir} exists but is not an export; remove it or choose --code-dir")
     archive = git("archive", "--format=tar", commit, binary=True)
-    partial = code_dir.with_name(code_dir.name + ".partial")
-    shutil.rmtree(partial, ignore_errors=True)
-    with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
-        if hasattr(tarfile, "data_filter"):  # Python >= 3.10.12 / 3.11.4
-            tar.extractall(partial, filter="data")
-        else:
-            tar.extractall(partial)
-    if (partial / "experiment" / "COMMIT").read_text().strip() != commit:
-        raise SweepError("the export's experiment/COMMIT was not filled in; is .gitattributes in the commit?")
-    partial.rename(code_dir)
+    # unpacked into a folder of this process's own, so that sweeps started together can export
+    # the same commit at once: the first rename wins and the others drop their copy
+    code_dir.parent.mkdir(parents=True, exist_ok=True)
+    partial = Path(tempfile.mkdtemp(prefix=code_dir.name + ".partial-", dir=code_dir.parent))
+    try:
+        with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
+            if hasattr(tarfile, "data_filter"):  # Python >= 3.10.12 / 3.11.4
+                tar.extractall(partial, filter="data")
+            else:
+                tar.extractall(partial)
+        if (partial / "experiment" / "COMMIT").read_text().strip() != commit:
+            raise SweepError("the export's experiment/COMMIT was not filled in; is .gitattributes in the commit?")
+        try:
+            partial.rename(code_dir)
+        except OSError:  # another sweep's export of the same commit landed first
+            if not (code_dir / "experiment" / "COMMIT").is_file():
+                raise
+    finally:
+        shutil.rmtree(partial, ignore_errors=True)
     return code_dir
 
 

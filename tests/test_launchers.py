@@ -90,3 +90,23 @@ def test_clean_sweep_runs_an_export_of_the_commit(tmp_path):
     again = subprocess.run([sys.executable, str(ROOT / "clean_sweep.py"), "--code-dir", str(code_dir),
                             "--commit", "HEAD~1"], cwd=tmp_path, env=ENV, capture_output=True, text=True)
     assert again.returncode == 2 and "holds an export of another commit" in again.stderr
+
+
+def test_sweeps_started_together_export_the_same_commit_once(tmp_path):
+    """Two sweeps of one commit launched at the same moment both get the export (no crash on a
+    half-unpacked folder), and no partial copy is left behind."""
+    import sys
+    from concurrent.futures import ThreadPoolExecutor
+
+    if not (ROOT / ".git").exists():
+        pytest.skip("clean_sweep.py exports commits: needs a git clone of the project")
+    sys.path.insert(0, str(ROOT))
+    import clean_sweep
+
+    commit = clean_sweep.resolve_commit("HEAD")
+    code_dir = tmp_path / "code" / commit[:12]
+    with ThreadPoolExecutor(4) as pool:
+        results = list(pool.map(lambda _: clean_sweep.export(commit, code_dir), range(4)))
+    assert results == [code_dir] * 4
+    assert (code_dir / "experiment" / "COMMIT").read_text().strip() == commit
+    assert [p.name for p in code_dir.parent.iterdir()] == [code_dir.name]
