@@ -4,7 +4,8 @@
 cell and its PPO cells, and any other cell in the sweep), on the paper's five tracks and on all
 tracks: runs, mean ± SE of the final performance, IQM with a 95% bootstrap interval over runs,
 the difference from the paper's best cell paired by track (95% bootstrap interval over tracks,
-with a verdict), and wall time per run. Only runs trained on fixed tracks count here.
+with a verdict), collapsed runs (final performance below 20), diverged runs, and wall time
+per run. Only runs trained on fixed tracks count here.
 
 ``generalisation_markdown``: per cell and training-track mode (``env.track`` fixed or random),
 the final deterministic policy's score on its own track and on the unseen evaluation tracks
@@ -19,7 +20,7 @@ import math
 import numpy as np
 
 from experiment.aggregate import iqm, stratified_bootstrap_ci
-from experiment.report import COLUMN_TITLES, PAPER_SEEDS, Run, _mean_difference, paired_bootstrap
+from experiment.report import COLLAPSE_BELOW, COLUMN_TITLES, PAPER_SEEDS, Run, _mean_difference, paired_bootstrap
 
 REFERENCE = ("memory", "spg_p_multi")  # the paper's best cell (Table 1: 141.1)
 ROWS = (("memory", "sac"), ("prioritised", "sac"), ("memory", "td3"), ("prioritised", "td3"),
@@ -63,6 +64,7 @@ def beyond_rows(runs: list[Run], seeds: set[int] | None) -> list[dict]:
         point, low, high = stratified_bootstrap_ci(scores, iqm) if len(finals) > 1 else (iqm(scores), None, None)
         row = {"cell": label(er, algo), "er": er, "algo": algo, "runs": len(finals),
                "mean_se": _mean_se(list(finals.values())), "iqm": point, "iqm_low": low, "iqm_high": high,
+               "collapsed": sum(v < COLLAPSE_BELOW for v in finals.values()),
                "diverged": sum(r.status == "diverged" for r in runs if (r.er, r.algo) == (er, algo)
                                and r.track_mode == "fixed" and (seeds is None or r.seed in seeds))}
         if (er, algo) != REFERENCE and reference:
@@ -99,14 +101,15 @@ def beyond_markdown(runs: list[Run]) -> str:
     for title, seeds in sets:
         rows = beyond_rows(runs, seeds)
         parts += [f"### On {title}", "",
-                  f"| cell | runs | mean ± SE | IQM [95% CI] | vs {label(*REFERENCE)} | diverged | wall time per run |",
-                  "|---|---:|---:|---|---|---:|---:|"]
+                  f"| cell | runs | mean ± SE | IQM [95% CI] | vs {label(*REFERENCE)} | collapsed (final < "
+                  f"{COLLAPSE_BELOW:g}) | diverged | wall time per run |",
+                  "|---|---:|---:|---|---|---:|---:|---:|"]
         for row in rows:
             ci = (f"{row['iqm']:.1f} [{row['iqm_low']:.1f}, {row['iqm_high']:.1f}]" if row["iqm_low"] is not None
                   else f"{row['iqm']:.1f}")
             wall = f"{row['wall_s'] / 60:.1f} min" if row["wall_s"] is not None else ""
             parts.append(f"| {row['cell']} | {row['runs']} | {row['mean_se']} | {ci} | {_diff_text(row)} | "
-                         f"{row['diverged']} | {wall} |")
+                         f"{row['collapsed']} | {row['diverged']} | {wall} |")
         parts.append("")
     return "\n".join(parts)
 
