@@ -73,6 +73,8 @@ def make_policy(loss: str, network: dict, obs_size: int, state: dict) -> Policy:
         from experiment.stacked import load_member_state_dict
 
         net = make_actor_net(loss, 1, obs_size, 2, network["actor_hidden"], network["activation"])
+        if all(k.startswith("module.") for k in state):  # the layout of TorchRL's parameters (until da21af2)
+            state = {k.removeprefix("module."): v for k, v in state.items()}
         load_member_state_dict(net, 0, state)
         kind = loss
     else:

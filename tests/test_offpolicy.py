@@ -8,6 +8,7 @@ through ``train.py``.
 
 import json
 
+import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
@@ -16,6 +17,7 @@ from torchrl.objectives import SACLoss, SoftUpdate
 
 from collectors.prioritised import WEIGHT_KEY, ProportionalSampler
 from experiment.config import ConfigError
+from experiment.evaluate import load_policy
 from experiment.factories import make_env, make_generators, make_training
 from experiment.phases import MetricTotals
 from experiment.runner import train_population
@@ -262,6 +264,14 @@ def test_a_population_evaluates_itself_and_evaluate_py_tables_a_sweep(tmp_path, 
     own = {int(r["train_seed"]): float(r["mean_reward"]) for r in rows if r["own_track"] == "True"}
     assert own[A] == pytest.approx(evaluation["own_track"], abs=1e-5)  # the same policy, episodes and start states
     assert "| run | own track |" in capsys.readouterr().out
+    # actor.pt in the layout of TorchRL's parameters, as the first SAC/TD3 runs saved it, loads too
+    folder = tmp_path / "pop" / f"seed{A}"
+    policy, _ = load_policy(folder)
+    state = torch.load(folder / "actor.pt", weights_only=True)
+    torch.save({f"module.{k}": v for k, v in state.items()}, folder / "actor.pt")
+    older, _ = load_policy(folder)
+    observation = np.linspace(0.0, 1.0, 6, dtype=np.float32)
+    np.testing.assert_array_equal(older(observation), policy(observation))
 
 
 def test_the_generalisation_preset_shares_its_fixed_runs_with_beyond_paper_and_reports(tmp_path):
