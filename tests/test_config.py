@@ -130,3 +130,13 @@ def test_bad_population_seeds_are_config_errors(override, message):
 def test_a_population_of_seeds():
     cfg = load("seeds=[5,3]")
     assert cfg.members == (5, 3) and load("seed=7").members == (7,)
+
+
+def test_beyond_paper_wide_is_beyond_paper_on_the_wide_grids_tracks():
+    """The 25-track beyond-the-paper preset composes to exactly beyond_paper with the wide grid's
+    seeds, so in beyond_paper's folder it recognises (and skips) the runs beyond_paper made."""
+    wide = load("+experiment=wide_grid").seeds
+    assert len(wide) == 25 and wide[:5] == load("+experiment=beyond_paper").seeds
+    for cell in ("memory-sac", "recent-ppo"):
+        assert load("+experiment=beyond_paper_wide", f"+cell={cell}") == load(
+            "+experiment=beyond_paper", f"+cell={cell}", f"seeds=[{','.join(map(str, wide))}]")
