@@ -48,6 +48,15 @@ def _mean_se(values: list[float]) -> str:
     return f"{mean:.1f} ± {se:.1f}"
 
 
+def _track_sets(seeds: set[int]) -> list[tuple[str, set[int] | None]]:
+    """The sections of a table: the paper's five tracks, then all of ``seeds`` (None: no
+    filter) when they go beyond them."""
+    sets: list[tuple[str, set[int] | None]] = [("the paper's five tracks", set(PAPER_SEEDS))]
+    if seeds - set(PAPER_SEEDS):
+        sets.append((f"all {len(seeds)} tracks", None))
+    return sets
+
+
 def _cells_present(runs: list[Run]) -> list[tuple[str, str]]:
     present = {(r.er, r.algo) for r in runs if r.track_mode == "fixed" and r.algo is not None}
     return [c for c in ROWS if c in present] + sorted(present - set(ROWS))
@@ -95,10 +104,7 @@ def beyond_markdown(runs: list[Run]) -> str:
              "difference from the paper's best cell on the same tracks, with a 95% bootstrap interval over "
              "tracks. Wall time: per run (a population's wall time over its members).", ""]
     all_seeds = {r.seed for r in runs if r.track_mode == "fixed" and r.seed is not None}
-    sets = [("the paper's five tracks", set(PAPER_SEEDS))]
-    if all_seeds - set(PAPER_SEEDS):
-        sets.append((f"all {len(all_seeds)} tracks", None))
-    for title, seeds in sets:
+    for title, seeds in _track_sets(all_seeds):
         rows = beyond_rows(runs, seeds)
         parts += [f"### On {title}", "",
                   f"| cell | runs | mean ± SE | IQM [95% CI] | vs {label(*REFERENCE)} | collapsed (final < "
@@ -144,10 +150,7 @@ def generalisation_markdown(runs: list[Run]) -> str:
     lines = ["Generalisation: the final deterministic policy of each run, evaluated on its own track (for "
              "random-track training, the track of its seed: one of its training tracks) and on unseen tracks "
              "(eval_seeds: never used in training); mean ± SE over runs. Gap = own - unseen, per run.", ""]
-    sets = [("the paper's five tracks", set(PAPER_SEEDS))]
-    if evaluated - set(PAPER_SEEDS):
-        sets.append((f"all {len(evaluated)} tracks", None))
-    for title, seeds in sets:
+    for title, seeds in _track_sets(evaluated):
         rows = generalisation_rows(runs, seeds)
         if not rows:
             continue

@@ -95,13 +95,12 @@ def test_clean_sweep_runs_an_export_of_the_commit(tmp_path):
 def test_sweeps_started_together_export_the_same_commit_once(tmp_path):
     """Two sweeps of one commit launched at the same moment both get the export (no crash on a
     half-unpacked folder), and no partial copy is left behind."""
-    import sys
     from concurrent.futures import ThreadPoolExecutor
+
+    import clean_sweep
 
     if not (ROOT / ".git").exists():
         pytest.skip("clean_sweep.py exports commits: needs a git clone of the project")
-    sys.path.insert(0, str(ROOT))
-    import clean_sweep
 
     commit = clean_sweep.resolve_commit("HEAD")
     code_dir = tmp_path / "code" / commit[:12]
