@@ -8,7 +8,8 @@ stands for every finished run inside it (a sweep, a population). Policies act wi
 exploration noise (the Gaussian's mean; SAC: tanh of it; TD3: its actor). Each run is evaluated
 on its own track and on ``--tracks``; the table (printed, and written as CSV with ``--table``)
 has one row per run and track. ``--video`` films one episode of the first run on the first
-track as a GIF or MP4 (needs the ``render`` extra).
+track as a GIF or MP4 (needs the ``render`` extra). Policies run under the numerics mode their runs
+were trained in (``--numerics`` to choose another; ``experiment/numerics.py``).
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ import math
 import sys
 from pathlib import Path
 
-from experiment.evaluate import RunFolderError, evaluate, film, load_policy
+from experiment import numerics
+from experiment.outputs import RunFolderError, read_summary
 
 
 def find_runs(paths: list[Path]) -> list[Path]:
@@ -36,6 +38,15 @@ def find_runs(paths: list[Path]) -> list[Path]:
     return runs
 
 
+def runs_numerics(runs: list[Path]) -> str:
+    """The numerics mode the runs were trained in (runs from before the modes: native)."""
+    modes = {((read_summary(run) or {}).get("settings") or {}).get("numerics", "native") for run in runs}
+    if len(modes) > 1:
+        raise RunFolderError(f"the runs were trained under different numerics ({sorted(modes)}); "
+                             "choose one with --numerics")
+    return modes.pop()
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", type=Path, nargs="+", metavar="RUN_OR_SWEEP_DIR")
@@ -45,14 +56,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="seed of the first start state")
     parser.add_argument("--table", type=Path, default=None, help="write the table to this CSV file")
     parser.add_argument("--video", type=Path, default=None, help="film the first run on the first track (.gif/.mp4)")
+    parser.add_argument("--numerics", choices=numerics.MODES, default=None,
+                        help="the numerics mode to evaluate in (default: the one the runs were trained in)")
     args = parser.parse_args(argv)
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     try:
         runs = find_runs(args.paths)
-    except RunFolderError as err:
+        numerics.apply(args.numerics or runs_numerics(runs))  # before torch loads
+    except (RunFolderError, numerics.NumericsError) as err:
         print(f"evaluate: {err}", file=sys.stderr)
         return 2
+    from experiment.evaluate import evaluate, film, load_policy
+
     rows, skipped, first = [], [], None
     for run in runs:
         try:

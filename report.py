@@ -20,8 +20,9 @@ Lists runs that are partial (killed or running), unreadable or diverged. The fig
 ``render`` extra; without it only the tables are written.
 
 Every report states the code version (commit and source hash, from each run's summary.json)
-that made its runs. Runs of different code versions are refused unless
-``--allow-mixed-versions`` is given; then every version is listed with its number of runs.
+and the numerics (mode and kernels, ``experiment/numerics.py``) that made its runs. Runs of
+different code versions are refused unless ``--allow-mixed-versions`` is given, runs of different
+numerics unless ``--allow-mixed-numerics`` is given; then every group is listed with its number of runs.
 """
 
 from __future__ import annotations
@@ -30,9 +31,10 @@ import argparse
 import sys
 from pathlib import Path
 
+from experiment import numerics
 from experiment.report import (cells, code_versions, collapse_markdown, conclusions_markdown, find_runs,
-                               read_paper_table, table_markdown, versions_markdown, write_runs_csv,
-                               write_table_csv)
+                               numerics_groups, read_paper_table, table_markdown, versions_markdown,
+                               write_runs_csv, write_table_csv)
 from experiment.report_beyond import beyond_markdown, generalisation_markdown
 
 
@@ -42,6 +44,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-figures", action="store_true", help="write the tables only")
     parser.add_argument("--allow-mixed-versions", action="store_true",
                         help="report runs made by different versions of the code together")
+    parser.add_argument("--allow-mixed-numerics", action="store_true",
+                        help="report runs made under different numerics (modes or kernels) together")
     args = parser.parse_args(argv)
     try:
         runs = find_runs(args.sweep_dir)
@@ -57,6 +61,20 @@ def main(argv: list[str] | None = None) -> int:
         print("Re-run the sweep from one commit (clean_sweep.py), or pass --allow-mixed-versions.",
               file=sys.stderr)
         return 2
+    modes = numerics_groups(runs)
+    if len(modes) > 1 and not args.allow_mixed_numerics:
+        print(f"report: {args.sweep_dir} holds runs of {len(modes)} numerics (experiment/numerics.py); they "
+              "rerun bit for bit on different CPUs, so a table mixing them has no single way to rerun. "
+              "Numerics (runs, e.g.):", file=sys.stderr)
+        for key, members in modes.items():
+            print(f"  {key}: {len(members)} runs, e.g. {members[0].path}", file=sys.stderr)
+        print("Re-run the sweep under one numerics= setting, or pass --allow-mixed-numerics.", file=sys.stderr)
+        return 2
+    mode = next(iter(modes)).split(" ")[0] if len(modes) == 1 else numerics.DEFAULT
+    try:  # only the agent frame computes (a policy's episode): in the runs' mode, before torch loads
+        numerics.apply(mode if mode in numerics.MODES else numerics.DEFAULT)
+    except numerics.NumericsError as err:
+        print(f"report: the agent frame is drawn under this process's numerics ({err})")
     out = args.sweep_dir / "report"
     out.mkdir(exist_ok=True)
     every = runs

@@ -17,6 +17,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
+from experiment import numerics
 from experiment.config import ConfigError, RunConfig, register_resolvers
 
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")  # torchrl's INFO lines (set before it loads)
@@ -31,6 +32,11 @@ def main(cfg: DictConfig) -> float | list | None:
     except ConfigError as err:
         print(f"Invalid configuration: {err}", file=sys.stderr)
         raise SystemExit(2) from None
+    try:
+        numerics.apply(run_cfg.numerics)  # before torch loads: it reads the kernel settings then
+    except numerics.NumericsError as err:
+        print(f"Refusing to run: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
     from experiment.checkpoint import CHECKPOINT_FILE, CheckpointError
     from experiment.runner import train_population  # after validation: torch loads slowly
     from experiment.version import describe
@@ -41,7 +47,7 @@ def main(cfg: DictConfig) -> float | list | None:
             (out_dir / CHECKPOINT_FILE).unlink(missing_ok=True)
         skipped: list[tuple[Path, dict]] = []
         summaries = train_population(run_cfg, out_dir, settings, skipped=skipped)
-    except (ConfigError, CheckpointError) as err:
+    except (ConfigError, CheckpointError, numerics.NumericsError) as err:
         print(f"Refusing to run: {err}", file=sys.stderr)
         raise SystemExit(2) from None
     for folder, summary in skipped:

@@ -20,6 +20,10 @@ import numpy as np
 
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
 
+from experiment import numerics  # noqa: E402
+
+numerics.apply(numerics.DEFAULT)  # before torch loads (experiment/numerics.py)
+
 import gymnasium as gym  # noqa: E402
 import torch  # noqa: E402
 

@@ -31,6 +31,10 @@ from pathlib import Path
 
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
 
+from experiment import numerics  # noqa: E402
+
+numerics.apply(numerics.DEFAULT)  # before torch loads (experiment/numerics.py)
+
 import torch  # noqa: E402
 from torch.utils._python_dispatch import TorchDispatchMode  # noqa: E402
 from torch.utils.flop_counter import flop_registry  # noqa: E402

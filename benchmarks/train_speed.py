@@ -22,6 +22,10 @@ from pathlib import Path
 
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
 
+from experiment import numerics  # noqa: E402
+
+numerics.apply(numerics.DEFAULT)  # before torch loads (experiment/numerics.py)
+
 import torch  # noqa: E402
 
 from collectors import make_collector  # noqa: E402

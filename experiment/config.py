@@ -23,6 +23,7 @@ TRACK_SOURCES = ("fixed", "random")
 COLLECTORS = ("direct", "torchrl")
 LOGGERS = ("csv", "tensorboard", "none")
 ACTIVATIONS = ("tanh", "relu", "elu")
+NUMERICS = ("portable", "native")  # experiment.numerics.MODES
 
 
 class ConfigError(ValueError):
@@ -353,6 +354,7 @@ class RunConfig:
     final_window: int
     threads: int
     device: str
+    numerics: str
     progress: bool
     logger: str
     overwrite: bool
@@ -383,6 +385,7 @@ class RunConfig:
         _at_least("checkpoint_every", self.checkpoint_every, 0, " (0: never)")
         _at_least("threads", self.threads, 1)
         _check_device(self.device)
+        _choice("numerics", self.numerics, NUMERICS)
         _at_least("eval_episodes", self.eval_episodes, 1)
         if self.eval_seeds is not None and not self.eval_seeds:
             raise ConfigError("eval_seeds must be null (no evaluation) or a non-empty list of track seeds")

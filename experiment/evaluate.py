@@ -10,12 +10,9 @@ import numpy as np
 import torch
 
 from experiment.models import GaussianPolicyNet
+from experiment.outputs import RunFolderError  # noqa: F401 (part of this module's interface)
 from racing.config import RacingConfig
 from racing.gym_env import RacingEnv
-
-
-class RunFolderError(ValueError):
-    """A folder that does not hold a usable trained run."""
 
 
 class Policy:

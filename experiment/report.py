@@ -35,6 +35,7 @@ class Run:
     track_mode: str = "fixed"  # env.track: fixed (the seed's track) or random (a new track per episode)
     evaluation: dict | None = None  # summary.json's "evaluation" (eval_seeds set), or None
     wall_time: float | None = None  # seconds per run: the population's wall time (all sessions) over its size
+    numerics: str = "not recorded"  # the numerics mode and the kernels that ran (numerics_label)
 
     @property
     def version(self) -> str:
@@ -78,6 +79,22 @@ class Cell:
         return (self.mean - self.paper_mean) / combined if combined > 0 else None
 
 
+def numerics_label(summary: dict) -> str:
+    """``"portable (AVX2 kernels)"``: the run's numerics mode (``experiment.numerics``) and the torch
+    kernels that ran. Runs from before the modes existed ran the machine's own kernels: native."""
+    effect = summary.get("numerics") or {"mode": "native", "kernels": (summary.get("software") or {}).get("cpu")}
+    return f"{effect.get('mode')} ({effect.get('kernels') or 'unknown'} kernels)"
+
+
+def numerics_groups(runs: list[Run]) -> dict[str, list[Run]]:
+    """Finished runs grouped by ``Run.numerics``: runs of two groups rerun bit for bit on different CPUs."""
+    groups: dict[str, list[Run]] = {}
+    for run in runs:
+        if run.status in ("completed", "diverged"):
+            groups.setdefault(run.numerics, []).append(run)
+    return groups
+
+
 def find_runs(sweep_dir: Path) -> list[Run]:
     """Every run folder under ``sweep_dir`` (any depth), finished or not."""
     sweep_dir = Path(sweep_dir)
@@ -109,7 +126,7 @@ def read_run(folder: Path) -> Run:
         return Run(folder, summary["status"], summary["algo"], summary["er"], int(summary["seed"]),
                    summary.get("final_mean"), rewards, summary.get("code"),
                    (settings.get("env") or {}).get("track", "fixed"), summary.get("evaluation"),
-                   wall / size if wall is not None else None)
+                   wall / size if wall is not None else None, numerics_label(summary))
     except (json.JSONDecodeError, KeyError, TypeError, ValueError):
         return Run(folder, "unreadable", rewards=rewards)
 
@@ -124,12 +141,13 @@ def code_versions(runs: list[Run]) -> dict[str, list[Run]]:
 
 
 def versions_markdown(groups: dict[str, list[Run]]) -> str:
-    """One line per code version: its commit and how many runs it made."""
+    """One line per code version and numerics: its commit, the numerics, and how many runs it made."""
     from experiment.version import describe
 
     lines = []
     for key, members in sorted(groups.items(), key=lambda kv: -len(kv[1])):
-        lines.append(f"Code: {describe(members[0].code)} ({len(members)} runs)")
+        for numerics, runs in sorted(numerics_groups(members).items(), key=lambda kv: -len(kv[1])):
+            lines.append(f"Code: {describe(members[0].code)}; numerics: {numerics} ({len(runs)} runs)")
     return "\n".join(lines) + "\n"
 
 
@@ -204,17 +222,18 @@ def write_table_csv(table: list[Cell], path: Path) -> None:
 
 
 def write_runs_csv(runs: list[Run], path: Path, root: Path) -> None:
-    """One row per run folder: cell, track seed, final performance, status, code version."""
+    """One row per run folder: cell, track seed, final performance, status, code version, numerics."""
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["er", "algo", "seed", "status", "final_mean", "episodes", "code", "folder", "train_tracks",
-                         "eval_own_track", "eval_unseen_mean"])
+                         "eval_own_track", "eval_unseen_mean", "numerics"])
         for r in sorted(runs, key=lambda r: (r.er or "", r.algo or "", r.seed or -1, str(r.path))):
             final = "" if r.final_mean is None else repr(float(r.final_mean))
             own, unseen = ((repr(float(r.evaluation["own_track"])), repr(float(r.evaluation["mean"])))
                            if r.evaluation else ("", ""))
             writer.writerow([r.er or "", r.algo or "", "" if r.seed is None else r.seed, r.status, final,
-                             len(r.rewards), r.version, r.path.relative_to(root).as_posix(), r.track_mode, own, unseen])
+                             len(r.rewards), r.version, r.path.relative_to(root).as_posix(), r.track_mode, own, unseen,
+                             r.numerics])
 
 
 def _num(value: float | None) -> str:

@@ -26,7 +26,7 @@ import torch
 from tensordict import TensorDictBase
 
 from collectors import add_monte_carlo_returns
-from experiment import checkpoint
+from experiment import checkpoint, numerics
 from experiment.config import ConfigError, RunConfig
 from experiment.factories import make_env, make_episode_collector, make_generators, make_schedule, make_training, seed_everything
 from experiment.outputs import SUMMARY_FILE, MetricsWriter, metric_columns, read_summary, write_json_atomic
@@ -94,6 +94,7 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
     returned, and (folder, summary) appended to ``skipped`` if given). If ``out_dir`` holds a checkpoint
     of the same settings, the population continues from it exactly as if it had never stopped.
     """
+    numerics.apply(cfg.numerics)  # torch has loaded: a check that it runs the mode asked for
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
@@ -226,7 +227,7 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             **{f"time/{key}": round(value, 3) for key, value in timing.items()},
             "population": {"seeds": list(seeds), "size": len(seeds)},
             **({"evaluation": evaluation} if evaluation is not None else {}),
-            "code": code, "software": software_versions(),
+            "code": code, "software": software_versions(), "numerics": numerics.in_effect(),
             "settings": member.settings,
         }
         write_json_atomic(member.folder / SUMMARY_FILE, summary)

@@ -10,7 +10,10 @@ last elements of a tensor (the tail of its vector loop) differently, so a member
 would depend on its position in the stacked tensor.
 
 Bit for bit: member r of a population equals a population of one made from the same seed
-(forward, gradients, Adam steps; ``tests/test_stacked.py``). A member's saved weights load
+(forward, gradients, Adam steps; ``tests/test_stacked.py``), in both numerics modes
+(``experiment/numerics.py``). No matrix product has a dimension of one: a one-unit layer
+computes as two units (see ``StackedLinear.forward``), because MKL's batched products take
+matrix-vector paths there whose rounding depends on the number of members on AVX-512 CPUs. A member's saved weights load
 into the solo networks of ``experiment.models`` and compute the same function to float
 rounding (``F.linear`` and ``bmm`` accumulate in other orders), so training compares a
 population with populations of one, and the solo networks serve evaluation.
@@ -65,12 +68,15 @@ class StackedLinear(nn.Module):
         if x.shape[0] != self.members:
             raise ValueError(f"input has {x.shape[0]} members on its first dimension, this layer {self.members}")
         flat = x.reshape(self.members, -1, x.shape[-1])
-        if self.weight.shape[1] == 1:
-            # A one-unit layer as w x^T: x w^T takes a matrix-vector path whose rounding
-            # depends on the number of members; this form's does not.
-            out = torch.baddbmm(self.bias.unsqueeze(-1), self.weight, flat.transpose(1, 2)).transpose(1, 2)
-        else:
-            out = torch.baddbmm(self.bias.unsqueeze(1), flat, self.weight.transpose(1, 2))
+        weight, bias = self.weight, self.bias
+        if weight.shape[1] == 1:
+            # A one-unit layer computes as two units, the second all zeros, and drops it.
+            # With a matrix dimension of 1 (this layer's forward and its weight gradient), the
+            # batched matrix product takes matrix-vector paths whose rounding depends on the
+            # number of members on some CPUs (seen with AVX-512); without one, it does not.
+            weight = torch.cat([weight, weight.new_zeros(weight.shape)], dim=1)
+            bias = torch.cat([bias, bias.new_zeros(bias.shape)], dim=1)
+        out = torch.baddbmm(bias.unsqueeze(1), flat, weight.transpose(1, 2))[..., :self.weight.shape[1]]
         return out.reshape(*x.shape[:-1], out.shape[-1])
 
 

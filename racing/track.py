@@ -7,6 +7,7 @@ their seeds. The same stream then goes on to draw the car's start states.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -56,9 +57,12 @@ class Track:
         )
 
     def respawn_heading(self, i: int) -> float:
-        """Heading (radians, 0 = +y) of a car put back at the centre of checkpoint ``i``."""
+        """Heading (radians, 0 = +y) of a car put back at the centre of checkpoint ``i``.
+
+        ``math.atan2`` (the C library's) rather than ``np.arctan2``, whose AVX-512 version rounds
+        differently from the one every other x86-64 CPU runs."""
         dx, dy = self.centres[i + 1] - self.centres[i]
-        return float(np.pi / 2 - np.arctan2(dy, dx))
+        return float(np.pi / 2 - math.atan2(dy, dx))
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Lower-left and upper-right corners of the box that holds both walls."""

@@ -1,4 +1,5 @@
-"""Shared fixtures: the reference data in ../shared (skipped with a reason when absent)."""
+"""Shared fixtures: the reference data in ../shared (skipped with a reason when absent); the
+default numerics mode (``experiment.numerics``), set before any test module loads torch."""
 
 from __future__ import annotations
 
@@ -11,6 +12,10 @@ import pytest
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # rendering tests run without a screen
 os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
+
+from experiment import numerics  # noqa: E402
+
+numerics.apply(numerics.DEFAULT)  # the tests run the default numerics; it must precede torch's import
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("RACING_SHARED_DIR", ROOT.parent / "shared"))

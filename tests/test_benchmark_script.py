@@ -36,3 +36,13 @@ def test_population_speed_benchmark_prints_its_tables():
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
     assert len(rows) == (1 + 2) + (1 + 1)
     assert "matmul peak here" in result.stdout and "| ppo/recent | 2 |" in result.stdout
+
+
+def test_numerics_speed_benchmark_prints_its_table():
+    result = subprocess.run([sys.executable, "-m", "benchmarks.numerics_speed", "--episodes", "1",
+                             "--members", "2", "--cells", "ppo/recent", "--repeats", "1"],
+                            capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
+    assert len(rows) == 1 + 1 and "| ppo/recent | 2 |" in result.stdout
+    assert "portable: " in result.stdout and "MKL branch COMPATIBLE" in result.stdout

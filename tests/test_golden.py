@@ -1,10 +1,12 @@
 """Golden runs: short training runs whose metrics.csv is checked to the bit.
 
 A change meant to keep results unchanged (a refactor, a speed-up, a new code path) must leave
-these files identical. They were recorded with the software and CPU in ``fingerprint.json``;
-on other builds or CPUs, matrix kernels may round differently, and the values are compared to
-a relative tolerance instead. A change that is meant to change results regenerates them,
-and says so in its commit:
+these files identical. They were recorded in the portable numerics mode (``experiment/numerics.py``)
+with the software in ``fingerprint.json``, so they are checked to the bit on every x86-64 CPU
+with AVX2. Under other software, or another mode or kernel set (native numerics on an AVX-512
+CPU, a CPU without AVX2, ARM), kernels round differently, and the values are compared to a
+relative tolerance instead. A change that is meant to change results regenerates them, and
+says so in its commit:
 
     python -m tests.test_golden --update
 """
@@ -30,10 +32,12 @@ COMMON = ["seed=2067791", "episodes=4", "progress=false", "logger=none", "checkp
 
 
 def fingerprint() -> dict:
+    from experiment import numerics
     from experiment.version import software_versions
 
-    versions = software_versions()
-    return {key: versions[key] for key in ("torch", "numpy", "cpu")}
+    versions, effect = software_versions(), numerics.in_effect()
+    return {"torch": versions["torch"], "numpy": versions["numpy"], "numerics": effect["mode"],
+            "kernels": effect["kernels"], "mkl_branch": effect["mkl_branch"]}
 
 
 def run(name: str, out_dir: Path) -> bytes:
@@ -81,4 +85,7 @@ if __name__ == "__main__":
     os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
     if sys.argv[1:] != ["--update"]:
         raise SystemExit("usage: python -m tests.test_golden --update")
+    from experiment import numerics
+
+    numerics.apply("portable")  # before torch loads
     update()

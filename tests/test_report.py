@@ -10,9 +10,11 @@ from experiment.report import cells, find_runs, read_paper_table
 
 
 CODE = {"commit": "a" * 40, "dirty": False, "origin": "git", "source": "0123456789abcdef"}
+PORTABLE = {"mode": "portable", "kernels": "AVX2", "mkl_branch": "COMPATIBLE"}
 
 
-def fake_run(root, algo, er, seed, final=None, status="completed", summary=True, episodes=3, code=CODE):
+def fake_run(root, algo, er, seed, final=None, status="completed", summary=True, episodes=3, code=CODE,
+             numerics=PORTABLE):
     folder = root / algo / er / f"seed{seed}"
     folder.mkdir(parents=True)
     rows = ["episode,total_reward"] + [f"{i},{(final or 0.0) + i - 1}" for i in range(episodes)]
@@ -20,7 +22,7 @@ def fake_run(root, algo, er, seed, final=None, status="completed", summary=True,
     if summary is True:
         (folder / "summary.json").write_text(json.dumps(
             {"algo": algo, "er": er, "seed": seed, "final_mean": final, "status": status, "episodes": episodes,
-             "code": code}))
+             "code": code, **({"numerics": numerics} if numerics else {"software": {"cpu": "AVX2"}})}))
     elif summary:
         (folder / "summary.json").write_text(summary)
     return folder
@@ -58,10 +60,10 @@ def test_report_lists_partial_unreadable_and_diverged_runs(tmp_path, capsys):
     assert "1 diverged" in table
     runs_csv = (tmp_path / "report" / "runs.csv").read_text().splitlines()
     assert runs_csv[0] == ("er,algo,seed,status,final_mean,episodes,code,folder,train_tracks,eval_own_track,"
-                           "eval_unseen_mean")
-    assert "hybrid,ppo_log,1,diverged,,3,0123456789abcdef,ppo_log/hybrid/seed1,fixed,," in runs_csv
-    assert "recent,spg,1,completed,90.0,3,0123456789abcdef,spg/recent/seed1,fixed,," in runs_csv
-    assert ",,,partial,,3,not recorded,spg/recent/seed3,fixed,," in runs_csv
+                           "eval_unseen_mean,numerics")
+    assert "hybrid,ppo_log,1,diverged,,3,0123456789abcdef,ppo_log/hybrid/seed1,fixed,,,portable (AVX2 kernels)" in runs_csv
+    assert "recent,spg,1,completed,90.0,3,0123456789abcdef,spg/recent/seed1,fixed,,,portable (AVX2 kernels)" in runs_csv
+    assert ",,,partial,,3,not recorded,spg/recent/seed3,fixed,,,not recorded" in runs_csv
     csv_rows = (tmp_path / "report" / "table.csv").read_text().splitlines()
     assert csv_rows[0] == "er,algo,n,mean,sem,diverged,paper_mean,paper_sem,z"
     assert any(r.startswith("hybrid,ppo_log,0,,,1,,,") for r in csv_rows)
@@ -81,7 +83,8 @@ def test_report_refuses_to_mix_code_versions_unless_allowed(tmp_path, capsys):
     assert not (tmp_path / "report").exists()
     assert report.main([str(tmp_path), "--no-figures", "--allow-mixed-versions"]) == 0
     table = (tmp_path / "report" / "table.md").read_text()
-    assert table.count("Code: ") == 4 and "commit aaaaaaaaaaaa (clean), source 0123456789abcdef (1 runs)" in table
+    assert table.count("Code: ") == 4
+    assert "commit aaaaaaaaaaaa (clean), source 0123456789abcdef; numerics: portable (AVX2 kernels) (1 runs)" in table
 
 
 def test_report_states_the_one_version(tmp_path, capsys):
@@ -89,8 +92,24 @@ def test_report_states_the_one_version(tmp_path, capsys):
     fake_run(tmp_path, "spg", "recent", 2, 100.0)
     assert report.main([str(tmp_path), "--no-figures"]) == 0
     first_line = (tmp_path / "report" / "table.md").read_text().splitlines()[0]
-    assert first_line == "Code: commit aaaaaaaaaaaa (clean), source 0123456789abcdef (2 runs)"
+    assert first_line == ("Code: commit aaaaaaaaaaaa (clean), source 0123456789abcdef; numerics: portable (AVX2 "
+                          "kernels) (2 runs)")
     assert first_line in capsys.readouterr().out
+
+
+def test_report_refuses_to_mix_numerics_unless_allowed(tmp_path, capsys):
+    fake_run(tmp_path, "spg", "recent", 1, 90.0)
+    fake_run(tmp_path, "spg", "recent", 2, 100.0, numerics={"mode": "native", "kernels": "AVX512"})
+    fake_run(tmp_path, "spg", "recent", 3, 95.0, numerics=None)  # from before the modes: native, software's cpu
+    assert report.main([str(tmp_path), "--no-figures"]) == 2
+    err = capsys.readouterr().err
+    assert "holds runs of 3 numerics" in err
+    for key in ("portable (AVX2 kernels): 1 runs", "native (AVX512 kernels): 1 runs", "native (AVX2 kernels): 1 runs"):
+        assert key in err
+    assert not (tmp_path / "report").exists()
+    assert report.main([str(tmp_path), "--no-figures", "--allow-mixed-numerics"]) == 0
+    table = (tmp_path / "report" / "table.md").read_text()
+    assert table.count("Code: ") == 3 and "numerics: native (AVX512 kernels) (1 runs)" in table
 
 
 def test_report_refuses_a_folder_without_runs(tmp_path, capsys):

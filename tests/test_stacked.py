@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from experiment.models import CriticNet, GaussianPolicyNet
+from experiment.optim import MemberAdam
 from experiment.stacked import (StackedCriticNet, StackedGaussianPolicyNet, load_member_state_dict,
                                 member_state_dict, reset_parameters)
 
@@ -27,8 +28,8 @@ def data(seed, batch=200):
 def train_steps(actor, critic, batches, steps=20):
     """Adam steps on each member's own batch: losses are means per member, summed over members."""
     obs, act, ret = (torch.stack(parts) for parts in zip(*batches))
-    critic_opt = torch.optim.Adam(critic.parameters(), lr=5e-4, foreach=True)
-    actor_opt = torch.optim.Adam(actor.parameters(), lr=1e-3, foreach=True)
+    critic_opt = MemberAdam(critic.parameters(), lr=5e-4)
+    actor_opt = MemberAdam(actor.parameters(), lr=1e-3)
     for _ in range(steps):
         critic_loss = (ret - critic(obs, act)).pow(2).flatten(1).mean(1).sum()
         critic_opt.zero_grad()
@@ -120,10 +121,27 @@ def test_member_weights_round_trip_and_bad_shapes_are_refused():
         load_member_state_dict(other, 0, {"loc_head.weight": torch.zeros(2, 100)})
 
 
-def test_member_adam_is_torch_adam_bit_for_bit_and_restores():
-    from experiment.optim import MemberAdam
+def test_exact_sqrt_is_the_correctly_rounded_root():
+    """Against NumPy's float32 sqrt (the CPU's IEEE instruction), over normal and subnormal numbers."""
+    import numpy as np
+
+    from experiment.optim import exact_sqrt
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(1_000_003, generator=g) * 10
+    x[::7] *= 1e-20
+    x[::11] = torch.rand(x[::11].shape, generator=g) * 1e-40  # subnormal
+    x[::13] = 0.0
+    (root,) = exact_sqrt([x])
+    assert root.dtype == torch.float32
+    assert np.array_equal(root.numpy(), np.sqrt(x.numpy()))
+
+
+def test_member_adam_is_torch_adam_with_a_correctly_rounded_sqrt_and_restores(monkeypatch):
+    from experiment.optim import exact_sqrt
 
     torch.set_num_threads(1)
+    monkeypatch.setattr(torch, "_foreach_sqrt", exact_sqrt)  # torch's Adam, its root correctly rounded
     nets = [population(SEEDS)[1] for _ in range(3)]
     obs, act, ret = (torch.stack(parts) for parts in zip(*[data(s) for s in SEEDS]))
     ours = MemberAdam(nets[0].parameters(), lr=5e-4)

@@ -1,0 +1,135 @@
+"""Which floating-point kernels a process runs: the same on every x86-64 CPU, or the machine's own.
+
+torch picks its element-wise and reduction kernels by the CPU's widest vector instructions
+(AVX2 or AVX-512: ``torch.backends.cpu.get_cpu_capability()``), and MKL, which serves its
+matrix products and some element-wise math, picks code paths by CPU too. The paths round
+differently, so the same run gives other numbers on another CPU, and training is chaotic
+enough that a last-bit difference grows into another learning curve.
+
+Two modes (``numerics=`` in ``conf/config.yaml``):
+
+- ``portable``: torch runs its AVX2 kernels (``ATEN_CPU_CAPABILITY=avx2``) and MKL its
+  conditional-numerical-reproducibility code path for every x86-64 CPU, Intel or not
+  (``MKL_CBWR=COMPATIBLE``). A run gives the same ``metrics.csv`` on any x86-64 CPU with AVX2
+  (with the same software and thread count). CPUs without AVX2 and other architectures (ARM)
+  cannot run those kernels: there the mode runs the machine's own, and says so once.
+- ``native``: whatever torch and MKL choose on this machine (the two variables unset): the
+  fastest, reproducible on CPUs of the same kind only.
+
+Both variables are read when torch and MKL load, so ``apply`` must run before ``import torch``;
+after it, ``apply`` only checks that the process already runs the mode and says how to fix it
+if not. ``in_effect()`` reads what the process actually runs (torch's kernel set, MKL's branch)
+for ``summary.json``. This module imports nothing heavy.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import warnings
+
+MODES = ("portable", "native")
+DEFAULT = "portable"
+PORTABLE_KERNELS = "AVX2"  # torch.backends.cpu.get_cpu_capability() under ATEN_CPU_CAPABILITY=avx2
+PORTABLE_ENV = {"ATEN_CPU_CAPABILITY": "avx2", "MKL_CBWR": "COMPATIBLE"}
+
+# mkl_cbwr_get's branch codes (mkl_service.h), for in_effect()
+_MKL_BRANCHES = {0: "OFF", 1: "BRANCH_OFF", 2: "AUTO", 3: "COMPATIBLE", 4: "SSE2", 6: "SSSE3", 7: "SSE4_1",
+                 8: "SSE4_2", 9: "AVX", 10: "AVX2", 11: "AVX512_MIC", 12: "AVX512", 13: "AVX512_MIC_E1",
+                 14: "AVX512_E1"}
+
+
+class NumericsError(RuntimeError):
+    """The process cannot run the requested numerics mode (torch loaded under another)."""
+
+
+def environment(mode: str, base: dict | None = None) -> dict:
+    """``base`` (default: this process's environment) with ``mode``'s variables: for a child
+    process (a launcher's worker, a benchmark's subprocess) that must run ``mode``."""
+    check_mode(mode)
+    env = dict(os.environ if base is None else base)
+    for key, value in PORTABLE_ENV.items():
+        if mode == "portable":
+            env[key] = value
+        else:
+            env.pop(key, None)
+    return env
+
+
+def check_mode(mode: str) -> None:
+    if mode not in MODES:
+        raise ValueError(f"numerics must be one of {MODES}, got {mode!r}")
+
+
+def apply(mode: str) -> None:
+    """Make this process run ``mode``: set its variables if torch has not loaded yet, or check
+    that the loaded torch already runs it (``NumericsError`` with the remedy if not)."""
+    check_mode(mode)
+    if "torch" not in sys.modules:
+        for key, value in PORTABLE_ENV.items():
+            if mode == "portable":
+                os.environ[key] = value
+            else:
+                os.environ.pop(key, None)
+        _warn_if_unportable(mode)
+        return
+    current = in_effect()
+    if current["mode"] != mode:
+        raise NumericsError(
+            f"numerics={mode} was asked for, but this process loaded torch with {current['mode']} numerics "
+            f"(kernels {current['kernels']}, MKL branch {current['mkl_branch']}); they are fixed when torch "
+            f"loads. Start a new process, or set "
+            + (" ".join(f"{k}={v}" for k, v in PORTABLE_ENV.items()) if mode == "portable"
+               else "no " + " or ".join(PORTABLE_ENV))
+            + " in its environment before torch is imported")
+
+
+def _portable_kernels_available() -> bool:
+    """Whether this CPU runs torch's AVX2 kernels (x86-64 with AVX2 and FMA)."""
+    import platform
+
+    if platform.machine().lower() not in ("x86_64", "amd64"):
+        return False
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = next((line for line in f if line.startswith("flags")), "").split()
+        return "avx2" in flags and "fma" in flags
+    except OSError:
+        return True  # not Linux: torch says after loading (in_effect)
+
+
+def _warn_if_unportable(mode: str) -> None:
+    if mode == "portable" and not _portable_kernels_available():
+        warnings.warn("numerics=portable: this CPU cannot run the AVX2 kernels it relies on; results here are "
+                      "this machine's own (summary.json records the kernels that ran)", RuntimeWarning,
+                      stacklevel=3)
+
+
+def mkl_branch() -> str | None:
+    """MKL's conditional-numerical-reproducibility branch in this process (``None`` if MKL's
+    query function cannot be found: a torch without MKL, or another platform)."""
+    import ctypes
+
+    import torch
+
+    path = os.path.join(os.path.dirname(torch.__file__), "lib", "libtorch_cpu.so")
+    try:
+        get = ctypes.CDLL(path).mkl_serv_cbwr_get
+    except (OSError, AttributeError):
+        return None
+    get.restype, get.argtypes = ctypes.c_int, [ctypes.c_int]
+    code = get(-1)  # MKL_CBWR_ALL: the branch and the STRICT flag
+    name = _MKL_BRANCHES.get(code & 0xFFFF, str(code & 0xFFFF))
+    return name + (",STRICT" if code & 0x10000 else "")
+
+
+def in_effect() -> dict:
+    """What this process runs: ``{"mode", "kernels", "mkl_branch"}``; ``mode`` is ``portable``
+    when torch runs its AVX2 kernels and MKL the COMPATIBLE branch (or has no such switch), else ``native``."""
+    import torch
+
+    kernels = torch.backends.cpu.get_cpu_capability()
+    branch = mkl_branch()
+    portable = (os.environ.get("ATEN_CPU_CAPABILITY") == PORTABLE_ENV["ATEN_CPU_CAPABILITY"]
+                and branch in (PORTABLE_ENV["MKL_CBWR"], None))
+    return {"mode": "portable" if portable else "native", "kernels": kernels, "mkl_branch": branch}

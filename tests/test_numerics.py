@@ -1,0 +1,177 @@
+"""Numerics modes (``experiment.numerics``): what each one sets and records, and the promise of
+``portable``: the same metrics.csv whatever instruction sets the CPU offers.
+
+A test cannot change the CPU it runs on, but it can take the wider instruction sets away from
+the libraries that choose kernels by CPU: MKL (``MKL_ENABLE_INSTRUCTIONS=AVX2``), NumPy
+(``NPY_DISABLE_CPU_FEATURES``) and torch (``ATEN_CPU_CAPABILITY=avx2``). On an AVX-512 machine
+that makes a second machine, an AVX2 one, whose portable runs must equal this machine's to the
+bit, and whose native runs differ (which shows that the test can fail). On an AVX2 machine the
+two coincide and only the first holds something.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from experiment import numerics
+
+ROOT = Path(__file__).resolve().parent.parent
+
+CELLS = {  # one per loss family: SPG (critic scoring, both replay phases), PPO, and TorchRL's SAC
+    "spg_p_multi-hybrid": ["algo=spg_p_multi", "er=hybrid"],
+    "ppo_log-recent": ["algo=ppo_log", "er=recent"],
+    "sac-memory": ["algo=sac", "er=memory", "algo.td.warmup_episodes=1", "algo.td.updates_per_step=0.25"],
+}
+SOLO = 5468063  # the second member, also trained alone
+COMMON = ["seeds=[2067791,5468063]", "episodes=2", "progress=false", "logger=none", "checkpoint_every=0"]
+
+# Runs the cells in one process: numerics first, then the emulated machine's variables, then torch.
+DRIVER = """
+import json, os, sys
+from pathlib import Path
+from experiment import numerics
+mode, machine, out = sys.argv[1], json.loads(sys.argv[2]), Path(sys.argv[3])
+numerics.apply(mode)
+os.environ.update(machine)
+from experiment.config import RunConfig
+from experiment.runner import train_population
+cells, common, SOLO = json.loads(sys.argv[4]), json.loads(sys.argv[5]), int(sys.argv[6])
+for name, overrides in cells.items():
+    train_population(RunConfig.compose(*overrides, *common, f"numerics={mode}"), out / name)
+    if not name.startswith("sac"):  # SAC members draw from torch's global generator: not their solo runs
+        train_population(RunConfig.compose(*overrides, *common, f"numerics={mode}", "seeds=null",
+                                           f"seed={SOLO}"), out / (name + "-solo"))
+print(json.dumps(numerics.in_effect()))
+"""
+
+
+def numpy_wide_targets() -> list[str]:
+    """NumPy's dispatch targets beyond AVX2 that this CPU has (what an AVX2 CPU lacks)."""
+    from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+
+    return [t for t in __cpu_dispatch__ if (t == "X86_V4" or t.startswith("AVX512")) and __cpu_features__.get(t)]
+
+
+MACHINES = {
+    "this CPU": {},
+    "an AVX2 CPU": {"ATEN_CPU_CAPABILITY": "avx2", "MKL_ENABLE_INSTRUCTIONS": "AVX2",
+                    "NPY_DISABLE_CPU_FEATURES": " ".join(numpy_wide_targets())},
+}
+
+
+def child_env(**extra: str) -> dict:
+    env = {k: v for k, v in os.environ.items()
+           if k not in (*numerics.PORTABLE_ENV, "MKL_ENABLE_INSTRUCTIONS", "NPY_DISABLE_CPU_FEATURES")}
+    return {**env, "RL_LOGGING_LEVEL": "WARNING", "PYTHONWARNINGS": "ignore", **extra}
+
+
+def drive(mode: str, machine: str, out: Path) -> dict:
+    result = subprocess.run([sys.executable, "-c", DRIVER, mode, json.dumps(MACHINES[machine]), str(out),
+                             json.dumps(CELLS), json.dumps(COMMON), str(SOLO)], cwd=ROOT, env=child_env(),
+                            capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    return json.loads(result.stdout.splitlines()[-1])
+
+
+def metrics(out: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("metrics.csv"))}
+
+
+@pytest.fixture(scope="module")
+def machines_runs(tmp_path_factory) -> dict:
+    """metrics.csv of every cell, per (mode, machine), and what each process ran."""
+    runs = {}
+    for mode in numerics.MODES:
+        for machine in MACHINES:
+            out = tmp_path_factory.mktemp(f"{mode}-{machine.replace(' ', '_')}")
+            runs[mode, machine] = drive(mode, machine, out), metrics(out)
+    return runs
+
+
+def test_portable_runs_are_the_same_on_an_avx2_cpu(machines_runs):
+    (effect, here), (effect_avx2, there) = machines_runs["portable", "this CPU"], machines_runs["portable", "an AVX2 CPU"]
+    assert effect["mode"] == effect_avx2["mode"] == "portable"
+    assert len(here) == 2 * len(CELLS) + len(CELLS) - 1  # two members per cell, and the solo runs
+    for name in here:
+        assert here[name] == there[name], f"{name}: portable metrics.csv differs between the CPUs"
+
+
+def test_native_runs_differ_there_which_shows_the_test_can_fail(machines_runs):
+    if torch.backends.cpu.get_cpu_capability() != "AVX512" and not numpy_wide_targets():
+        pytest.skip("this CPU has no AVX-512: the emulated AVX2 CPU is this CPU, so native runs cannot differ")
+    (effect, here), (_, there) = machines_runs["native", "this CPU"], machines_runs["native", "an AVX2 CPU"]
+    assert effect["mode"] == "native"
+    assert [name for name in here if here[name] != there[name]], "native runs should differ on another CPU"
+
+
+@pytest.mark.parametrize("mode", numerics.MODES)
+@pytest.mark.parametrize("machine", MACHINES)
+def test_members_equal_their_solo_runs_in_both_modes_on_both_cpus(machines_runs, mode, machine):
+    _, runs = machines_runs[mode, machine]
+    solos = [name for name in runs if "-solo" in name]
+    assert len(solos) == len(CELLS) - 1
+    for solo in solos:
+        member = solo.replace("-solo", f"/seed{SOLO}")
+        assert runs[member] == runs[solo], f"{mode} numerics on {machine}: {member} differs from its solo run"
+
+
+def test_the_portable_variables_are_set_before_torch_loads():
+    code = ("from experiment import numerics; numerics.apply('portable'); import json, torch; "
+            "print(json.dumps(numerics.in_effect()))")
+    result = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=child_env(), capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    effect = json.loads(result.stdout)
+    assert effect["mode"] == "portable" and effect["mkl_branch"] == "COMPATIBLE"
+    if numerics._portable_kernels_available():
+        assert effect["kernels"] == "AVX2"
+
+
+def test_native_takes_the_machine_kernels_even_under_the_portable_variables():
+    code = ("from experiment import numerics; numerics.apply('native'); import json, torch; "
+            "print(json.dumps(numerics.in_effect()))")
+    result = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                            env=child_env(**numerics.PORTABLE_ENV))
+    assert result.returncode == 0, result.stderr
+    effect = json.loads(result.stdout)
+    assert effect["mode"] == "native" and effect["mkl_branch"] in ("BRANCH_OFF", None)
+
+
+def test_a_mode_torch_was_not_loaded_with_is_refused_with_the_remedy():
+    assert numerics.in_effect()["mode"] == numerics.DEFAULT == "portable"  # conftest applied it
+    numerics.apply("portable")  # the mode in effect: nothing to do
+    with pytest.raises(numerics.NumericsError, match="Start a new process"):
+        numerics.apply("native")
+    with pytest.raises(ValueError, match="numerics must be one of"):
+        numerics.apply("fast")
+
+
+def test_train_py_runs_and_records_the_mode_asked_for(tmp_path):
+    from tests.test_train import run_train
+
+    result = run_train("numerics=native", "algo=ppo", "er=recent", "episodes=1", "progress=false",
+                       "logger=none", f"hydra.run.dir={tmp_path}")
+    assert result.returncode == 0, result.stderr[-3000:]
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["numerics"]["mode"] == "native"
+    assert summary["numerics"]["kernels"] == summary["software"]["cpu"]
+    assert summary["settings"]["numerics"] == "native"
+    result = run_train("numerics=fast", f"hydra.run.dir={tmp_path}")
+    assert result.returncode == 2 and "numerics must be one of" in result.stderr
+
+
+@pytest.mark.skipif(shutil.which("qemu-x86_64") is None or platform.machine() != "x86_64",
+                    reason="needs qemu-x86_64 (apt install qemu-user) on an x86-64 machine to emulate another CPU")
+def test_portable_runs_are_the_same_on_an_emulated_amd_cpu():
+    """One short PPO run here and on QEMU's AMD EPYC (AVX2, another vendor: MKL's other code paths)."""
+    from tests import cross_cpu
+
+    assert cross_cpu.main(["--cpus", "EPYC-Rome", "--cells", "ppo_log/recent", "--episodes", "1"]) == 0
