@@ -88,10 +88,14 @@ def numerics_label(summary: dict) -> str:
 
 def numerics_groups(runs: list[Run]) -> dict[str, list[Run]]:
     """Finished runs grouped by ``Run.numerics``: runs of two groups rerun bit for bit on different CPUs."""
+    return _finished_by(runs, lambda run: run.numerics)
+
+
+def _finished_by(runs: list[Run], key) -> dict[str, list[Run]]:
     groups: dict[str, list[Run]] = {}
     for run in runs:
         if run.status in ("completed", "diverged"):
-            groups.setdefault(run.numerics, []).append(run)
+            groups.setdefault(key(run), []).append(run)
     return groups
 
 
@@ -133,11 +137,7 @@ def read_run(folder: Path) -> Run:
 
 def code_versions(runs: list[Run]) -> dict[str, list[Run]]:
     """Finished runs grouped by the version of the code that made them (see ``Run.version``)."""
-    groups: dict[str, list[Run]] = {}
-    for run in runs:
-        if run.status in ("completed", "diverged"):
-            groups.setdefault(run.version, []).append(run)
-    return groups
+    return _finished_by(runs, lambda run: run.version)
 
 
 def versions_markdown(groups: dict[str, list[Run]]) -> str:
