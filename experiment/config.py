@@ -13,6 +13,8 @@ from collections.abc import Mapping
 from dataclasses import MISSING, dataclass, fields
 from typing import Any, get_type_hints
 
+from experiment.numerics import MODES as NUMERIC_MODES  # torch-free, like this module
+
 LOSSES = ("ppo", "spg", "sac", "td3")
 PAPER_LOSSES = ("ppo", "spg")  # the paper's protocol: Monte-Carlo critic, critic phase then actor phase
 TD_LOSSES = ("sac", "td3")  # TorchRL's off-policy losses: bootstrapped targets, gradient steps per env step
@@ -23,7 +25,6 @@ TRACK_SOURCES = ("fixed", "random")
 COLLECTORS = ("direct", "torchrl")
 LOGGERS = ("csv", "tensorboard", "none")
 ACTIVATIONS = ("tanh", "relu", "elu")
-NUMERICS = ("portable", "native")  # experiment.numerics.MODES
 
 
 class ConfigError(ValueError):
@@ -385,7 +386,7 @@ class RunConfig:
         _at_least("checkpoint_every", self.checkpoint_every, 0, " (0: never)")
         _at_least("threads", self.threads, 1)
         _check_device(self.device)
-        _choice("numerics", self.numerics, NUMERICS)
+        _choice("numerics", self.numerics, NUMERIC_MODES)
         _at_least("eval_episodes", self.eval_episodes, 1)
         if self.eval_seeds is not None and not self.eval_seeds:
             raise ConfigError("eval_seeds must be null (no evaluation) or a non-empty list of track seeds")

@@ -43,28 +43,11 @@ class NumericsError(RuntimeError):
     """The process cannot run the requested numerics mode (torch loaded under another)."""
 
 
-def environment(mode: str, base: dict | None = None) -> dict:
-    """``base`` (default: this process's environment) with ``mode``'s variables: for a child
-    process (a launcher's worker, a benchmark's subprocess) that must run ``mode``."""
-    check_mode(mode)
-    env = dict(os.environ if base is None else base)
-    for key, value in PORTABLE_ENV.items():
-        if mode == "portable":
-            env[key] = value
-        else:
-            env.pop(key, None)
-    return env
-
-
-def check_mode(mode: str) -> None:
-    if mode not in MODES:
-        raise ValueError(f"numerics must be one of {MODES}, got {mode!r}")
-
-
 def apply(mode: str) -> None:
     """Make this process run ``mode``: set its variables if torch has not loaded yet, or check
     that the loaded torch already runs it (``NumericsError`` with the remedy if not)."""
-    check_mode(mode)
+    if mode not in MODES:
+        raise ValueError(f"numerics must be one of {MODES}, got {mode!r}")
     if "torch" not in sys.modules:
         for key, value in PORTABLE_ENV.items():
             if mode == "portable":

@@ -9,13 +9,13 @@ import os
 from pathlib import Path
 from typing import Any
 
-
-class RunFolderError(ValueError):
-    """A folder that does not hold a usable trained run."""
-
 METRICS_FILE = "metrics.csv"
 SUMMARY_FILE = "summary.json"
 EPISODE_COLUMNS = ("episode", "total_reward", "crashes", "final_checkpoint")
+
+
+class RunFolderError(ValueError):
+    """A folder that does not hold a usable trained run."""
 
 
 def metric_columns(source) -> list[str]:

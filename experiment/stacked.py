@@ -13,8 +13,8 @@ Bit for bit: member r of a population equals a population of one made from the s
 (forward, gradients, Adam steps; ``tests/test_stacked.py``), in both numerics modes
 (``experiment/numerics.py``). No matrix product has a dimension of one: a one-unit layer
 computes as two units (see ``StackedLinear.forward``), because MKL's batched products take
-matrix-vector paths there whose rounding depends on the number of members on AVX-512 CPUs. A member's saved weights load
-into the solo networks of ``experiment.models`` and compute the same function to float
+matrix-vector paths there whose rounding depends on the number of members on AVX-512 CPUs.
+A member's saved weights load into the solo networks of ``experiment.models`` and compute the same function to float
 rounding (``F.linear`` and ``bmm`` accumulate in other orders), so training compares a
 population with populations of one, and the solo networks serve evaluation.
 

@@ -16,7 +16,6 @@ gathers one row per car (by its track slot and checkpoint) instead of looping:
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -62,11 +61,8 @@ def build_tables(track: Track, config: RacingConfig) -> TrackTables:
 
     back = np.maximum(np.arange(n) - 1, 0)  # leaving the track costs one checkpoint
     centres = track.centres
-    toward = centres[back + 1] - centres[back]
-    # The C library's atan2, as in Track.respawn_heading: NumPy's arctan2 has an AVX-512 version
-    # that rounds differently (in about 8% of angles), which would make crashes CPU-dependent.
     respawn = np.stack([back, centres[back, 0], centres[back, 1],
-                        np.pi / 2 - np.array([math.atan2(y, x) for x, y in toward.tolist()])])
+                        np.array([track.respawn_heading(b) for b in back.tolist()])])
     finish = np.concatenate([track.left_wall[-1], track.right_wall[-1]])
     return TrackTables(np.ascontiguousarray(edges.transpose(3, 1, 2, 0)),
                        respawn, finish, _ray_table(track, quads, config))
