@@ -47,10 +47,23 @@ def resolve_commit(ref: str) -> str:
     return git("rev-parse", "--verify", "--quiet", f"{ref}^{{commit}}").strip()
 
 
+# where an export records its commit (``export-subst``): engine/COMMIT, experiment/COMMIT in
+# commits made before the engine had its own package (they can still be exported and rerun)
+COMMIT_FILES = (Path("engine") / "COMMIT", Path("experiment") / "COMMIT")
+
+
+def exported_commit(code_dir: Path) -> str | None:
+    """The commit an export's COMMIT file names, or None if ``code_dir`` holds none."""
+    for name in COMMIT_FILES:
+        if (code_dir / name).is_file():
+            return (code_dir / name).read_text().strip()
+    return None
+
+
 def export(commit: str, code_dir: Path) -> Path:
     """``git archive`` of ``commit`` unpacked into ``code_dir`` (kept if it is already there)."""
-    if (code_dir / "experiment" / "COMMIT").is_file():
-        if (code_dir / "experiment" / "COMMIT").read_text().strip() != commit:
+    if exported_commit(code_dir) is not None:
+        if exported_commit(code_dir) != commit:
             raise SweepError(f"{code_dir} holds an export of another commit; remove it or choose --code-dir")
         return code_dir
     if code_dir.exists():
@@ -66,12 +79,12 @@ def export(commit: str, code_dir: Path) -> Path:
                 tar.extractall(partial, filter="data")
             else:
                 tar.extractall(partial)
-        if (partial / "experiment" / "COMMIT").read_text().strip() != commit:
-            raise SweepError("the export's experiment/COMMIT was not filled in; is .gitattributes in the commit?")
+        if exported_commit(partial) != commit:
+            raise SweepError("the export's COMMIT file was not filled in; is .gitattributes in the commit?")
         try:
             partial.rename(code_dir)
         except OSError:  # another sweep's export of the same commit landed first
-            if not (code_dir / "experiment" / "COMMIT").is_file():
+            if exported_commit(code_dir) is None:
                 raise
     finally:
         shutil.rmtree(partial, ignore_errors=True)

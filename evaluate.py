@@ -9,7 +9,7 @@ exploration noise (the Gaussian's mean; SAC: tanh of it; TD3: its actor). Each r
 on its own track and on ``--tracks``; the table (printed, and written as CSV with ``--table``)
 has one row per run and track. ``--video`` films one episode of the first run on the first
 track as a GIF or MP4 (needs the ``render`` extra). Policies run under the numerics mode their runs
-were trained in (``--numerics`` to choose another; ``experiment/numerics.py``).
+were trained in (``--numerics`` to choose another; ``engine/numerics.py``).
 """
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ import math
 import sys
 from pathlib import Path
 
-from experiment import numerics
-from experiment.outputs import RunFolderError, read_summary
+from engine import numerics
+from engine.outputs import RunFolderError, read_summary
 
 
 def find_runs(paths: list[Path]) -> list[Path]:
@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     except (RunFolderError, numerics.NumericsError) as err:
         print(f"evaluate: {err}", file=sys.stderr)
         return 2
-    from experiment.evaluate import evaluate, film, load_policy
+    from engine.evaluation import evaluate, film, load_policy
 
     rows, skipped, first = [], [], None
     for run in runs:

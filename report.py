@@ -20,7 +20,7 @@ Lists runs that are partial (killed or running), unreadable or diverged. The fig
 ``render`` extra; without it only the tables are written.
 
 Every report states the code version (commit and source hash, from each run's summary.json)
-and the numerics (mode and kernels, ``experiment/numerics.py``) that made its runs. Runs of
+and the numerics (mode and kernels, ``engine/numerics.py``) that made its runs. Runs of
 different code versions are refused unless ``--allow-mixed-versions`` is given, runs of different
 numerics unless ``--allow-mixed-numerics`` is given; then every group is listed with its number of runs.
 """
@@ -31,11 +31,11 @@ import argparse
 import sys
 from pathlib import Path
 
-from experiment import numerics
-from experiment.report import (cells, code_versions, collapse_markdown, conclusions_markdown, find_runs,
+from engine import numerics
+from analysis.report import (cells, code_versions, collapse_markdown, conclusions_markdown, find_runs,
                                numerics_groups, read_paper_table, table_markdown, versions_markdown,
                                write_runs_csv, write_table_csv)
-from experiment.report_beyond import beyond_markdown, generalisation_markdown
+from analysis.beyond import beyond_markdown, generalisation_markdown
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     modes = numerics_groups(runs)
     if len(modes) > 1 and not args.allow_mixed_numerics:
-        print(f"report: {args.sweep_dir} holds runs of {len(modes)} numerics (experiment/numerics.py); they "
+        print(f"report: {args.sweep_dir} holds runs of {len(modes)} numerics (engine/numerics.py); they "
               "rerun bit for bit on different CPUs, so a table mixing them has no single way to rerun. "
               "Numerics (runs, e.g.):", file=sys.stderr)
         for key, members in modes.items():
@@ -108,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def write_figures(runs, out: Path) -> None:
     try:
-        from experiment import report_figures as figures
+        from analysis import figures as figures
     except ImportError as err:
         print(f"figures skipped ({err}); install the render extra: pip install -c constraints/cpu.txt "
               "-e '.[render]'")
@@ -127,7 +127,7 @@ def write_figures(runs, out: Path) -> None:
 
 def agent_frame(runs, out: Path, figures) -> list[Path]:
     """A frame of the best completed run whose policy loads; none (with a note) otherwise."""
-    from experiment.evaluate import RunFolderError
+    from engine.evaluation import RunFolderError
 
     finished = sorted((r for r in runs if r.status == "completed" and r.final_mean is not None),
                       key=lambda r: r.final_mean, reverse=True)

@@ -17,8 +17,8 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from experiment import numerics
-from experiment.config import ConfigError, RunConfig, register_resolvers
+from engine import numerics
+from engine.config import ConfigError, RunConfig, register_resolvers
 
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")  # torchrl's INFO lines (set before it loads)
 register_resolvers()  # the run folder's name (conf/config.yaml) uses one
@@ -37,9 +37,9 @@ def main(cfg: DictConfig) -> float | list | None:
     except numerics.NumericsError as err:
         print(f"Refusing to run: {err}", file=sys.stderr)
         raise SystemExit(2) from None
-    from experiment.checkpoint import CHECKPOINT_FILE, CheckpointError
-    from experiment.runner import train_population  # after validation: torch loads slowly
-    from experiment.version import describe
+    from engine.checkpoint import CHECKPOINT_FILE, CheckpointError
+    from engine.runner import train_population  # after validation: torch loads slowly
+    from engine.version import describe
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:

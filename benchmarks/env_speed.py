@@ -20,9 +20,9 @@ import numpy as np
 
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
 
-from experiment import numerics  # noqa: E402
+from engine import numerics  # noqa: E402
 
-numerics.apply(numerics.DEFAULT)  # before torch loads (experiment/numerics.py)
+numerics.apply(numerics.DEFAULT)  # before torch loads (engine/numerics.py)
 
 import gymnasium as gym  # noqa: E402
 import torch  # noqa: E402

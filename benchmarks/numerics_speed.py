@@ -1,5 +1,5 @@
 """What the portable numerics cost: training time per cell under ``numerics=native`` and
-``numerics=portable`` (``experiment/numerics.py``), measured in this run.
+``numerics=portable`` (``engine/numerics.py``), measured in this run.
 
     python -m benchmarks.numerics_speed [--episodes 20] [--members 5 25] [--repeats 3]
                                         [--cells spg_p_multi/hybrid ppo/recent sac/memory]
@@ -29,11 +29,11 @@ TRACKS = [2067791, 5468063, 5412436, 8273186, 773203]
 
 def child(mode: str, cell: str, members: int, episodes: int) -> None:
     """Train one population in this process under ``mode``; print its timed phases as JSON."""
-    from experiment import numerics
+    from engine import numerics
 
     numerics.apply(mode)
-    from experiment.config import RunConfig
-    from experiment.runner import train_population
+    from engine.config import RunConfig
+    from engine.runner import train_population
 
     algo, er = cell.split("/")
     seeds = [*TRACKS, *range(1000, 1000 + max(0, members - len(TRACKS)))][:members]

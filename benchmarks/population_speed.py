@@ -31,17 +31,17 @@ from pathlib import Path
 
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
 
-from experiment import numerics  # noqa: E402
+from engine import numerics  # noqa: E402
 
-numerics.apply(numerics.DEFAULT)  # before torch loads (experiment/numerics.py)
+numerics.apply(numerics.DEFAULT)  # before torch loads (engine/numerics.py)
 
 import torch  # noqa: E402
 from torch.utils._python_dispatch import TorchDispatchMode  # noqa: E402
 from torch.utils.flop_counter import flop_registry  # noqa: E402
 
-from experiment.config import RunConfig  # noqa: E402
+from engine.config import RunConfig  # noqa: E402
 from benchmarks.train_speed import best_of, table  # noqa: E402
-from experiment.runner import train_population  # noqa: E402
+from engine.runner import train_population  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 CELLS = ["ppo/recent", "spg_p_multi/hybrid", "spg/memory"]

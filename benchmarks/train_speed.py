@@ -3,7 +3,7 @@
     python -m benchmarks.train_speed [--episodes 201] [--cells spg_p_multi/hybrid ...]
 
 Three tables, each with ratios against a baseline measured here in the same process:
-1. hidden-layer tanh: ``experiment.models.tanh`` against ``torch.tanh`` (minibatch sizes);
+1. hidden-layer tanh: ``learners.solo.tanh`` against ``torch.tanh`` (minibatch sizes);
 2. one 200-step episode: the direct collector against ``torchrl.collectors.Collector``;
 3. one full run per algorithm (its most expensive replay mode by default), with the time
    spent collecting and training, against the same runs with the TorchRL Collector for one
@@ -22,16 +22,16 @@ from pathlib import Path
 
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
 
-from experiment import numerics  # noqa: E402
+from engine import numerics  # noqa: E402
 
-numerics.apply(numerics.DEFAULT)  # before torch loads (experiment/numerics.py)
+numerics.apply(numerics.DEFAULT)  # before torch loads (engine/numerics.py)
 
 import torch  # noqa: E402
 
 from collectors import make_collector  # noqa: E402
-from experiment.config import RunConfig  # noqa: E402
-from experiment.models import GaussianPolicyNet, make_actor, make_policy, make_sampler, tanh  # noqa: E402
-from experiment.runner import train  # noqa: E402
+from engine.config import RunConfig  # noqa: E402
+from learners.solo import GaussianPolicyNet, make_actor, make_policy, make_sampler, tanh  # noqa: E402
+from engine.runner import train  # noqa: E402
 from racing.torchrl_env import RacingTorchEnv  # noqa: E402
 
 DEFAULT_CELLS = ["ppo/recent", "ppo_log/memory", "spg/hybrid", "spg_multi/hybrid", "spg_p/hybrid",

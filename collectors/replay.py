@@ -49,8 +49,12 @@ class ReplayMemory:
         self.device = torch.device(device)
         self.sampler = (ProportionalSampler(capacity, priority.alpha, priority.beta, priority.eps, members=members)
                         if priority is not None else None)
-        self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(capacity, device=device),
-                                             sampler=self.sampler if self.sampler is not None else RandomSampler())
+        # compilable: the storage's and writer's counters as plain values, not multiprocessing ones
+        # (shared-memory semaphores, whose helper process turns a SLURM signal into tracebacks);
+        # the memory lives in one process
+        self.buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(capacity, device=device, compilable=True),
+                                             sampler=self.sampler if self.sampler is not None else RandomSampler(),
+                                             compilable=True)
 
     def __len__(self) -> int:
         """Transitions stored (per member)."""

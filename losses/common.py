@@ -77,7 +77,7 @@ class PhaseLoss(LossModule):
     and ``joint_log_prob``, define ``actor_loss`` and override the hooks they need.
 
     Populations: with ``members=R`` the networks are a population's stacked networks
-    (``experiment.stacked``), every tensor has the members on its first dimension
+    (``learners.networks``), every tensor has the members on its first dimension
     (``[R, B, ...]``), and every loss and diagnostic is one value per member, shape ``[R]``
     (sum the losses over members before ``backward``: each member's gradient is then its
     own). With ``members=None`` (the default) they are scalars, as TorchRL's losses.

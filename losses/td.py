@@ -3,7 +3,7 @@
 The losses are TorchRL's own; what a population needs on top is small:
 
 - Every tensor has the members first (``[R, B, ...]``) and the networks are stacked
-  (``experiment.stacked``), so TorchRL's ensemble of Q-networks has parameters of shape
+  (``learners.networks``), so TorchRL's ensemble of Q-networks has parameters of shape
   ``[2, R, ...]`` (Q-network, member, ...). Both Q-networks are passed as modules (a list), so
   their initial weights are ours (each member's from its own generator), not TorchRL's
   resampling of one network's weights over all members' range.

@@ -1,5 +1,5 @@
 """Shared fixtures: the reference data in ../shared (skipped with a reason when absent); the
-default numerics mode (``experiment.numerics``), set before any test module loads torch."""
+default numerics mode (``engine.numerics``), set before any test module loads torch."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # rendering tests run without
 os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
 
-from experiment import numerics  # noqa: E402
+from engine import numerics  # noqa: E402
 
 numerics.apply(numerics.DEFAULT)  # the tests run the default numerics; it must precede torch's import
 

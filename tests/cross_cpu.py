@@ -11,7 +11,7 @@ differs. Haswell is an Intel AVX2 CPU, EPYC-Rome an AMD one (QEMU 7.2 emulates n
 the defaults. It checks the code paths; QEMU computes the CPU's approximate instructions
 (reciprocal square root, reciprocal) exactly where hardware approximates, which is why a
 result that uses them (torch's float32 sqrt through MKL) differs under emulation: the project
-avoids them (``experiment.optim.exact_sqrt``). ``tests/test_numerics.py`` runs a tiny version
+avoids them (``learners.optim.exact_sqrt``). ``tests/test_numerics.py`` runs a tiny version
 when ``qemu-x86_64`` is installed.
 """
 
@@ -37,8 +37,8 @@ def run_here_or_emulated(cpu: str | None, cells: list[str], episodes: int, out: 
     overrides = [[f"algo={c.split('/')[0]}", f"er={c.split('/')[1]}"]
                  + (["algo.td.warmup_episodes=1", "algo.td.updates_per_step=0.25"] if c.startswith(("sac", "td3"))
                     else []) for c in cells]
-    code = ("import json, sys\nfrom pathlib import Path\nfrom experiment import numerics\nnumerics.apply('portable')\n"
-            "from experiment.config import RunConfig\nfrom experiment.runner import train_population\n"
+    code = ("import json, sys\nfrom pathlib import Path\nfrom engine import numerics\nnumerics.apply('portable')\n"
+            "from engine.config import RunConfig\nfrom engine.runner import train_population\n"
             "for i, overrides in enumerate(json.loads(sys.argv[1])):\n"
             f"    cfg = RunConfig.compose(*overrides, 'seeds={SEEDS}', 'episodes={episodes}', 'progress=false',\n"
             "                            'logger=none', 'checkpoint_every=0', 'numerics=portable')\n"

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from experiment.aggregate import iqm, stratified_bootstrap_ci
+from analysis.aggregate import iqm, stratified_bootstrap_ci
 
 
 def test_iqm_by_hand():

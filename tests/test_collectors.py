@@ -6,7 +6,7 @@ from tensordict import TensorDict
 
 from collectors import (DirectCollector, ReplayMemory, ReplaySchedule, add_monte_carlo_returns,
                         episode_transitions, make_collector, sample_minibatch)
-from experiment.models import GaussianPolicyNet, make_actor, make_policy, make_sampler
+from learners.solo import GaussianPolicyNet, make_actor, make_policy, make_sampler
 from racing.torchrl_env import RacingTorchEnv
 
 COMPARED = [("observation",), ("action",), ("done",), ("next", "observation"), ("next", "reward"),

@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 from hydra.errors import MissingConfigException
 
-from experiment.config import ConfigError, RunConfig
+from engine.config import ConfigError, RunConfig
 
 CONF = Path(__file__).resolve().parent.parent / "conf"
 BEYOND_ALGOS, BEYOND_ERS = ("sac", "td3"), ("prioritised",)  # not the paper's (tests/test_offpolicy.py)

@@ -1,7 +1,7 @@
 """Golden runs: short training runs whose metrics.csv is checked to the bit.
 
 A change meant to keep results unchanged (a refactor, a speed-up, a new code path) must leave
-these files identical. They were recorded in the portable numerics mode (``experiment/numerics.py``)
+these files identical. They were recorded in the portable numerics mode (``engine/numerics.py``)
 with the software in ``fingerprint.json``, so they are checked to the bit on every x86-64 CPU
 with AVX2. Under other software, or another mode or kernel set (native numerics on an AVX-512
 CPU, a CPU without AVX2, ARM), kernels round differently, and the values are compared to a
@@ -32,8 +32,8 @@ COMMON = ["seed=2067791", "episodes=4", "progress=false", "logger=none", "checkp
 
 
 def fingerprint() -> dict:
-    from experiment import numerics
-    from experiment.version import software_versions
+    from engine import numerics
+    from engine.version import software_versions
 
     versions, effect = software_versions(), numerics.in_effect()
     return {"torch": versions["torch"], "numpy": versions["numpy"], "numerics": effect["mode"],
@@ -41,8 +41,8 @@ def fingerprint() -> dict:
 
 
 def run(name: str, out_dir: Path) -> bytes:
-    from experiment.config import RunConfig
-    from experiment.runner import train
+    from engine.config import RunConfig
+    from engine.runner import train
 
     train(RunConfig.compose(*RUNS[name], *COMMON), out_dir)
     return (out_dir / "metrics.csv").read_bytes()
@@ -85,7 +85,7 @@ if __name__ == "__main__":
     os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
     if sys.argv[1:] != ["--update"]:
         raise SystemExit("usage: python -m tests.test_golden --update")
-    from experiment import numerics
+    from engine import numerics
 
     numerics.apply("portable")  # before torch loads
     update()

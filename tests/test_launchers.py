@@ -71,7 +71,7 @@ def test_clean_sweep_runs_an_export_of_the_commit(tmp_path):
     import subprocess
     import sys
 
-    from experiment.version import source_hash
+    from engine.version import source_hash
     from tests.test_train import ENV
 
     if not (ROOT / ".git").exists():
@@ -83,7 +83,7 @@ def test_clean_sweep_runs_an_export_of_the_commit(tmp_path):
                              f"hydra.sweep.dir={sweep}"], cwd=tmp_path, env=ENV, capture_output=True, text=True,
                             timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
-    assert (code_dir / "experiment" / "COMMIT").read_text().strip() == head
+    assert (code_dir / "engine" / "COMMIT").read_text().strip() == head
     summary = json.loads((sweep / "spg" / "recent" / "seed11" / "summary.json").read_text())
     assert summary["status"] == "completed"
     assert summary["code"] == {"commit": head, "dirty": None, "origin": "export", "source": source_hash(code_dir)}
@@ -107,5 +107,5 @@ def test_sweeps_started_together_export_the_same_commit_once(tmp_path):
     with ThreadPoolExecutor(4) as pool:
         results = list(pool.map(lambda _: clean_sweep.export(commit, code_dir), range(4)))
     assert results == [code_dir] * 4
-    assert (code_dir / "experiment" / "COMMIT").read_text().strip() == commit
+    assert (code_dir / "engine" / "COMMIT").read_text().strip() == commit
     assert [p.name for p in code_dir.parent.iterdir()] == [code_dir.name]

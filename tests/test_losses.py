@@ -10,7 +10,7 @@ from torch import nn
 from torchrl.modules import IndependentNormal, ProbabilisticActor
 from torchrl.objectives import ClipPPOLoss
 
-from experiment.models import CriticNet, GaussianPolicyNet, make_actor, make_critic
+from learners.solo import CriticNet, GaussianPolicyNet, make_actor, make_critic
 from losses import LogClipPPOLoss, SPGLoss
 from losses import functional as F
 

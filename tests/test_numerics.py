@@ -1,4 +1,4 @@
-"""Numerics modes (``experiment.numerics``): what each one sets and records, and the promise of
+"""Numerics modes (``engine.numerics``): what each one sets and records, and the promise of
 ``portable``: the same metrics.csv whatever instruction sets the CPU offers.
 
 A test cannot change the CPU it runs on, but it can take the wider instruction sets away from
@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from experiment import numerics
+from engine import numerics
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -38,12 +38,12 @@ COMMON = ["seeds=[2067791,5468063]", "episodes=2", "progress=false", "logger=non
 DRIVER = """
 import json, os, sys
 from pathlib import Path
-from experiment import numerics
+from engine import numerics
 mode, machine, out = sys.argv[1], json.loads(sys.argv[2]), Path(sys.argv[3])
 numerics.apply(mode)
 os.environ.update(machine)
-from experiment.config import RunConfig
-from experiment.runner import train_population
+from engine.config import RunConfig
+from engine.runner import train_population
 cells, common, SOLO = json.loads(sys.argv[4]), json.loads(sys.argv[5]), int(sys.argv[6])
 for name, overrides in cells.items():
     train_population(RunConfig.compose(*overrides, *common, f"numerics={mode}"), out / name)
@@ -125,7 +125,7 @@ def test_members_equal_their_solo_runs_in_both_modes_on_both_cpus(machines_runs,
 
 
 def test_the_portable_variables_are_set_before_torch_loads():
-    code = ("from experiment import numerics; numerics.apply('portable'); import json, torch; "
+    code = ("from engine import numerics; numerics.apply('portable'); import json, torch; "
             "print(json.dumps(numerics.in_effect()))")
     result = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=child_env(), capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
@@ -136,7 +136,7 @@ def test_the_portable_variables_are_set_before_torch_loads():
 
 
 def test_native_takes_the_machine_kernels_even_under_the_portable_variables():
-    code = ("from experiment import numerics; numerics.apply('native'); import json, torch; "
+    code = ("from engine import numerics; numerics.apply('native'); import json, torch; "
             "print(json.dumps(numerics.in_effect()))")
     result = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
                             env=child_env(**numerics.PORTABLE_ENV))

@@ -16,11 +16,11 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import SACLoss, SoftUpdate
 
 from collectors.prioritised import WEIGHT_KEY, ProportionalSampler
-from experiment.config import ConfigError
-from experiment.evaluate import load_policy
-from experiment.factories import make_env, make_generators, make_training
-from experiment.phases import MetricTotals
-from experiment.runner import train_population
+from engine.config import ConfigError
+from engine.evaluation import load_policy
+from engine.setup import make_env, make_generators, make_learner
+from learners.base import MetricTotals
+from engine.runner import train_population
 from tests.test_config import load
 from tests.test_resilience import interrupted_after
 from tests.test_train import read_rows, run_train
@@ -33,7 +33,7 @@ def training(algo, *extra, seeds=(A, B)):
     cfg = load(f"algo={algo}", "er=memory", f"seeds=[{','.join(map(str, seeds))}]", *extra)
     torch.manual_seed(0)
     generators = make_generators(tuple(seeds))
-    return cfg, make_training(cfg, make_env(cfg, tuple(seeds)), generators)
+    return cfg, make_learner(cfg, make_env(cfg, tuple(seeds)), generators)
 
 
 def transitions(members, n, seed=0):
@@ -53,7 +53,7 @@ def test_sac_of_a_population_of_one_equals_torchrl_sac_loss():
     """MemberSACLoss (per-member temperature, per-transition terms averaged per member) gives
     TorchRL's SACLoss (reduction="mean", one scalar temperature) on the same networks and noise."""
     cfg, t = training("sac", seeds=(A,))
-    plain = SACLoss(t.models.actor, t.models.qvalues, num_qvalue_nets=2, loss_function="l2", alpha_init=1.0,
+    plain = SACLoss(t.networks.actor, t.networks.qvalues, num_qvalue_nets=2, loss_function="l2", alpha_init=1.0,
                     target_entropy=-2.0, deactivate_vmap=True)
     plain.make_value_estimator(gamma=cfg.gamma)
     SoftUpdate(plain, tau=0.005)
@@ -92,7 +92,7 @@ def test_each_loss_term_reaches_only_its_own_networks_and_members_do_not_mix(alg
     assert all(g is None or not g.any() for g in a) and all(g is not None and g.any() for g in c)
     a, c = grads("loss_actor", data)
     assert all(g is None or not g.any() for g in c)
-    assert all(g is not None and g.any() for g in a[:len(list(t.models.actor_net.parameters()))])
+    assert all(g is not None and g.any() for g in a[:len(list(t.networks.actor_net.parameters()))])
     if algo == "sac":
         a, c = grads("loss_alpha", data)
         assert a[-1] is not None and a[-1].ne(0).all()  # log_alpha, one per member
@@ -227,7 +227,7 @@ def test_an_interrupted_population_resumes_exactly(tmp_path, algo, er):
 
 
 def test_a_diverging_sac_member_is_frozen_and_the_other_finishes(tmp_path, monkeypatch):
-    from experiment.offpolicy import TDPhaseRunner
+    from learners.td.learner import TDPhaseRunner
 
     original, calls = TDPhaseRunner.run, []
 
@@ -296,7 +296,7 @@ def test_the_generalisation_preset_shares_its_fixed_runs_with_beyond_paper_and_r
 def test_spg_p_with_prioritised_replay_weights_its_critic_and_updates_priorities(tmp_path):
     """The paper's conjecture, testable: SPG-p on a prioritised memory. Priorities move away from
     their initial value, and a run is reproducible and resumable like any other."""
-    from experiment.factories import make_training as build
+    from engine.setup import make_learner as build
 
     cfg = load("algo=spg_p", "er=prioritised", f"seeds=[{A},{B}]")
     t = build(cfg, make_env(cfg, (A, B)), make_generators((A, B)))
@@ -313,7 +313,7 @@ def test_the_critic_loss_is_importance_weighted_and_reports_errors():
     from losses.common import PRIORITY_KEY, PRIORITY_WEIGHT_KEY
 
     cfg = load("algo=spg_p", "er=prioritised", f"seeds=[{A},{B}]")
-    t = make_training(cfg, make_env(cfg, (A, B)), make_generators((A, B)))
+    t = make_learner(cfg, make_env(cfg, (A, B)), make_generators((A, B)))
     data = transitions(2, 8)
     data["value_target"] = torch.rand(2, 8, 1)
     plain = t.loss.critic_loss(data.clone())

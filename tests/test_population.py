@@ -15,9 +15,9 @@ import time
 import pytest
 import torch
 
-from experiment import checkpoint
-from experiment.phases import PhaseRunner
-from experiment.runner import train, train_population
+from engine import checkpoint
+from learners.monte_carlo.learner import PhaseRunner
+from engine.runner import train, train_population
 from tests.test_config import load
 from tests.test_resilience import interrupted_after
 from tests.test_train import ENV, ROOT, read_rows, run_train
@@ -146,7 +146,7 @@ def test_a_population_with_a_finished_member_resumes(tmp_path):
 
 
 def test_device_cpu_is_the_default_and_cuda_needs_a_gpu():
-    from experiment.config import ConfigError
+    from engine.config import ConfigError
 
     assert load().device == "cpu"
     with pytest.raises(ConfigError, match="device must be cpu, cuda or cuda:<index>"):

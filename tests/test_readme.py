@@ -1,6 +1,7 @@
-"""Every command the README shows runs, at a tiny size (two episodes, a temporary folder).
+"""Every command the README and the docs/ pages show runs, at a tiny size (two episodes, a
+temporary folder).
 
-Commands are read from the README itself, so a documented command that breaks fails here.
+Commands are read from the pages themselves, so a documented command that breaks fails here.
 """
 
 from __future__ import annotations
@@ -15,11 +16,12 @@ import pytest
 from tests.test_config import CELLS
 from tests.test_train import ROOT, read_rows, run_train
 
-README = (ROOT / "README.md").read_text()
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]  # not docs/results/: records of runs
+README = "\n".join(page.read_text() for page in PAGES)
 # Commands run by other tests at a tiny size (or that need a cluster), and where.
 ELSEWHERE = {
     "clean_sweep.py": "tests/test_launchers.py::test_clean_sweep_runs_an_export_of_the_commit",
-    "hydra/launcher=slurm": "tests/test_launchers.py::test_slurm_preset_composes_with_its_defaults",
+    "hydra/launcher=slurm": "tests/test_slurm.py (a real single-node SLURM) and tests/test_launchers.py",
 }
 
 

@@ -6,7 +6,7 @@ import math
 import pytest
 
 import report
-from experiment.report import cells, find_runs, read_paper_table
+from analysis.report import cells, find_runs, read_paper_table
 
 
 CODE = {"commit": "a" * 40, "dirty": False, "origin": "git", "source": "0123456789abcdef"}
@@ -160,7 +160,7 @@ def test_conclusions_pair_by_track_and_bootstrap_over_tracks(tmp_path):
     """Hand-made finals: PPO beats SPG by exactly 10 on every paper track (a zero-width
     interval: holds), SPG-p's spread equals SPG's (undecided), and the other tracks reverse
     the first claim; the two track sets are reported side by side."""
-    from experiment.report import PAPER_SEEDS, conclusions, conclusions_markdown
+    from analysis.report import PAPER_SEEDS, conclusions, conclusions_markdown
 
     extra = [11, 12, 13, 14, 15]
     for i, seed in enumerate(PAPER_SEEDS):
@@ -185,7 +185,7 @@ def test_conclusions_pair_by_track_and_bootstrap_over_tracks(tmp_path):
 
 
 def test_collapse_rates_per_cell(tmp_path):
-    from experiment.report import collapse_markdown
+    from analysis.report import collapse_markdown
 
     for seed, final in zip(range(4), [120.0, 0.5, -12.0, 80.0]):
         fake_run(tmp_path, "spg", "recent", seed, final)
@@ -196,7 +196,7 @@ def test_collapse_rates_per_cell(tmp_path):
 
 def test_iqm_is_over_runs(tmp_path):
     pytest.importorskip("matplotlib", reason="report_figures needs the render extra")
-    from experiment.report_figures import iqm_rows
+    from analysis.figures import iqm_rows
 
     for seed, final in zip(range(8), [10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 1000.0]):
         fake_run(tmp_path, "spg", "memory", seed, final, episodes=25)
@@ -210,7 +210,7 @@ def test_beyond_the_paper_and_generalisation_tables_by_hand(tmp_path, capsys):
     higher); a population's wall time is split over its members; random-track runs stay out of
     Table 1 and appear in the generalisation table with their own-track and unseen scores; a track
     beyond the paper's adds an all-tracks section to both tables."""
-    from experiment.report import PAPER_SEEDS
+    from analysis.report import PAPER_SEEDS
 
     def summary(folder, track="fixed", evaluation=None, wall=50.0, size=5):
         data = json.loads((folder / "summary.json").read_text())

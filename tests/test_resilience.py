@@ -10,8 +10,8 @@ import time
 import pytest
 import torch
 
-from experiment import checkpoint, outputs
-from experiment.runner import train
+from engine import checkpoint, outputs
+from engine.runner import train
 from tests.test_config import load
 from tests.test_train import ENV, ROOT, read_rows, run_train
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from experiment.models import CriticNet, GaussianPolicyNet
-from experiment.optim import MemberAdam
-from experiment.stacked import (StackedCriticNet, StackedGaussianPolicyNet, load_member_state_dict,
+from learners.solo import CriticNet, GaussianPolicyNet
+from learners.optim import MemberAdam
+from learners.networks import (StackedCriticNet, StackedGaussianPolicyNet, load_member_state_dict,
                                 member_state_dict, reset_parameters)
 
 SEEDS = [2067791, 5468063, 5412436, 8273186]
@@ -125,7 +125,7 @@ def test_exact_sqrt_is_the_correctly_rounded_root():
     """Against NumPy's float32 sqrt (the CPU's IEEE instruction), over normal and subnormal numbers."""
     import numpy as np
 
-    from experiment.optim import exact_sqrt
+    from learners.optim import exact_sqrt
 
     g = torch.Generator().manual_seed(0)
     x = torch.rand(1_000_003, generator=g) * 10
@@ -138,7 +138,7 @@ def test_exact_sqrt_is_the_correctly_rounded_root():
 
 
 def test_member_adam_is_torch_adam_with_a_correctly_rounded_sqrt_and_restores(monkeypatch):
-    from experiment.optim import exact_sqrt
+    from learners.optim import exact_sqrt
 
     torch.set_num_threads(1)
     monkeypatch.setattr(torch, "_foreach_sqrt", exact_sqrt)  # torch's Adam, its root correctly rounded

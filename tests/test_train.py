@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from experiment.outputs import EPISODE_COLUMNS
-from experiment.runner import train
+from engine.outputs import EPISODE_COLUMNS
+from engine.runner import train
 from tests.test_config import load
 
 ROOT = Path(__file__).resolve().parent.parent

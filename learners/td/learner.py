@@ -1,9 +1,9 @@
-"""SAC and TD3 (TorchRL's losses) in the population pipeline: networks, acting policy, updates.
+"""SAC and TD3 (TorchRL's losses) in a population: the torch half of ``learners.td``.
 
-The same run as the paper's algorithms (``experiment.runner``: env, collector, replay memory,
+The same run as the paper's algorithms (``engine.runner``: env, collector, replay memory,
 run folders, checkpoints, divergence, populations); what differs is built here:
 
-- networks: stacked members (``experiment.stacked``) of the sizes in ``network.*``; SAC's actor
+- networks: stacked members (``learners.networks``) of the sizes in ``network.*``; SAC's actor
   outputs a tanh-squashed Gaussian (``TanhNormal``), TD3's a deterministic tanh action; two
   Q-networks Q(s, a), each member's initial weights drawn from its own generator;
 - the acting policy (``OffPolicySampler``): uniform random actions for ``td.warmup_episodes``
@@ -28,10 +28,10 @@ from torchrl.data import Bounded
 from torchrl.modules import ProbabilisticActor, TanhNormal
 from torchrl.objectives import SoftUpdate
 
-from collectors import sample_minibatch
-from experiment.optim import MemberAdam
-from experiment.phases import MetricTotals, diverged_members, freeze_member, prioritised_minibatch
-from experiment.stacked import BlockSampler, StackedCriticNet, StackedMLP, reset_parameters
+from collectors import ReplayMemory, sample_minibatch
+from learners.base import Learner, MetricTotals, Optimisers, diverged_members, freeze_member, prioritised_minibatch
+from learners.networks import BlockSampler, StackedCriticNet, StackedMLP, reset_parameters
+from learners.optim import MemberAdam
 from losses.td import PRIORITY_KEY, MemberSACLoss, make_td3_loss, member_means
 
 TD_TRANSITION_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
@@ -39,7 +39,7 @@ TD_TRANSITION_KEYS = ("observation", "action", ("next", "observation"), ("next",
 
 
 @dataclass
-class OffPolicyModels:
+class Networks:
     actor_net: nn.Module  # stacked: observation -> SAC (loc, scale) / TD3 action
     qvalue_nets: list[nn.Module]  # the Q-networks as built (their trained copies live in the loss)
     actor: nn.Module  # the TensorDict actor TorchRL's loss takes
@@ -67,7 +67,7 @@ def make_actor_net(loss: str, members: int, obs_dim: int, action_dim: int, hidde
     return nn.Sequential(body, _Tanh())
 
 
-def make_offpolicy_models(cfg, env, generators: Sequence[torch.Generator]) -> OffPolicyModels:
+def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
     """Actor, then the Q-networks, each member's weights from its generator (Glorot, zero biases)."""
     algo, net, members = cfg.algo, cfg.network, len(generators)
     obs_dim = env.observation_spec["observation"].shape[-1]
@@ -90,7 +90,7 @@ def make_offpolicy_models(cfg, env, generators: Sequence[torch.Generator]) -> Of
     noise = algo.td3.exploration_noise if algo.loss == "td3" else None
     sampler = OffPolicySampler(actor_net, generators, action_dim, block=cfg.env.episode_steps,
                                warmup_blocks=algo.td.warmup_episodes, noise=noise)
-    return OffPolicyModels(actor_net, qvalue_nets, actor, qvalues, sampler)
+    return Networks(actor_net, qvalue_nets, actor, qvalues, sampler)
 
 
 class OffPolicySampler(BlockSampler):
@@ -141,35 +141,32 @@ class OffPolicySampler(BlockSampler):
         self.blocks, self._step = int(state["blocks"]), self.block
 
 
-def make_offpolicy_loss(cfg, models: OffPolicyModels, members: int, action_dim: int):
+def make_loss(cfg, networks: Networks, generators: Sequence[torch.Generator]):
     algo, td = cfg.algo, cfg.algo.td
-    spec = Bounded(-1.0, 1.0, (action_dim,), device=models.sampler.generators[0].device)
+    members, action_dim = len(generators), networks.sampler.action_dim
+    spec = Bounded(-1.0, 1.0, (action_dim,), device=generators[0].device)
     if algo.loss == "sac":
         sac = algo.sac
         target_entropy = sac.target_entropy if sac.target_entropy is not None else -float(action_dim)
-        loss = MemberSACLoss(models.actor, models.qvalues, members=members, num_qvalue_nets=len(models.qvalues),
+        loss = MemberSACLoss(networks.actor, networks.qvalues, members=members, num_qvalue_nets=len(networks.qvalues),
                              loss_function=td.loss_function, alpha_init=sac.alpha_init, fixed_alpha=sac.fixed_alpha,
                              target_entropy=target_entropy, action_spec=spec, deactivate_vmap=True)
     else:
-        loss = make_td3_loss(models.actor, models.qvalues, spec, policy_noise=algo.td3.policy_noise,
+        loss = make_td3_loss(networks.actor, networks.qvalues, spec, policy_noise=algo.td3.policy_noise,
                              noise_clip=algo.td3.noise_clip, loss_function=td.loss_function)
     loss.make_value_estimator(gamma=cfg.gamma)
-    return loss.to(models.sampler.generators[0].device)
+    return loss.to(generators[0].device)
 
 
-@dataclass
-class OffPolicyOptimisers:
-    actor: MemberAdam  # the actor's parameters (and SAC's per-member temperature)
-    critic: MemberAdam  # the Q-networks' (stacked [Q-net, member, ...])
-
-
-def make_offpolicy_optimisers(cfg, loss) -> OffPolicyOptimisers:
+def make_optimisers(cfg, loss) -> Optimisers:
+    """Adam over the actor's parameters (and SAC's per-member temperature) and over the Q-networks'
+    as the loss holds them (stacked ``[Q-net, member, ...]``)."""
     algo = cfg.algo
     actor = list(loss.actor_network_params.values(True, True))
     if isinstance(getattr(loss, "log_alpha", None), nn.Parameter):
         actor.append(loss.log_alpha)
     critic = list(loss.qvalue_network_params.values(True, True))
-    return OffPolicyOptimisers(
+    return Optimisers(
         actor=MemberAdam(actor, lr=algo.actor_lr, eps=algo.adam_eps),
         critic=MemberAdam(critic, lr=algo.critic_lr, eps=algo.adam_eps, member_dims=[1] * len(critic)))
 
@@ -178,7 +175,7 @@ class TDPhaseRunner:
     """The gradient steps of SAC or TD3 before an episode (``run``), with ``PhaseRunner``'s
     interface (``active``, ``freeze``, the metrics' names)."""
 
-    def __init__(self, cfg, loss, optimisers: OffPolicyOptimisers, generators: Sequence[torch.Generator],
+    def __init__(self, cfg, loss, optimisers: Optimisers, generators: Sequence[torch.Generator],
                  memory=None):
         self.loss, self.optimisers, self.generators = loss, optimisers, list(generators)
         self.kind, self.td = cfg.algo.loss, cfg.algo.td
@@ -248,3 +245,14 @@ class TDPhaseRunner:
         """Member ``member``'s trained Q-networks (``[Q-net, ...]`` per entry), on the CPU."""
         return {k: v[:, member].detach().cpu().clone()
                 for k, v in self.loss.qvalue_network_params.flatten_keys(".").items()}
+
+
+def build(cfg, env, generators: Sequence[torch.Generator], memory: ReplayMemory) -> Learner:
+    """Networks, loss, optimisers and update phase of ``cfg.algo`` (loss sac or td3) for one
+    member per generator."""
+    networks = make_networks(cfg, env, generators)
+    loss = make_loss(cfg, networks, generators)
+    optimisers = make_optimisers(cfg, loss)
+    phases = TDPhaseRunner(cfg, loss, optimisers, generators, memory if cfg.er.priority else None)
+    return Learner(networks, loss, optimisers, memory, phases,
+                   TD_TRANSITION_KEYS, monte_carlo=False)

@@ -11,10 +11,10 @@ would depend on its position in the stacked tensor.
 
 Bit for bit: member r of a population equals a population of one made from the same seed
 (forward, gradients, Adam steps; ``tests/test_stacked.py``), in both numerics modes
-(``experiment/numerics.py``). No matrix product has a dimension of one: a one-unit layer
+(``engine/numerics.py``). No matrix product has a dimension of one: a one-unit layer
 computes as two units (see ``StackedLinear.forward``), because MKL's batched products take
 matrix-vector paths there whose rounding depends on the number of members on AVX-512 CPUs.
-A member's saved weights load into the solo networks of ``experiment.models`` and compute the same function to float
+A member's saved weights load into the solo networks of ``learners.solo`` and compute the same function to float
 rounding (``F.linear`` and ``bmm`` accumulate in other orders), so training compares a
 population with populations of one, and the solo networks serve evaluation.
 
@@ -110,7 +110,7 @@ _STACKED_ACTIVATIONS = {"tanh": fast_tanh, "relu": torch.relu, "elu": nn.functio
 
 
 class StackedMLP(nn.Module):
-    """``experiment.models.MLP`` for R members.
+    """``learners.solo.MLP`` for R members.
 
     Inputs ``[R, ..., in]`` are flattened to ``[R, N, in]`` rows, and N is padded with zero
     rows to a multiple of ``row_multiple`` so that every hidden activation holds a multiple
@@ -159,7 +159,7 @@ def _unpad_rows(x: torch.Tensor, shape: torch.Size) -> torch.Tensor:
 
 
 class StackedGaussianPolicyNet(nn.Module):
-    """``experiment.models.GaussianPolicyNet`` for R members: ``[R, ..., obs] -> (loc, scale)``."""
+    """``learners.solo.GaussianPolicyNet`` for R members: ``[R, ..., obs] -> (loc, scale)``."""
 
     def __init__(self, members: int, obs_dim: int, action_dim: int, hidden: Sequence[int], activation: str = "tanh"):
         super().__init__()
@@ -177,7 +177,7 @@ class StackedGaussianPolicyNet(nn.Module):
 
 
 class StackedCriticNet(nn.Module):
-    """``experiment.models.CriticNet`` for R members: V(s) or Q(s, a), ``[R, ..., 1]``."""
+    """``learners.solo.CriticNet`` for R members: V(s) or Q(s, a), ``[R, ..., 1]``."""
 
     def __init__(self, members: int, in_features: int, hidden: Sequence[int], activation: str = "tanh"):
         super().__init__()
@@ -214,7 +214,7 @@ def reset_parameters(net: nn.Module, generators: Sequence[torch.Generator | None
 
 def member_state_dict(net: nn.Module, member: int) -> dict[str, torch.Tensor]:
     """Member ``member``'s parameters under the names of the solo network of
-    ``experiment.models`` (``StackedGaussianPolicyNet`` -> ``GaussianPolicyNet``, ...), so a
+    ``learners.solo`` (``StackedGaussianPolicyNet`` -> ``GaussianPolicyNet``, ...), so a
     member's saved weights load into the solo network (``evaluate.py``)."""
     return {name: value[member].detach().cpu().clone() for name, value in net.state_dict().items()}
 

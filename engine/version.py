@@ -3,12 +3,12 @@ the source itself. Every run records it in ``summary.json``; ``report.py`` refus
 of different code.
 
 The source hash covers everything that decides what a run computes: the packages
-(``racing``, ``losses``, ``collectors``, ``experiment``), ``conf/`` and ``train.py``. Two runs
+(``racing``, ``losses``, ``collectors``, ``learners``, ``engine``, ``analysis``), ``conf/`` and ``train.py``. Two runs
 with the same source hash ran the same code, whatever the commit says; a README change makes
 a new commit but not a new source hash.
 
 The commit comes from git when the project is a git work tree, and otherwise from
-``experiment/COMMIT``, which ``git archive`` fills in (``export-subst`` in ``.gitattributes``),
+``engine/COMMIT``, which ``git archive`` fills in (``export-subst`` in ``.gitattributes``),
 so a clean export (``clean_sweep.py``) knows its commit without a ``.git`` folder.
 """
 
@@ -20,7 +20,7 @@ import subprocess
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-SOURCE_PATHS = ("racing", "losses", "collectors", "experiment", "conf", "train.py")
+SOURCE_PATHS = ("racing", "losses", "collectors", "learners", "engine", "analysis", "conf", "train.py")
 SOURCE_SUFFIXES = (".py", ".yaml", ".csv")
 COMMIT_FILE = Path(__file__).resolve().parent / "COMMIT"
 

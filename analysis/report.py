@@ -13,7 +13,7 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from experiment.outputs import METRICS_FILE, SUMMARY_FILE
+from engine.outputs import METRICS_FILE, SUMMARY_FILE
 
 PAPER_TABLE = Path(__file__).resolve().parent / "data" / "paper_table1.csv"
 ER_ROWS = ("recent", "memory", "hybrid")
@@ -31,7 +31,7 @@ class Run:
     seed: int | None = None
     final_mean: float | None = None
     rewards: list[float] = field(default_factory=list)
-    code: dict | None = None  # summary.json's "code" (experiment.version.code_version())
+    code: dict | None = None  # summary.json's "code" (engine.version.code_version())
     track_mode: str = "fixed"  # env.track: fixed (the seed's track) or random (a new track per episode)
     evaluation: dict | None = None  # summary.json's "evaluation" (eval_seeds set), or None
     wall_time: float | None = None  # seconds per run: the population's wall time (all sessions) over its size
@@ -80,7 +80,7 @@ class Cell:
 
 
 def numerics_label(summary: dict) -> str:
-    """``"portable (AVX2 kernels)"``: the run's numerics mode (``experiment.numerics``) and the torch
+    """``"portable (AVX2 kernels)"``: the run's numerics mode (``engine.numerics``) and the torch
     kernels that ran. Runs from before the modes existed ran the machine's own kernels: native."""
     effect = summary.get("numerics") or {"mode": "native", "kernels": (summary.get("software") or {}).get("cpu")}
     return f"{effect.get('mode')} ({effect.get('kernels') or 'unknown'} kernels)"
@@ -142,7 +142,7 @@ def code_versions(runs: list[Run]) -> dict[str, list[Run]]:
 
 def versions_markdown(groups: dict[str, list[Run]]) -> str:
     """One line per code version and numerics: its commit, the numerics, and how many runs it made."""
-    from experiment.version import describe
+    from engine.version import describe
 
     lines = []
     for key, members in sorted(groups.items(), key=lambda kv: -len(kv[1])):

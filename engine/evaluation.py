@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from experiment.models import GaussianPolicyNet
-from experiment.outputs import RunFolderError  # noqa: F401 (part of this module's interface)
+from learners.solo import GaussianPolicyNet
+from engine.outputs import RunFolderError  # noqa: F401 (part of this module's interface)
 from racing.config import RacingConfig
 from racing.gym_env import RacingEnv
 
@@ -20,7 +20,7 @@ class Policy:
 
     The paper's algorithms act with the Gaussian's mean (clipped); SAC with tanh of its
     Gaussian's mean; TD3 with its actor's output. SAC's and TD3's actors are rebuilt as a
-    population of one (``experiment.offpolicy``), the networks they were trained as."""
+    population of one (``learners.td.learner``), the networks they were trained as."""
 
     def __init__(self, net: torch.nn.Module, kind: str):
         self.net, self.kind = net, kind
@@ -66,8 +66,8 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
 def make_policy(loss: str, network: dict, obs_size: int, state: dict) -> Policy:
     """The deterministic policy of an actor's saved weights (``actor.pt``) for ``algo.loss``."""
     if loss in ("sac", "td3"):
-        from experiment.offpolicy import make_actor_net
-        from experiment.stacked import load_member_state_dict
+        from learners.td.learner import make_actor_net
+        from learners.networks import load_member_state_dict
 
         net = make_actor_net(loss, 1, obs_size, 2, network["actor_hidden"], network["activation"])
         if all(k.startswith("module.") for k in state):  # the layout of TorchRL's parameters (until da21af2)

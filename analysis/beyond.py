@@ -19,8 +19,8 @@ import math
 
 import numpy as np
 
-from experiment.aggregate import iqm, stratified_bootstrap_ci
-from experiment.report import COLLAPSE_BELOW, COLUMN_TITLES, PAPER_SEEDS, Run, _mean_difference, paired_bootstrap
+from analysis.aggregate import iqm, stratified_bootstrap_ci
+from analysis.report import COLLAPSE_BELOW, COLUMN_TITLES, PAPER_SEEDS, Run, _mean_difference, paired_bootstrap
 
 REFERENCE = ("memory", "spg_p_multi")  # the paper's best cell (Table 1: 141.1)
 ROWS = (("memory", "sac"), ("prioritised", "sac"), ("memory", "td3"), ("prioritised", "td3"),

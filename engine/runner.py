@@ -1,7 +1,8 @@
 """Training runs, start to finish: ``train_population(cfg, out_dir) -> summaries``.
 
 A run is a population of independent members, one per seed of ``cfg.members`` (a solo run is a
-population of one), trained in lockstep in one process (``experiment.factories``). Per episode
+population of one), trained in lockstep in one process. Its construction is one call, ``engine.setup.build``
+(generators, cars, the learner family's ``build``, the schedule); the loop below only runs it. Per episode
 (see ALGO_SPEC's protocol, as ``collectors.replay`` schedules it), for every member at once:
 
 1. if the schedule trains on memory and the memory is not empty: a phase on the memory;
@@ -26,12 +27,12 @@ import torch
 from tensordict import TensorDictBase
 
 from collectors import add_monte_carlo_returns
-from experiment import checkpoint, numerics
-from experiment.config import ConfigError, RunConfig
-from experiment.factories import make_env, make_episode_collector, make_generators, make_schedule, make_training, seed_everything
-from experiment.outputs import SUMMARY_FILE, MetricsWriter, metric_columns, read_summary, write_json_atomic
-from experiment.phases import MetricTotals
-from experiment.version import code_version, software_versions
+from engine import checkpoint, numerics, setup
+from engine.config import ConfigError, RunConfig
+from engine.outputs import SUMMARY_FILE, MetricsWriter, metric_columns, read_summary, write_json_atomic
+from engine.progress import Progress
+from engine.version import code_version, software_versions
+from learners.base import MetricTotals
 
 
 def run_settings(settings: dict) -> dict:
@@ -130,20 +131,14 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
 
 def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_settings: dict, settings: dict | None,
            payload: dict | None, start: float) -> list[dict]:
-    # The paper's algorithms draw only from the members' generators; TorchRL's SAC and TD3 losses
-    # draw their inner noise from torch's global generator, seeded here with the first member's seed.
-    seed_everything(seeds[0])
-    generators = make_generators(seeds, cfg.device)
-    env = make_env(cfg, seeds)
-    training = make_training(cfg, env, generators)
-    models, memory, phases = training.models, training.memory, training.phases
-    schedule = make_schedule(cfg)
-    minibatch = schedule.minibatch_size(cfg.algo.minibatch_size)
+    run = setup.build(cfg, seeds)
+    env, generators, learner, schedule, minibatch = run.env, run.generators, run.learner, run.schedule, run.minibatch_size
+    memory, phases = learner.memory, learner.phases
     members = [Member(s, member_folder(cfg, out_dir, s), member_settings[s]) for s in seeds]
     for member in members:
         member.folder.mkdir(parents=True, exist_ok=True)
 
-    parts = training.state_parts()
+    parts = learner.state_parts()
     first, timing = 0, {"rollout_s": 0.0, "train_s": 0.0}
     earlier_wall: float | None = 0.0  # wall time of the sessions before a resume (None: not recorded)
     code = dict(code_version())
@@ -156,12 +151,12 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             code["resumed_from"] = {k: v for k, v in earlier.items() if k != "resumed_from"}
         elif earlier.get("resumed_from"):
             code["resumed_from"] = earlier["resumed_from"]
-    collector = make_episode_collector(cfg, env, models, episodes=cfg.episodes - first)
+    collector = setup.make_episode_collector(cfg, env, learner.sampler, episodes=cfg.episodes - first)
     columns = metric_columns(phases)
     for member in members:
         member.metrics = MetricsWriter(member.folder, columns, cfg.logger, keep_rows=len(member.rewards))
 
-    progress = _progress_bar(cfg, seeds, initial=first)
+    progress = _progress(cfg, seeds, initial=first)
     episodes = iter(collector)
     try:
         for episode in range(first, cfg.episodes):
@@ -173,9 +168,9 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
                     _freeze(phases.run(memory.contents(), minibatch, totals, episode), episode, members, phases)
             with _timer(timing, "rollout_s"):
                 batch = next(episodes)
-                if training.monte_carlo:
+                if learner.monte_carlo:
                     add_monte_carlo_returns(batch, cfg.gamma)
-                recent = batch.select(*training.transition_keys)  # [members, steps]
+                recent = batch.select(*learner.transition_keys)  # [members, steps]
                 memory.add(recent)
             with _timer(timing, "train_s"):
                 if schedule.train_on_recent:
@@ -191,7 +186,7 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             if cfg.checkpoint_every and done % cfg.checkpoint_every == 0 and done < cfg.episodes:
                 so_far = {} if earlier_wall is None else {"wall_s": earlier_wall + time.perf_counter() - start}
                 checkpoint.save(checkpoint_path, _payload(done, {**timing, **so_far}, settings, parts, env, code,
-                                                          generators, phases, members, models))
+                                                          generators, phases, members, learner.sampler))
     finally:
         progress.close()
         for member in members:
@@ -207,10 +202,10 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
     for r, member in enumerate(members):
         if member.status == "running":
             member.status = "completed"
-        weights = training.member_weights(r) if member.status == "completed" else {}
+        weights = learner.member_weights(r) if member.status == "completed" else {}
         for name in ("actor", "critic"):
             path = member.folder / f"{name}.pt"
-            if member.status == "completed":  # the paper's: in the solo networks' layout (experiment.models)
+            if member.status == "completed":  # the paper's: in the solo networks' layout (learners.solo)
                 torch.save(weights[name], path)
             else:  # non-finite weights are of no use; no stale file from an earlier run either
                 path.unlink(missing_ok=True)
@@ -238,7 +233,7 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
 
 def _evaluate(cfg: RunConfig, seed: int, actor: dict) -> dict:
     """The final deterministic policy's mean total reward on its own track and on ``cfg.eval_seeds``."""
-    from experiment.evaluate import evaluate, make_policy
+    from engine.evaluation import evaluate, make_policy
     from racing.config import RacingConfig
 
     network = {"actor_hidden": list(cfg.network.actor_hidden), "activation": cfg.network.activation}
@@ -258,8 +253,8 @@ def _freeze(failed: dict[int, str], episode: int, members: list[Member], phases)
 
 
 def _payload(episodes_done: int, timing: dict, settings: dict | None, parts: dict, env, code: dict,
-             generators: list[torch.Generator], phases, members: list[Member], models) -> dict:
-    if not models.sampler.at_block_boundary:
+             generators: list[torch.Generator], phases, members: list[Member], sampler) -> dict:
+    if not sampler.at_block_boundary:
         raise RuntimeError("a checkpoint must be taken between episodes")
     return {
         "settings": settings, "code": code, "episodes_done": episodes_done, "timing": dict(timing),
@@ -317,20 +312,17 @@ class _timer:
         self.totals[self.key] += time.perf_counter() - self.start
 
 
-def _progress_bar(cfg: RunConfig, seeds: tuple[int, ...], initial: int = 0):
-    from tqdm import tqdm
-
+def _progress(cfg: RunConfig, seeds: tuple[int, ...], initial: int = 0) -> Progress:
     who = f"seed{seeds[0]}" if len(seeds) == 1 else f"{len(seeds)} seeds"
-    return tqdm(total=cfg.episodes, initial=initial, disable=not cfg.progress, unit="ep", dynamic_ncols=True,
-                desc=f"{cfg.algo.name}/{cfg.er.name}/{who}")
+    return Progress(f"{cfg.algo.name}/{cfg.er.name}/{who}", cfg.episodes, initial=initial, enabled=cfg.progress)
 
 
-def _show(progress, members: list[Member]) -> None:
+def _show(progress: Progress, members: list[Member]) -> None:
     running = [m for m in members if m.status == "running" and m.rewards]
-    progress.update(1)
-    if running:
-        last = _mean([m.rewards[-1] for m in running])
-        last20 = _mean([_mean(m.rewards[-20:]) for m in running])
-        diverged = sum(m.status == "diverged" for m in members)
-        progress.set_postfix(reward=f"{last:.1f}", last20=f"{last20:.1f}",
-                             **({"diverged": diverged} if diverged else {}))
+    diverged = sum(m.status == "diverged" for m in members) or None
+    if not running:
+        progress.update(diverged=diverged)
+        return
+    last = _mean([m.rewards[-1] for m in running])
+    last20 = _mean([_mean(m.rewards[-20:]) for m in running])
+    progress.update(reward=last, last20=last20, diverged=diverged)

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from experiment.aggregate import stratified_bootstrap_ci
-from experiment.report import ALGO_COLUMNS, COLUMN_TITLES, ER_ROWS, Run
+from analysis.aggregate import stratified_bootstrap_ci
+from analysis.report import ALGO_COLUMNS, COLUMN_TITLES, ER_ROWS, Run
 from racing.figures import import_pyplot, tracks_figure
 
 
@@ -40,7 +40,7 @@ def learning_curve_figures(runs: list[Run], out: Path) -> list[Path]:
     groups += [(f"curves_er-{er}.png", f"replay: {er}", [(a, er, COLUMN_TITLES[a]) for a in ALGO_COLUMNS])
                for er in ER_ROWS]
     if any(r.algo in ("sac", "td3") or r.er == "prioritised" for r in runs):  # beyond the paper
-        from experiment.report_beyond import ROWS, label
+        from analysis.beyond import ROWS, label
 
         groups.append(("curves_beyond.png", "beyond the paper", [(a, er, label(er, a)) for er, a in ROWS]))
     for name, title, members in groups:
@@ -103,7 +103,7 @@ def agent_frame(run_dir: Path, path: Path, step: int = 120) -> Path:
     """Frame ``step`` of one episode of the run's deterministic policy on its own track."""
     import imageio.v2 as imageio
 
-    from experiment.evaluate import load_policy, make_env, run_episode
+    from engine.evaluation import load_policy, make_env, run_episode
 
     net, settings = load_policy(run_dir)
     env = make_env(settings, settings["seed"], render_mode="rgb_array")

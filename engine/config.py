@@ -7,28 +7,22 @@ design does not allow, each in one sentence naming what was expected.
 
 from __future__ import annotations
 
-import math
-import typing
 from collections.abc import Mapping
-from dataclasses import MISSING, dataclass, fields
-from typing import Any, get_type_hints
+from dataclasses import dataclass
+from typing import Any
 
-from experiment.numerics import MODES as NUMERIC_MODES  # torch-free, like this module
+import learners  # torch-free: each family's keys and option blocks
+from engine.numerics import MODES as NUMERIC_MODES  # torch-free, like this module
+from learners.options import ConfigError  # noqa: F401 (raised by every check here; part of this module's interface)
+from learners.options import at_least as _at_least
+from learners.options import build as _build
+from learners.options import choice as _choice
+from learners.options import positive as _positive
 
-LOSSES = ("ppo", "spg", "sac", "td3")
-PAPER_LOSSES = ("ppo", "spg")  # the paper's protocol: Monte-Carlo critic, critic phase then actor phase
-TD_LOSSES = ("sac", "td3")  # TorchRL's off-policy losses: bootstrapped targets, gradient steps per env step
-TARGET_ENTROPY = "auto"
-RATIO_SPACES = ("linear", "log")
-CENTRES = ("mean", "action")
 TRACK_SOURCES = ("fixed", "random")
 COLLECTORS = ("direct", "torchrl")
 LOGGERS = ("csv", "tensorboard", "none")
 ACTIVATIONS = ("tanh", "relu", "elu")
-
-
-class ConfigError(ValueError):
-    """A configuration value or combination that cannot be run."""
 
 
 def seed_dir(seeds, seed) -> str:
@@ -45,62 +39,6 @@ def register_resolvers() -> None:
         OmegaConf.register_new_resolver("racing_seed_dir", seed_dir)
 
 
-def _build(cls, where: str, values: Mapping[str, Any]):
-    """Instantiate dataclass ``cls`` from ``values``: every field required, no unknown keys."""
-    names = [f.name for f in fields(cls)]
-    unknown = sorted(set(values) - set(names))
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown}; valid keys are {names}")
-    missing = [f.name for f in fields(cls) if f.name not in values and f.default is MISSING]
-    if missing:
-        raise ConfigError(f"{where}: missing key(s) {missing}")
-    hints = get_type_hints(cls)
-    kwargs = {}
-    for name in names:
-        if name in values:
-            kwargs[name] = _coerce(f"{where}.{name}", values[name], hints[name])
-    return cls(**kwargs)
-
-
-def _coerce(where: str, value: Any, hint: Any) -> Any:
-    options = typing.get_args(hint)
-    if type(None) in options and len(options) == 2 and not str(hint).startswith(("tuple", "dict")):
-        if value is None:
-            return None
-        hint = next(o for o in options if o is not type(None))
-    text = str(hint)
-    if hint is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"{where} must be true or false, got {value!r}")
-        return value
-    if hint is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{where} must be an integer, got {value!r}")
-        return value
-    if hint is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise ConfigError(f"{where} must be a finite number, got {value!r}")
-        return float(value)
-    if hint is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{where} must be a string, got {value!r}")
-        return value
-    if text.startswith("tuple[int"):
-        if value is None and "None" in text:
-            return None
-        if isinstance(value, (str, bytes)) or not hasattr(value, "__iter__") or not all(
-                isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in value):
-            raise ConfigError(f"{where} must be a list of non-negative integers, got {value!r}")
-        return tuple(value)
-    if text.startswith("dict"):
-        if value is None and "None" in text:
-            return None
-        if not isinstance(value, Mapping):
-            raise ConfigError(f"{where} must be a mapping, got {value!r}")
-        return dict(value)
-    return value
-
-
 def _check_device(device: str) -> None:
     """``cpu``, or ``cuda``/``cuda:N`` when that GPU is present (checked without importing torch for cpu)."""
     if device == "cpu":
@@ -115,26 +53,12 @@ def _check_device(device: str) -> None:
                           f"(torch {torch.__version__}); use device=cpu")
 
 
-def _choice(where: str, value: str, choices: tuple[str, ...]) -> None:
-    if value not in choices:
-        raise ConfigError(f"{where} must be one of {', '.join(choices)}; got {value!r}")
-
-
-def _positive(where: str, value: float) -> None:
-    if not value > 0:
-        raise ConfigError(f"{where} must be > 0, got {value!r}")
-
-
-def _at_least(where: str, value: float, low: float, note: str = "") -> None:
-    if not value >= low:
-        raise ConfigError(f"{where} must be >= {low}{note}, got {value}")
-
-
 @dataclass(frozen=True)
 class AlgoConfig:
-    """One algorithm (``conf/algo/*.yaml``): the paper's (``loss: ppo|spg``, a critic phase then an
-    actor phase per episode on Monte-Carlo returns) or TorchRL's off-policy losses (``loss:
-    sac|td3``, bootstrapped TD targets, gradient steps per environment step, options in ``td:``)."""
+    """One algorithm (``conf/algo/*.yaml``) of one learner family (``learners``): the paper's
+    (``loss: ppo|spg``, a critic phase then an actor phase per episode on Monte-Carlo returns) or
+    TorchRL's off-policy losses (``loss: sac|td3``, bootstrapped TD targets, options in ``td:``).
+    The family decides which of the optional keys and blocks are required (``KEYS``, ``BLOCKS``)."""
 
     name: str
     loss: str
@@ -154,114 +78,34 @@ class AlgoConfig:
 
     def __post_init__(self) -> None:
         w = f"algo {self.name}"
-        _choice(f"{w}: loss", self.loss, LOSSES)
+        _choice(f"{w}: loss", self.loss, learners.LOSSES)
         for key in ("critic_lr", "actor_lr", "adam_eps"):
             _positive(f"{w}: {key}", getattr(self, key))
         _at_least(f"{w}: minibatch_size", self.minibatch_size, 1)
-        paper = ("value_epochs", "policy_epochs", "entropy_coeff", "joint_log_prob")
-        if self.loss in PAPER_LOSSES:
-            missing = [key for key in paper if getattr(self, key) is None]
-            if missing:
-                raise ConfigError(f"{w}: loss {self.loss} needs {missing}")
-            for key in ("value_epochs", "policy_epochs", "entropy_coeff"):
-                _at_least(f"{w}: {key}", getattr(self, key), 0)
-        else:
-            given = [key for key in paper if getattr(self, key) is not None]
+        family = learners.family(self.loss)
+        missing = [key for key in family.KEYS if getattr(self, key) is None]
+        if missing:
+            raise ConfigError(f"{w}: loss {self.loss} needs {missing}")
+        for other in learners.FAMILIES:
+            given = [key for key in other.KEYS if other is not family and getattr(self, key) is not None]
             if given:
-                raise ConfigError(f"{w}: {given} belong to the paper's protocol (loss ppo or spg), not to "
-                                  f"loss {self.loss}; remove them (its schedule is in the td: block)")
-        blocks = {"ppo": ("ppo", PPOOptions), "spg": ("spg", SPGOptions), "td": (TD_LOSSES, TDOptions),
-                  "sac": ("sac", SACOptions), "td3": ("td3", TD3Options)}
-        for kind, (losses, options) in blocks.items():
-            block = getattr(self, kind)
-            if self.loss in losses if isinstance(losses, tuple) else self.loss == losses:
-                if block is None:
-                    raise ConfigError(f"{w}: loss {self.loss} needs a '{kind}:' block of options")
-                object.__setattr__(self, kind, _build(options, f"{w}: {kind}", block))
-            elif block is not None:
-                raise ConfigError(f"{w}: a '{kind}:' block does not apply to loss {self.loss}; remove it")
+                raise ConfigError(f"{w}: {given} belong to {other.DESCRIPTION}, not to loss {self.loss}; "
+                                  "remove them")
+        family.check(self)
+        for other in learners.FAMILIES:
+            for kind, (losses, options) in other.BLOCKS.items():
+                block = getattr(self, kind)
+                if self.loss in losses:
+                    if block is None:
+                        raise ConfigError(f"{w}: loss {self.loss} needs a '{kind}:' block of options")
+                    object.__setattr__(self, kind, _build(options, f"{w}: {kind}", block))
+                elif block is not None:
+                    raise ConfigError(f"{w}: a '{kind}:' block does not apply to loss {self.loss}; remove it")
 
     @property
     def bootstrapped(self) -> bool:
-        """TorchRL's off-policy losses (TD targets) rather than the paper's protocol."""
-        return self.loss in TD_LOSSES
-
-
-@dataclass(frozen=True)
-class TDOptions:
-    """The off-policy schedule of ``loss: sac|td3`` (``conf/algo/sac.yaml`` explains each key)."""
-
-    updates_per_step: float
-    warmup_episodes: int
-    tau: float
-    loss_function: str
-
-    def __post_init__(self) -> None:
-        _positive("algo.td.updates_per_step", self.updates_per_step)
-        _at_least("algo.td.warmup_episodes", self.warmup_episodes, 0)
-        if not 0 < self.tau <= 1:
-            raise ConfigError(f"algo.td.tau must be in (0, 1], got {self.tau}")
-        _choice("algo.td.loss_function", self.loss_function, ("l2", "l1", "smooth_l1"))
-
-    def updates_before(self, episode: int, steps: int) -> int:
-        """Gradient steps taken in all, up to the start of episode ``episode`` (``episode`` episodes of
-        ``steps`` transitions collected): none while only warm-up episodes are collected, then
-        ``updates_per_step`` for every step collected since the last warm-up episode began
-        (fractions carry over)."""
-        first = max(self.warmup_episodes, 1)  # the first episode preceded by gradient steps
-        return math.floor(max(0, episode - first + 1) * steps * self.updates_per_step + 1e-9)
-
-
-@dataclass(frozen=True)
-class SACOptions:
-    alpha_init: float
-    target_entropy: float | None  # None: TorchRL's "auto", minus the action dimension
-    fixed_alpha: bool
-
-    def __post_init__(self) -> None:
-        _positive("algo.sac.alpha_init", self.alpha_init)
-
-
-@dataclass(frozen=True)
-class TD3Options:
-    exploration_noise: float
-    policy_noise: float
-    noise_clip: float
-    policy_delay: int
-
-    def __post_init__(self) -> None:
-        for key in ("exploration_noise", "policy_noise", "noise_clip"):
-            _at_least(f"algo.td3.{key}", getattr(self, key), 0)
-        _at_least("algo.td3.policy_delay", self.policy_delay, 1)
-
-
-@dataclass(frozen=True)
-class PPOOptions:
-    ratio_space: str
-    clip_epsilon: float
-
-    def __post_init__(self) -> None:
-        _choice("algo.ppo.ratio_space", self.ratio_space, RATIO_SPACES)
-        if not 0 < self.clip_epsilon < 1:
-            raise ConfigError(f"algo.ppo.clip_epsilon must be in (0, 1), got {self.clip_epsilon}")
-
-
-@dataclass(frozen=True)
-class SPGOptions:
-    prioritised: bool
-    num_samples: int
-    temperature: float
-    temperature_decay: float
-    sample_around: str
-    baseline: str
-
-    def __post_init__(self) -> None:
-        _choice("algo.spg.sample_around", self.sample_around, CENTRES)
-        _choice("algo.spg.baseline", self.baseline, CENTRES)
-        _at_least("algo.spg.num_samples", self.num_samples, 0)
-        _at_least("algo.spg.temperature", self.temperature, 0)
-        if not 0 <= self.temperature_decay < 1:
-            raise ConfigError(f"algo.spg.temperature_decay must be in [0, 1), got {self.temperature_decay}")
+        """A family that bootstraps off-policy from a replay memory only (TorchRL's sac and td3)."""
+        return learners.family(self.loss).OFF_POLICY
 
 
 @dataclass(frozen=True)

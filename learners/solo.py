@@ -101,7 +101,7 @@ def make_actor(net: nn.Module, distribution: type = torch.distributions.Normal) 
     """The stochastic policy as a TorchRL actor: ``observation`` -> ``loc``, ``scale``, ``action``.
 
     The distribution is ``torch.distributions.Normal`` (or, for a population's stacked networks,
-    ``experiment.stacked.MemberNormal``), so log-probabilities are per action dimension.
+    ``learners.networks.MemberNormal``), so log-probabilities are per action dimension.
     Sampling (in RANDOM exploration mode) does not clip: see ``make_policy``.
     """
     return ProbabilisticActor(

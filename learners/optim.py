@@ -73,7 +73,7 @@ class MemberAdam:
 
     @torch.no_grad()
     def zero_member(self, member: int) -> None:
-        """Zero ``member``'s moments (see ``experiment.phases.PhaseRunner.freeze``)."""
+        """Zero ``member``'s moments (see ``learners.base.PhaseRunner.freeze``)."""
         for m, v, dim in zip(self.exp_avg, self.exp_avg_sq, self.member_dims):
             m.select(dim, member).zero_()
             v.select(dim, member).zero_()

@@ -1,0 +1,2 @@
+"""Analysis of finished run folders: tables, conclusions, collapse counts, figures and
+aggregate statistics (``report.py``)."""

@@ -1,0 +1,97 @@
+"""A training run's pieces, from a validated ``RunConfig``: ``build(cfg, seeds)``.
+
+A run trains a population: one member per seed of ``cfg.members`` (one for a solo run), each
+with its own car (on its own track and random stream), its own networks (stacked parameters)
+and its own ``torch.Generator`` for everything random on the torch side (initial weights,
+action noise, minibatch indices, SPG's perturbations). So a member's run depends on its seed
+alone, not on the other members or their order.
+"""
+
+from __future__ import annotations
+
+import random
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+import learners
+from collectors import ReplayMemory, ReplaySchedule, make_collector
+from engine.config import RunConfig
+from learners.base import Learner
+from racing.torchrl_env import RacingTorchEnv
+
+
+@dataclass
+class Run:
+    """What a population trains with; the collector comes later (``make_episode_collector``),
+    once a checkpoint has said how many episodes remain."""
+
+    generators: list[torch.Generator]  # one per member: everything random on the torch side
+    env: RacingTorchEnv  # one car per member
+    learner: Learner  # networks, acting policy, loss, optimisers, replay memory, update phase
+    schedule: ReplaySchedule  # when to train on memory and on recent experience
+    minibatch_size: int  # per member, after the er mode's fraction
+
+
+def build(cfg: RunConfig, seeds: tuple[int, ...]) -> Run:
+    """Seed, then the members' generators, cars, learner (``learners.<family>.build``) and schedule."""
+    # The paper's algorithms draw only from the members' generators; TorchRL's SAC and TD3 losses
+    # draw their inner noise from torch's global generator, seeded here with the first member's seed.
+    seed_everything(seeds[0])
+    generators = make_generators(seeds, cfg.device)
+    env = make_env(cfg, seeds)
+    learner = make_learner(cfg, env, generators)
+    schedule = make_schedule(cfg)
+    return Run(generators, env, learner, schedule, schedule.minibatch_size(cfg.algo.minibatch_size))
+
+
+def seed_everything(seed: int) -> None:
+    """Seed torch's, NumPy's and Python's global generators (workers may be reused: call per run).
+
+    Training draws from the members' own generators (``make_generators``); the global ones are
+    seeded only so that nothing else can make two runs differ."""
+    torch.manual_seed(seed)
+    np.random.seed(seed % 2**32)
+    random.seed(seed)
+
+
+def make_generators(seeds: tuple[int, ...], device: str = "cpu") -> list[torch.Generator]:
+    """One ``torch.Generator`` per member (on ``device``), seeded with the member's seed."""
+    return [torch.Generator(device=device).manual_seed(seed) for seed in seeds]
+
+
+# ---------------------------------------------------------------------------- environment
+def make_env(cfg: RunConfig, seeds: tuple[int, ...]) -> RacingTorchEnv:
+    """One car per member: on the member's track (``env.track=fixed``) or on a new random track
+    per episode; car r's random stream is seeded with ``seeds[r]``."""
+    track_seeds = list(seeds) if cfg.env.track == "fixed" else [None] * len(seeds)
+    env = RacingTorchEnv(len(seeds), track_seeds=track_seeds, device=cfg.device, nearest_ray=cfg.env.nearest_ray,
+                         **cfg.env.options)
+    env.sim.seed(list(seeds))
+    return env
+
+
+# -------------------------------------------------------------------------------- learner
+def make_learner(cfg: RunConfig, env: RacingTorchEnv, generators: list[torch.Generator]) -> Learner:
+    """The replay memory, then the learner family's networks, loss, optimisers and update phase."""
+    memory = ReplayMemory(cfg.er.buffer_size, members=len(generators), device=cfg.device, priority=cfg.er.priority)
+    return learners.family(cfg.algo.loss).build(cfg, env, generators, memory)
+
+
+# ------------------------------------------------------------------------------ collector
+def make_episode_collector(cfg: RunConfig, env: RacingTorchEnv, sampler, episodes: int):
+    """Both backends act with the same sampler (the TorchRL ``Collector`` through a
+    ``TensorDictModule``), so they draw the same actions. The ``Collector`` calls its policy
+    once when it is built, to see what it writes: that call must not draw noise."""
+    from tensordict.nn import TensorDictModule
+
+    policy = TensorDictModule(sampler, in_keys=["observation"], out_keys=["action"])
+    with sampler.paused():
+        return make_collector(cfg.env.collector, env, policy=policy, sample=sampler,
+                              steps=cfg.env.episode_steps, episodes=episodes)
+
+
+def make_schedule(cfg: RunConfig) -> ReplaySchedule:
+    er = cfg.er
+    return ReplaySchedule(er.name, er.train_on_memory, er.train_on_recent, er.minibatch_fraction)

@@ -1,0 +1,144 @@
+"""The SLURM launcher of ``hydra/launcher=slurm``: Hydra's submitit launcher, waiting differently.
+
+Hydra's own submitit launcher submits the sweep as a job array and then waits for the jobs in
+array order through submitit: the first failed job raises (a long traceback naming submitit's
+``UncompletedJobError``) while the others keep running; on a cluster without accounting every
+poll of ``sacct`` fails with a warning, and a job that ends without a result (cancelled,
+killed, or stopped by the project's own refusal) leaves the submitting command waiting forever.
+
+This launcher submits the same job array (same parameters, same per-job function, so requeues
+on time limits and preemption work as before) and waits for every job by watching its result
+file and its state in ``squeue`` (no ``sacct``). When all have ended it prints one line per job
+that failed or ended without a result, with the last message of the job's own log (the
+project's "Invalid configuration: ..." or "Refusing to run: ..." where there is one), and exits
+with status 1: that summary is the last thing the submitting command prints.
+"""
+
+from __future__ import annotations
+
+import logging
+import subprocess
+import sys
+import time
+from pathlib import Path
+from collections.abc import Sequence
+
+from hydra.core.singleton import Singleton
+from hydra.core.utils import JobReturn, filter_overrides
+from hydra_plugins.hydra_submitit_launcher.config import BaseQueueConf
+from hydra_plugins.hydra_submitit_launcher.submitit_launcher import SlurmLauncher as _SubmititSlurmLauncher
+from omegaconf import OmegaConf
+
+log = logging.getLogger(__name__)
+
+ENDED = {"COMPLETED", "FAILED", "CANCELLED", "TIMEOUT", "NODE_FAIL", "OUT_OF_MEMORY", "BOOT_FAIL", "DEADLINE",
+         "SPECIAL_EXIT"}
+PROJECT_MESSAGES = ("Invalid configuration:", "Refusing to run:")
+
+
+class SweepJobsFailed(SystemExit):
+    """Some jobs of a sweep failed; the message lists them."""
+
+
+class SlurmLauncher(_SubmititSlurmLauncher):
+    poll_s = 2.0  # how often the result files and squeue are read
+    grace_s = 10.0  # how long an ended job may go without a result file (shared file systems lag)
+
+    def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
+        import submitit
+
+        assert self.config is not None and job_overrides
+        params = dict(self.params)
+        folder = params.pop("submitit_folder")
+        init = {f"slurm_{key}": params.pop(key) for key in ("max_num_timeout",) if key in params}
+        executor = submitit.AutoExecutor(folder=folder, cluster="slurm", **init)
+        generic = set(OmegaConf.structured(BaseQueueConf).keys())
+        executor.update_parameters(**{k if k in generic else f"slurm_{k}": v for k, v in params.items()})
+        sweep_dir = Path(str(self.config.hydra.sweep.dir))
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        log.info(f"Submitit 'slurm' sweep output dir : {sweep_dir}")
+        arguments = []
+        for idx, overrides in enumerate(job_overrides, start=initial_job_idx):
+            log.info(f"\t#{idx} : {' '.join(filter_overrides(overrides))}")
+            arguments.append((list(overrides), "hydra.sweep.dir", idx, f"job_id_for_{idx}", Singleton.get_state()))
+        jobs = executor.map_array(self, *zip(*arguments))
+        if jobs:
+            log.info(f"Submitted job array {jobs[0].job_id.split('_')[0]} ({len(jobs)} jobs); waiting for all of "
+                     f"them (logs in {folder.replace('%j', '<job id>')})")
+        ended = wait_for(jobs, self.poll_s, self.grace_s)
+        returns, failures = [], []
+        for job, overrides in zip(jobs, job_overrides):
+            if not ended[job.job_id]:
+                failures.append((job, overrides, f"ended without a result ({job_state(job)}): " + last_message(job)))
+                continue
+            try:
+                returns.append(job.results()[0])
+            except Exception as err:  # the job's own exception, with its traceback
+                failures.append((job, overrides, "failed: " + (last_message(job) or _last_line(str(err)))))
+        if failures:
+            lines = [f"{len(failures)} of {len(jobs)} jobs did not finish; the others' results are in their folders "
+                     "(running the same command again skips them and retries these):"]
+            lines += [f"  job {job.job_id} ({' '.join(filter_overrides(o))}) {why}" for job, o, why in failures]
+            print("\n".join(lines), file=sys.stderr)
+            raise SweepJobsFailed(1)
+        return returns
+
+
+def wait_for(jobs: list, poll_s: float, grace_s: float) -> dict[str, bool]:
+    """Wait until every job has ended; {job id: whether it left a result file}."""
+    pending = {job.job_id: job for job in jobs}
+    gone_since: dict[str, float] = {}
+    outcome: dict[str, bool] = {}
+    while pending:
+        states = squeue_states(sorted({j.split("_")[0] for j in pending}))
+        now = time.monotonic()
+        for job_id, job in list(pending.items()):
+            if job.paths.result_pickle.exists():
+                outcome[job_id] = True
+            elif states is not None and states.get(job_id, "GONE") in ENDED | {"GONE"}:
+                gone_since.setdefault(job_id, now)  # the result file may reach a shared file system later
+                if now - gone_since[job_id] < grace_s:
+                    continue
+                outcome[job_id] = False
+            else:
+                gone_since.pop(job_id, None)
+                continue
+            del pending[job_id]
+        if pending:
+            time.sleep(poll_s)
+    return outcome
+
+
+def squeue_states(array_ids: list[str]) -> dict[str, str] | None:
+    """{array task id: state} of these job arrays, from ``squeue`` (None if it cannot be asked)."""
+    try:
+        out = subprocess.run(["squeue", "-h", "-r", "-t", "all", "-j", ",".join(array_ids), "-o", "%i %T"],
+                             capture_output=True, text=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    if out.returncode != 0:
+        return {} if "Invalid job id" in out.stderr else None  # the controller forgot them: all ended
+    return dict(line.split()[:2] for line in out.stdout.splitlines() if len(line.split()) >= 2)
+
+
+def job_state(job) -> str:
+    states = squeue_states([job.job_id.split("_")[0]]) or {}
+    return states.get(job.job_id, "no longer known to squeue")
+
+
+def last_message(job) -> str:
+    """The project's message from the job's stderr log, else its last line, else a pointer to it."""
+    path = Path(job.paths.stderr)
+    try:
+        lines = [line.strip() for line in path.read_text(errors="replace").splitlines() if line.strip()]
+    except OSError:
+        return f"no log at {path}"
+    for line in reversed(lines):
+        if line.startswith(PROJECT_MESSAGES):
+            return line
+    return (_last_line("\n".join(lines)) or "empty log") + f" (log: {path})"
+
+
+def _last_line(text: str) -> str:
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return lines[-1][:300] if lines else ""

@@ -1,0 +1,154 @@
+"""The paper's learners in a population (the torch half of ``learners.monte_carlo``).
+
+Networks: the paper's actor (a Gaussian policy) and Monte-Carlo critic, V(s) for PPO and
+Q(s, a) for SPG, stacked over members (``learners.networks``), member r's initial weights
+drawn from its own generator. Loss: ``losses.LogClipPPOLoss`` or ``losses.SPGLoss``, one value
+per member. Update phase (``PhaseRunner``): ``value_epochs`` critic steps, then
+``policy_epochs`` actor steps, each on one minibatch per member drawn with the member's
+generator (or by priority under prioritised replay).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+
+from collectors import ReplayMemory, sample_minibatch
+from collectors.returns import TRANSITION_KEYS
+from learners.base import Learner, MetricTotals, Optimisers, diverged_members, freeze_member, prioritised_minibatch
+from learners.networks import MemberNormal, MemberSampler, StackedCriticNet, StackedGaussianPolicyNet, reset_parameters
+from learners.optim import MemberAdam
+from learners.solo import make_actor, make_critic
+from losses import LogClipPPOLoss, SPGLoss
+from losses.common import PRIORITY_KEY
+
+
+@dataclass
+class Networks:
+    actor_net: StackedGaussianPolicyNet
+    critic_net: StackedCriticNet
+    actor: torch.nn.Module  # ProbabilisticActor over actor_net
+    critic: torch.nn.Module  # TensorDictModule over critic_net
+    sampler: MemberSampler  # the acting policy: observation -> clipped sampled action
+
+
+def make_networks(cfg, env, generators: list[torch.Generator]) -> Networks:
+    """The members' networks, member r's initial weights drawn from ``generators[r]`` (actor
+    first, then critic), Glorot-uniform kernels and zero biases."""
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    action_dim = env.action_spec.shape[-1]
+    state_action = cfg.algo.loss == "spg"
+    net, members = cfg.network, len(generators)
+    device = generators[0].device
+    actor_net = StackedGaussianPolicyNet(members, obs_dim, action_dim, net.actor_hidden, net.activation).to(device)
+    critic_net = StackedCriticNet(members, obs_dim + action_dim * state_action, net.critic_hidden,
+                                  net.activation).to(device)
+    reset_parameters(actor_net, generators)
+    reset_parameters(critic_net, generators)
+    sampler = MemberSampler(actor_net, generators, action_dim, block=cfg.env.episode_steps)
+    return Networks(actor_net, critic_net, make_actor(actor_net, MemberNormal), make_critic(critic_net, state_action),
+                    sampler)
+
+
+def make_loss(cfg, networks: Networks, generators: list[torch.Generator]) -> LogClipPPOLoss | SPGLoss:
+    algo = cfg.algo
+    common = {"entropy_coeff": algo.entropy_coeff, "joint_log_prob": algo.joint_log_prob,
+              "members": len(generators)}
+    if algo.loss == "ppo":
+        return LogClipPPOLoss(networks.actor, networks.critic, clip_epsilon=algo.ppo.clip_epsilon,
+                              ratio_space=algo.ppo.ratio_space, **common).to(generators[0].device)
+    spg = algo.spg
+    loss = SPGLoss(networks.actor, networks.critic, num_samples=spg.num_samples, temperature=spg.temperature,
+                   temperature_decay=spg.temperature_decay, prioritised=spg.prioritised,
+                   sample_around=spg.sample_around, baseline=spg.baseline, **common)
+    loss.set_generators(generators)
+    return loss.to(generators[0].device)
+
+
+def make_optimisers(cfg, networks: Networks) -> Optimisers:
+    """Adam over the stacked parameters (``learners.optim.MemberAdam``: ``torch.optim.Adam``'s
+    arithmetic, bit for bit): element-wise, so exactly one Adam per member."""
+    algo = cfg.algo
+    return Optimisers(actor=MemberAdam(networks.actor_net.parameters(), lr=algo.actor_lr, eps=algo.adam_eps),
+                      critic=MemberAdam(networks.critic_net.parameters(), lr=algo.critic_lr, eps=algo.adam_eps))
+
+
+class PhaseRunner:
+    """Runs ``value_epochs`` critic steps then ``policy_epochs`` actor steps (Adam, one
+    minibatch per member each, drawn with replacement from the member's data with its own
+    generator), calling the loss's hooks where the protocol places them, and collects the
+    loss's diagnostics per member."""
+
+    def __init__(self, loss, optimisers, value_epochs: int, policy_epochs: int,
+                 generators: list[torch.Generator], sampler=None):
+        """``sampler``: a ``collectors.prioritised.ProportionalSampler`` holding the replay
+        memory's priorities (prioritised replay: every minibatch is drawn by priority, the critic's
+        loss weighted by importance and its errors |G - critic| become the new priorities), or None."""
+        self.loss = loss
+        self.optimisers = optimisers
+        self.value_epochs = value_epochs
+        self.policy_epochs = policy_epochs
+        self.generators = list(generators)
+        self.sampler = sampler
+        self.active = torch.ones(len(self.generators), device=optimisers.critic.params[0].device)  # 0: frozen
+        self.critic_metrics, self.actor_metrics = loss.critic_metrics, loss.actor_metrics
+
+    def run(self, data: TensorDictBase, minibatch_size: int, totals: "MetricTotals", episode: int = 0) -> dict[int, str]:
+        """One phase on ``data`` (``[R, n]``) before or after episode ``episode`` (unused: every phase
+        is alike); returns {member: reason} for members that diverged."""
+        loss = self.loss
+        loss.before_critic_phase(data)
+        for _ in range(self.value_epochs):
+            batch, index = self._minibatch(data, minibatch_size)
+            out = loss.critic_loss(batch)
+            if index is not None:
+                self.sampler.update_priority(index.cpu(), out.pop(PRIORITY_KEY).cpu())
+            self._step(self.optimisers.critic, out, "critic", totals)
+        loss.before_actor_phase(data)
+        for _ in range(self.policy_epochs):
+            out = loss.actor_loss(self._minibatch(data, minibatch_size)[0])
+            self._step(self.optimisers.actor, out, "actor", totals)
+        loss.after_actor_phase()
+        # Checked once per phase: a NaN or inf loss or gradient leaves non-finite parameters
+        # (Adam propagates it), and one check per phase costs little per step.
+        return diverged_members(self.optimisers, totals, self.active)
+
+    def _minibatch(self, data: TensorDictBase, size: int) -> tuple[TensorDictBase, torch.Tensor | None]:
+        """A minibatch per member, uniform (and no index) or by priority (with its slot indices)."""
+        if self.sampler is None:
+            return sample_minibatch(data, size, self.generators), None
+        return prioritised_minibatch(data, size, self.generators, self.sampler)
+
+    def _step(self, optimiser, out: TensorDictBase, prefix: str, totals: "MetricTotals") -> None:
+        entries = dict(out.items())
+        # Terms without a gradient (e.g. a zero-weight entropy bonus) are reported, not optimised.
+        losses = [value for key, value in entries.items() if key.startswith("loss_") and value.requires_grad]
+        per_member = losses[0] if len(losses) == 1 else torch.stack(losses).sum(0)
+        optimiser.zero_grad(set_to_none=True)
+        (per_member * self.active).sum().backward()
+        optimiser.step()
+        totals.add(prefix, entries)
+
+    @torch.no_grad()
+    def freeze(self, member: int) -> None:
+        """Stop training ``member``: zero its parameters and Adam moments, mask its loss terms.
+
+        With zero gradient, zero moments and zero weights, Adam leaves it at zero; its
+        networks stay finite (its car keeps driving, unrecorded) and cost the others nothing.
+        """
+        self.active[member] = 0.0
+        freeze_member(self.optimisers, member)
+
+
+def build(cfg, env, generators: list[torch.Generator], memory: ReplayMemory) -> Learner:
+    """Networks, loss, optimisers and update phase of ``cfg.algo`` (loss ppo or spg) for one
+    member per generator."""
+    networks = make_networks(cfg, env, generators)
+    loss = make_loss(cfg, networks, generators)
+    optimisers = make_optimisers(cfg, networks)
+    phases = PhaseRunner(loss, optimisers, cfg.algo.value_epochs, cfg.algo.policy_epochs, generators,
+                         sampler=memory.sampler)
+    return Learner(networks, loss, optimisers, memory, phases,
+                   TRANSITION_KEYS, monte_carlo=True)

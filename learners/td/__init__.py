@@ -1,0 +1,85 @@
+"""TorchRL's off-policy learners (``loss: sac|td3``): bootstrapped TD targets, gradient steps
+paid per environment step, target networks, a replay memory.
+
+The family's torch-free half: its losses, option blocks (validated before torch loads) and
+``build``, which imports the torch half (``learners.td.learner``) on first use.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from learners.options import ConfigError, at_least, choice, positive
+
+LOSSES = ("sac", "td3")
+DESCRIPTION = "TorchRL's off-policy losses (loss sac or td3)"
+OFF_POLICY = True  # trains on a replay memory only: er=memory or er=prioritised
+KEYS = ()  # its schedule is in the td: block
+LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
+
+
+@dataclass(frozen=True)
+class TDOptions:
+    """The off-policy schedule of ``loss: sac|td3`` (``conf/algo/sac.yaml`` explains each key)."""
+
+    updates_per_step: float
+    warmup_episodes: int
+    tau: float
+    loss_function: str
+
+    def __post_init__(self) -> None:
+        positive("algo.td.updates_per_step", self.updates_per_step)
+        at_least("algo.td.warmup_episodes", self.warmup_episodes, 0)
+        if not 0 < self.tau <= 1:
+            raise ConfigError(f"algo.td.tau must be in (0, 1], got {self.tau}")
+        choice("algo.td.loss_function", self.loss_function, LOSS_FUNCTIONS)
+
+    def updates_before(self, episode: int, steps: int) -> int:
+        """Gradient steps taken in all, up to the start of episode ``episode`` (``episode`` episodes of
+        ``steps`` transitions collected): none while only warm-up episodes are collected, then
+        ``updates_per_step`` for every step collected since the last warm-up episode began
+        (fractions carry over)."""
+        first = max(self.warmup_episodes, 1)  # the first episode preceded by gradient steps
+        return math.floor(max(0, episode - first + 1) * steps * self.updates_per_step + 1e-9)
+
+
+@dataclass(frozen=True)
+class SACOptions:
+    """``algo.sac`` (TorchRL's ``SACLoss``)."""
+
+    alpha_init: float
+    target_entropy: float | None  # None: TorchRL's "auto", minus the action dimension
+    fixed_alpha: bool
+
+    def __post_init__(self) -> None:
+        positive("algo.sac.alpha_init", self.alpha_init)
+
+
+@dataclass(frozen=True)
+class TD3Options:
+    """``algo.td3`` (TorchRL's ``TD3Loss``)."""
+
+    exploration_noise: float
+    policy_noise: float
+    noise_clip: float
+    policy_delay: int
+
+    def __post_init__(self) -> None:
+        for key in ("exploration_noise", "policy_noise", "noise_clip"):
+            at_least(f"algo.td3.{key}", getattr(self, key), 0)
+        at_least("algo.td3.policy_delay", self.policy_delay, 1)
+
+
+BLOCKS = {"td": (LOSSES, TDOptions), "sac": (("sac",), SACOptions), "td3": (("td3",), TD3Options)}
+
+
+def check(algo) -> None:
+    """No rules beyond the option blocks'."""
+
+
+def build(cfg, env, generators, memory):
+    """The members' networks, loss, optimisers and update phase: a ``learners.base.Learner``."""
+    from learners.td.learner import build
+
+    return build(cfg, env, generators, memory)
