@@ -1,8 +1,8 @@
-"""Every Hydra launcher the README names runs a sweep to finished run folders.
+"""Every Hydra launcher the docs name runs a sweep to finished run folders.
 
 basic, joblib and submitit_local (the submitit plugin's local executor: the job machinery of
-SLURM without a cluster) each run the same two-job sweep; the SLURM preset is checked as Hydra
-composes it (no cluster here).
+SLURM without a cluster) each run the same two-job sweep; the SLURM preset is checked here as
+Hydra composes it, and against a real SLURM in tests/test_slurm.py.
 """
 
 import json
@@ -109,3 +109,18 @@ def test_sweeps_started_together_export_the_same_commit_once(tmp_path):
     assert results == [code_dir] * 4
     assert (code_dir / "engine" / "COMMIT").read_text().strip() == commit
     assert [p.name for p in code_dir.parent.iterdir()] == [code_dir.name]
+
+
+def test_clean_sweep_knows_exports_of_commits_from_before_the_engine_package(tmp_path):
+    """Commits before the engine package recorded their commit in experiment/COMMIT; their exports
+    (e.g. the committed results' commit 8ee0bd8) are still recognised, and a folder without
+    either file is not an export."""
+    import clean_sweep
+
+    (tmp_path / "old" / "experiment").mkdir(parents=True)
+    (tmp_path / "old" / "experiment" / "COMMIT").write_text("8ee0bd8d86c8b4544c35463f6cf19c036a9dd50e\n")
+    (tmp_path / "new" / "engine").mkdir(parents=True)
+    (tmp_path / "new" / "engine" / "COMMIT").write_text("abc\n")
+    assert clean_sweep.exported_commit(tmp_path / "old") == "8ee0bd8d86c8b4544c35463f6cf19c036a9dd50e"
+    assert clean_sweep.exported_commit(tmp_path / "new") == "abc"
+    assert clean_sweep.exported_commit(tmp_path) is None
