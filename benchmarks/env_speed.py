@@ -72,6 +72,19 @@ def gymnasium_env(seconds: float, nearest: bool = False) -> float:
     return timed(step, seconds)
 
 
+def gymnasium_vector(n: int, seconds: float, mode: str) -> float:
+    """``gym.make_vec`` of ``n`` cars: the native vector env (``vector_entry_point``) or Gymnasium's
+    ``SyncVectorEnv`` of ``n`` single envs (``sync``); both autoreset on their own."""
+    env = gym.make_vec(racing.ENV_ID, num_envs=n, vectorization_mode=mode, track_seed=TRACK)
+    env.reset(seed=0)
+    actions = np.random.default_rng(0).uniform(-1, 1, (EPISODE, n, 2)).astype(np.float32)
+
+    def step(k):
+        env.step(actions[k])
+
+    return timed(step, seconds) * n
+
+
 def torchrl_env(n: int, seconds: float) -> float:
     env = racing.RacingTorchEnv(n, TRACK)
     env.set_seed(0)
@@ -113,6 +126,10 @@ def main() -> None:
             ("Gymnasium env (gym.make)", 1, gymnasium_env(args.seconds)),
             ("Gymnasium env (gym.make), nearest_ray=True", 1, gymnasium_env(args.seconds, nearest=True)),
             ("TorchRL env, step_tensors", 1, torchrl_tensors(1, args.seconds))]
+    for n in (8, 64, 1024):
+        rows.append(("Gymnasium SyncVectorEnv of single envs (make_vec, sync)", n,
+                     gymnasium_vector(n, args.seconds, "sync")))
+        rows.append(("Gymnasium native vector env (make_vec)", n, gymnasium_vector(n, args.seconds, "vector_entry_point")))
     for n in (1, 64, 1024, 4096):
         rows.append(("TorchRL env, step_and_maybe_reset", n, torchrl_env(n, args.seconds)))
     nearest = rows[1][2]

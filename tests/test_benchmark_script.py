@@ -14,8 +14,9 @@ def test_env_speed_benchmark_prints_its_table():
                             capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
-    assert len(rows) == 1 + 9  # header and one row per implementation
+    assert len(rows) == 1 + 15  # header and one row per implementation and size
     assert "| TorchRL env, step_and_maybe_reset | 4096 |" in result.stdout
+    assert "| Gymnasium native vector env (make_vec) | 1024 |" in result.stdout
 
 
 def test_train_speed_benchmark_prints_its_tables():
