@@ -3,6 +3,8 @@
     python evaluate.py RUN_DIR [--tracks 2067791 773203] [--episodes 5] [--video agent.gif]
     python evaluate.py SWEEP_DIR [RUN_DIR ...] [--tracks ...] [--table evaluation.csv]
 
+    python evaluate.py --oracle --tracks 2067791 773203 [--episodes 5] [--table oracle.csv]
+
 A RUN_DIR is a finished train.py run folder (summary.json and actor.pt); any other folder
 stands for every finished run inside it (a sweep, a population). Policies act without
 exploration noise (the Gaussian's mean; SAC: tanh of it; TD3: its actor). Each run is evaluated
@@ -10,6 +12,10 @@ on its own track and on ``--tracks``; the table (printed, and written as CSV wit
 has one row per run and track. ``--video`` films one episode of the first run on the first
 track as a GIF or MP4 (needs the ``render`` extra). Policies run under the numerics mode their runs
 were trained in (``--numerics`` to choose another; ``engine/numerics.py``).
+
+``--oracle`` scores the planning controller ``racing.oracle.Oracle`` (it sees the simulator's
+true state: a ceiling per track, not a policy) on ``--tracks`` with the same protocol;
+``--candidates``, ``--horizon`` and ``--iterations`` set its planning budget.
 """
 
 from __future__ import annotations
@@ -49,7 +55,7 @@ def runs_numerics(runs: list[Path]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("paths", type=Path, nargs="+", metavar="RUN_OR_SWEEP_DIR")
+    parser.add_argument("paths", type=Path, nargs="*", metavar="RUN_OR_SWEEP_DIR")
     parser.add_argument("--tracks", type=int, nargs="+", default=[],
                         help="track seeds to evaluate on, besides each run's own track")
     parser.add_argument("--episodes", type=int, default=5, help="episodes per track (start states vary)")
@@ -58,9 +64,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--video", type=Path, default=None, help="film the first run on the first track (.gif/.mp4)")
     parser.add_argument("--numerics", choices=numerics.MODES, default=None,
                         help="the numerics mode to evaluate in (default: the one the runs were trained in)")
+    oracle = parser.add_argument_group("the oracle (a planning controller with the true state)")
+    oracle.add_argument("--oracle", action="store_true", help="score the oracle on --tracks instead of runs")
+    oracle.add_argument("--candidates", type=int, default=None, help="action sequences per planning round")
+    oracle.add_argument("--horizon", type=int, default=None, help="steps planned ahead")
+    oracle.add_argument("--iterations", type=int, default=None, help="cross-entropy rounds per step")
     args = parser.parse_args(argv)
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
+    if args.oracle:
+        if args.paths or not args.tracks:
+            parser.error("--oracle scores the oracle on --tracks (give track seeds, and no run folders)")
+        return _oracle(args)
+    if not args.paths:
+        parser.error("give run or sweep folders to evaluate (or --oracle --tracks ...)")
     try:
         runs = find_runs(args.paths)
         numerics.apply(args.numerics or runs_numerics(runs))  # before torch loads
@@ -107,6 +124,40 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         print(f"wrote {args.video} ({frames} frames)")
     return 0 if rows else 2
+
+
+def _oracle(args) -> int:
+    import dataclasses
+
+    from racing.oracle import OracleSettings, score
+
+    budget = {k: getattr(args, k) for k in ("candidates", "horizon", "iterations") if getattr(args, k) is not None}
+    try:
+        settings = dataclasses.replace(OracleSettings(), **budget)
+        results = score(args.tracks, args.episodes, args.seed, settings)
+    except (TypeError, ValueError) as err:
+        print(f"evaluate: {err}", file=sys.stderr)
+        return 2
+    from engine.version import code_version
+
+    code = code_version()
+    rows = []
+    for track, result in results.items():
+        print(f"track {track}: oracle mean total reward {result['mean']:.1f} over {args.episodes} episodes "
+              f"({result['seconds_per_episode']:.1f} s per episode)")
+        rows.append({"run": "oracle", "algo": "oracle", "track": track, "episodes": args.episodes,
+                     "mean_reward": round(result["mean"], 6),
+                     "seconds_per_episode": round(result["seconds_per_episode"], 3),
+                     **dataclasses.asdict(settings), "commit": code.get("commit") or "", "dirty": code.get("dirty"),
+                     "source": code["source"]})
+    if args.table is not None:
+        args.table.parent.mkdir(parents=True, exist_ok=True)
+        with open(args.table, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+        print(f"wrote {args.table} ({len(rows)} rows)")
+    return 0
 
 
 def _print(rows: list[dict], several: bool) -> None:

@@ -1,7 +1,9 @@
 """Lay out a sweep's results beside the paper's: ``python report.py SWEEP_DIR``.
 
 Writes into ``SWEEP_DIR/report/``:
-- ``runs.csv``: one row per run (cell, track seed, status, final performance, code version);
+- ``runs.csv``: one row per run (cell, track seed, status, final performance, code version, and
+  where the oracle scored the track (``analysis/data/oracle.csv``) its score and the run's
+  oracle-normalised score);
 - ``table.md``, ``table.csv``: Table 1's layout, mean ± standard error over seeds of each run's
   final performance, the paper's value, and the difference in units of the combined standard
   error; diverged runs counted;
@@ -13,7 +15,9 @@ Writes into ``SWEEP_DIR/report/``:
 - ``beyond.md`` (if the sweep has SAC, TD3 or prioritised-replay runs): those cells and the paper's
   best and PPO cells, with IQM intervals over runs, paired differences from the paper's best cell and
   wall time per run; ``generalisation.md`` (if runs were evaluated on ``eval_seeds``): own-track and
-  unseen-track scores and their gap, for fixed- and random-track training;
+  unseen-track scores and their gap, for fixed- and random-track training; ``normalised.md`` (if
+  the oracle scored the runs' tracks): each cell's final performance on the oracle's scale, 0 for a
+  car that stands still and 1 for the oracle (``evaluate.py --oracle``) on the run's track;
 - ``curves_*.png``: learning curves, mean over tracks with a ±1 SE band, per algorithm and per
   replay mode; ``paper_tracks.png``; ``agent.png``, a frame of the best run's policy.
 Lists runs that are partial (killed or running), unreadable or diverged. The figures need the
@@ -32,10 +36,10 @@ import sys
 from pathlib import Path
 
 from engine import numerics
-from analysis.report import (cells, code_versions, collapse_markdown, conclusions_markdown, find_runs,
-                               numerics_groups, read_paper_table, table_markdown, versions_markdown,
-                               write_runs_csv, write_table_csv)
 from analysis.beyond import beyond_markdown, generalisation_markdown
+from analysis.report import (cells, code_versions, collapse_markdown, conclusions_markdown, find_runs,
+                             normalised_markdown, numerics_groups, read_oracle, read_paper_table, table_markdown,
+                             versions_markdown, write_runs_csv, write_table_csv)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -83,7 +87,8 @@ def main(argv: list[str] | None = None) -> int:
     markdown = versions_markdown(versions) + "\n" + table_markdown(table)
     (out / "table.md").write_text(markdown)
     write_table_csv(table, out / "table.csv")
-    write_runs_csv(every, out / "runs.csv", args.sweep_dir)
+    oracle = read_oracle()
+    write_runs_csv(every, out / "runs.csv", args.sweep_dir, oracle)
     (out / "conclusions.md").write_text(versions_markdown(versions) + "\n" + conclusions_markdown(runs))
     (out / "collapse.md").write_text(versions_markdown(versions) + "\n" + collapse_markdown(runs))
     print(markdown)
@@ -94,7 +99,8 @@ def main(argv: list[str] | None = None) -> int:
             for r in listed:
                 print(f"  {r.path} ({len(r.rewards)} episodes in metrics.csv)")
     extra = []
-    for name, text in (("beyond.md", beyond_markdown(every)), ("generalisation.md", generalisation_markdown(every))):
+    for name, text in (("beyond.md", beyond_markdown(every)), ("generalisation.md", generalisation_markdown(every)),
+                       ("normalised.md", normalised_markdown(runs, oracle))):
         if text:
             (out / name).write_text(versions_markdown(versions) + "\n" + text)
             print(text)

@@ -10,12 +10,14 @@ from __future__ import annotations
 import csv
 import json
 import math
+import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from engine.outputs import METRICS_FILE, SUMMARY_FILE
 
 PAPER_TABLE = Path(__file__).resolve().parent / "data" / "paper_table1.csv"
+ORACLE_TABLE = Path(__file__).resolve().parent / "data" / "oracle.csv"  # evaluate.py --oracle --table
 ER_ROWS = ("recent", "memory", "hybrid")
 ALGO_COLUMNS = ("ppo", "ppo_log", "spg", "spg_multi", "spg_p", "spg_p_multi")
 COLUMN_TITLES = {"ppo": "PPO linear", "ppo_log": "PPO log", "spg": "SPG single", "spg_multi": "SPG multiple",
@@ -221,19 +223,41 @@ def write_table_csv(table: list[Cell], path: Path) -> None:
                              _num(c.paper_sem), _num(c.z)])
 
 
-def write_runs_csv(runs: list[Run], path: Path, root: Path) -> None:
-    """One row per run folder: cell, track seed, final performance, status, code version, numerics."""
+def read_oracle(path: Path | None = None) -> dict[int, float]:
+    """{track seed: the oracle's mean total reward} (``evaluate.py --oracle --table``; default
+    ``analysis/data/oracle.csv``), {} if absent."""
+    path = Path(path if path is not None else ORACLE_TABLE)
+    if not path.exists():
+        return {}
+    with open(path) as f:
+        return {int(row["track"]): float(row["mean_reward"]) for row in csv.DictReader(f)}
+
+
+def normalised(run: Run, oracle: dict[int, float]) -> float | None:
+    """A run's final performance on the oracle's scale of its track: 0 = standing still (total
+    reward 0), 1 = the oracle. None for runs on random tracks or tracks the oracle has not scored."""
+    if run.track_mode != "fixed" or run.final_mean is None or run.seed not in oracle:
+        return None
+    return run.final_mean / oracle[run.seed]
+
+
+def write_runs_csv(runs: list[Run], path: Path, root: Path, oracle: dict[int, float] | None = None) -> None:
+    """One row per run folder: cell, track seed, final performance, status, code version, numerics,
+    and, where the oracle scored the track, its score and the run's oracle-normalised score."""
+    oracle = oracle or {}
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["er", "algo", "seed", "status", "final_mean", "episodes", "code", "folder", "train_tracks",
-                         "eval_own_track", "eval_unseen_mean", "numerics"])
+                         "eval_own_track", "eval_unseen_mean", "numerics", "oracle", "normalised"])
         for r in sorted(runs, key=lambda r: (r.er or "", r.algo or "", r.seed or -1, str(r.path))):
             final = "" if r.final_mean is None else repr(float(r.final_mean))
             own, unseen = ((repr(float(r.evaluation["own_track"])), repr(float(r.evaluation["mean"])))
                            if r.evaluation else ("", ""))
+            score = normalised(r, oracle)
             writer.writerow([r.er or "", r.algo or "", "" if r.seed is None else r.seed, r.status, final,
                              len(r.rewards), r.version, r.path.relative_to(root).as_posix(), r.track_mode, own, unseen,
-                             r.numerics])
+                             r.numerics, repr(oracle[r.seed]) if score is not None else "",
+                             repr(score) if score is not None else ""])
 
 
 def _num(value: float | None) -> str:
@@ -387,4 +411,28 @@ def collapse_markdown(runs: list[Run]) -> str:
             tracks = ", ".join(f"{r.seed} ({r.final_mean:.1f})" for r in low)
             lines.append(f"| {er} / {COLUMN_TITLES[algo]} | {len(done)} | {len(low)} | {rate} | "
                          f"{len(mine) - len(done)} | {tracks} |")
+    return "\n".join(lines) + "\n"
+
+
+def normalised_markdown(runs: list[Run], oracle: dict[int, float]) -> str:
+    """Per cell: final performance on the oracle's scale (0 = standing still, 1 = the oracle on the
+    run's track), mean ± SE and median over the runs whose track the oracle scored; "" if none."""
+    scored = [r for r in runs if r.status == "completed" and normalised(r, oracle) is not None]
+    if not scored:
+        return ""
+    lines = ["Final performance on the oracle's scale of each run's track (0: a car that stands still, 1: "
+             "the oracle, `evaluate.py --oracle`), over the runs whose track the oracle scored.", "",
+             "| cell | runs | normalised (mean ± SE) | median | lowest | highest |", "|---|---:|---:|---:|---:|---:|"]
+    cells_seen = sorted({(r.er, r.algo) for r in scored},
+                        key=lambda c: (ER_ROWS.index(c[0]) if c[0] in ER_ROWS else 99,
+                                       ALGO_COLUMNS.index(c[1]) if c[1] in ALGO_COLUMNS else 99, c))
+    for er, algo in cells_seen:
+        values = sorted(normalised(r, oracle) for r in scored if (r.er, r.algo) == (er, algo))
+        mean = statistics.fmean(values)
+        se = statistics.stdev(values) / math.sqrt(len(values)) if len(values) > 1 else float("nan")
+        lines.append(f"| {er} / {COLUMN_TITLES.get(algo, algo)} | {len(values)} | {mean:.3f} ± {se:.3f} | "
+                     f"{statistics.median(values):.3f} | {values[0]:.3f} | {values[-1]:.3f} |")
+    tracks = sorted({r.seed for r in scored})
+    lines += ["", f"Oracle scores used ({len(tracks)} tracks): "
+              + ", ".join(f"{t}: {oracle[t]:.1f}" for t in tracks) + "."]
     return "\n".join(lines) + "\n"

@@ -22,16 +22,18 @@ README = "\n".join(page.read_text() for page in PAGES)
 ELSEWHERE = {
     "clean_sweep.py": "tests/test_launchers.py::test_clean_sweep_runs_an_export_of_the_commit",
     "hydra/launcher=slurm": "tests/test_slurm.py (a real single-node SLURM) and tests/test_launchers.py",
+    "--oracle": "tests/test_oracle.py::test_the_documented_oracle_command_runs",
 }
 
 
-def readme_commands(script: str) -> list[list[str]]:
-    """Each distinct ``python <script> ...`` line of the README (continuations joined, comments cut)."""
+def readme_commands(script: str, include_elsewhere: bool = False) -> list[list[str]]:
+    """Each distinct ``python <script> ...`` line of the README and docs/ (continuations joined,
+    comments cut); without ``include_elsewhere``, not those another test runs (``ELSEWHERE``)."""
     text = README.replace("\\\n", " ")
     found = []
     for match in re.finditer(rf"^\s*(?:\.venv/bin/)?python3? {re.escape(script)}(.*)$", text, re.MULTILINE):
         line = match.group(1).split("#")[0]
-        if any(key in line for key in ELSEWHERE):
+        if not include_elsewhere and any(key in line for key in ELSEWHERE):
             continue
         args = shlex.split(line)
         if args not in found:

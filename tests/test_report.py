@@ -60,13 +60,33 @@ def test_report_lists_partial_unreadable_and_diverged_runs(tmp_path, capsys):
     assert "1 diverged" in table
     runs_csv = (tmp_path / "report" / "runs.csv").read_text().splitlines()
     assert runs_csv[0] == ("er,algo,seed,status,final_mean,episodes,code,folder,train_tracks,eval_own_track,"
-                           "eval_unseen_mean,numerics")
-    assert "hybrid,ppo_log,1,diverged,,3,0123456789abcdef,ppo_log/hybrid/seed1,fixed,,,portable (AVX2 kernels)" in runs_csv
-    assert "recent,spg,1,completed,90.0,3,0123456789abcdef,spg/recent/seed1,fixed,,,portable (AVX2 kernels)" in runs_csv
-    assert ",,,partial,,3,not recorded,spg/recent/seed3,fixed,,,not recorded" in runs_csv
+                           "eval_unseen_mean,numerics,oracle,normalised")
+    assert "hybrid,ppo_log,1,diverged,,3,0123456789abcdef,ppo_log/hybrid/seed1,fixed,,,portable (AVX2 kernels),," in runs_csv
+    assert "recent,spg,1,completed,90.0,3,0123456789abcdef,spg/recent/seed1,fixed,,,portable (AVX2 kernels),," in runs_csv
+    assert ",,,partial,,3,not recorded,spg/recent/seed3,fixed,,,not recorded,," in runs_csv
     csv_rows = (tmp_path / "report" / "table.csv").read_text().splitlines()
     assert csv_rows[0] == "er,algo,n,mean,sem,diverged,paper_mean,paper_sem,z"
     assert any(r.startswith("hybrid,ppo_log,0,,,1,,,") for r in csv_rows)
+
+
+def test_oracle_normalised_scores_by_hand(tmp_path, monkeypatch, capsys):
+    """0 = standing still, 1 = the oracle on the run's track; runs on tracks the oracle did not
+    score are left out."""
+    from analysis import report as analysis
+
+    oracle = tmp_path / "oracle.csv"
+    oracle.write_text("run,algo,track,episodes,mean_reward\noracle,oracle,1,5,160.0\noracle,oracle,2,5,200.0\n")
+    monkeypatch.setattr(analysis, "ORACLE_TABLE", oracle)
+    sweep = tmp_path / "sweep"
+    fake_run(sweep, "spg", "recent", 1, 80.0)
+    fake_run(sweep, "spg", "recent", 2, 150.0)
+    fake_run(sweep, "spg", "recent", 3, 99.0)  # no oracle score for track 3
+    assert report.main([str(sweep), "--no-figures"]) == 0
+    text = (sweep / "report" / "normalised.md").read_text()
+    assert "| recent / SPG single | 2 | 0.625 ± 0.125 | 0.625 | 0.500 | 0.750 |" in text
+    assert "(2 tracks): 1: 160.0, 2: 200.0" in text
+    runs_csv = (sweep / "report" / "runs.csv").read_text()
+    assert ",160.0,0.5\n" in runs_csv and ",200.0,0.75\n" in runs_csv
 
 
 def test_report_refuses_to_mix_code_versions_unless_allowed(tmp_path, capsys):
