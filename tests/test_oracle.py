@@ -73,7 +73,8 @@ def test_the_documented_oracle_command_runs(tmp_path):
         args = [str(table) if a.endswith(".csv") else a for a in args]
         assert evaluate.main([*args, "--candidates", "16", "--horizon", "10", "--iterations", "1"]) == 0
         if "--table" in args:
-            rows = list(csv.DictReader(open(table)))
+            with open(table) as f:
+                rows = list(csv.DictReader(f))
             assert [int(r["track"]) for r in rows] == [int(t) for t in args[args.index("--tracks") + 1:
                                                                              args.index("--episodes")]]
     assert score([TRACK], 1, settings=SMALL)[TRACK]["mean"] > 0
