@@ -44,9 +44,8 @@ class OracleSettings:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"oracle {name} must be a positive integer, got {value!r}")
-        if not 0 < self.elite <= 1 or round(self.elite * self.candidates) < 1:
-            raise ValueError(f"oracle elite must be a fraction in (0, 1] keeping at least one of the "
-                             f"{self.candidates} candidates, got {self.elite!r}")
+        if not 0 < self.elite <= 1:  # at least one candidate is kept whatever the fraction
+            raise ValueError(f"oracle elite must be a fraction in (0, 1], got {self.elite!r}")
         if not 0 < self.min_std <= self.init_std:
             raise ValueError(f"oracle needs 0 < min_std <= init_std, got {self.min_std}, {self.init_std}")
 

@@ -47,3 +47,12 @@ def test_numerics_speed_benchmark_prints_its_table():
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
     assert len(rows) == 1 + 1 and "| ppo/recent | 2 |" in result.stdout
     assert "portable: " in result.stdout and "MKL branch COMPATIBLE" in result.stdout
+
+
+def test_oracle_convergence_benchmark_prints_its_table():
+    result = subprocess.run([sys.executable, "-m", "benchmarks.oracle_convergence", "--tracks", "1001", "--episodes",
+                             "1", "--horizon", "5", "--iterations", "1", "--candidates", "16", "--ladder", "1"],
+                            capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
+    assert len(rows) == 1 + 2 and rows[1].startswith("| base |") and rows[2].startswith("| candidates=4 |")
