@@ -109,12 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     for line in skipped:
         print(f"skipped {line}", file=sys.stderr)
     if args.table is not None and rows:
-        args.table.parent.mkdir(parents=True, exist_ok=True)
-        with open(args.table, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
-        print(f"wrote {args.table} ({len(rows)} rows)")
+        _write_table(args.table, rows)
     if args.video is not None and first is not None:
         policy, settings, tracks = first
         try:
@@ -151,13 +146,17 @@ def _oracle(args) -> int:
                      **dataclasses.asdict(settings), "commit": code.get("commit") or "", "dirty": code.get("dirty"),
                      "source": code["source"]})
     if args.table is not None:
-        args.table.parent.mkdir(parents=True, exist_ok=True)
-        with open(args.table, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
-        print(f"wrote {args.table} ({len(rows)} rows)")
+        _write_table(args.table, rows)
     return 0
+
+
+def _write_table(path: Path, rows: list[dict]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    print(f"wrote {path} ({len(rows)} rows)")
 
 
 def _print(rows: list[dict], several: bool) -> None:
