@@ -126,6 +126,9 @@ def _oracle(args) -> int:
 
     from racing.oracle import OracleSettings, score
 
+    from engine.version import code_version
+
+    code = code_version()  # before the work: the code that computes it
     budget = {k: getattr(args, k) for k in ("candidates", "horizon", "iterations") if getattr(args, k) is not None}
     try:
         settings = dataclasses.replace(OracleSettings(), **budget)
@@ -133,9 +136,6 @@ def _oracle(args) -> int:
     except (TypeError, ValueError) as err:
         print(f"evaluate: {err}", file=sys.stderr)
         return 2
-    from engine.version import code_version
-
-    code = code_version()
     rows = []
     for track, result in results.items():
         print(f"track {track}: oracle mean total reward {result['mean']:.1f} over {args.episodes} episodes "
