@@ -73,13 +73,17 @@ def test_requeued_and_cancelled_jobs_resume_exactly_and_finished_runs_are_skippe
     assert jobs["0"]["state"] == jobs["1"]["state"] == "RUNNING"
     cluster.scontrol("requeue", jobs["0"]["id"])  # killed (after KillWait), queued and started again
     subprocess.run(["scancel", jobs["1"]["id"]], env=cluster.env(), check=True)
-    # SLURM holds a requeued job for a while (its BeginTime); release it now
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        if subprocess.run(["scontrol", "update", f"JobId={jobs['0']['id']}", "StartTime=now"], env=cluster.env(),
-                          capture_output=True).returncode == 0 and _state(cluster, jobs["0"]["id"]) != "RUNNING":
-            break
-        time.sleep(0.5)
+    # SLURM holds a requeued job for a while (its BeginTime); release it as soon as it is pending again
+    deadline, pending, restarted = time.monotonic() + 150, False, False
+    while time.monotonic() < deadline and not restarted:
+        state = _state(cluster, jobs["0"]["id"])
+        if state == "PENDING":
+            pending = True
+            subprocess.run(["scontrol", "update", f"JobId={jobs['0']['id']}", "StartTime=now"], env=cluster.env(),
+                           capture_output=True)
+        restarted = pending and state in ("RUNNING", "COMPLETING", "COMPLETED")
+        time.sleep(0.3)
+    assert restarted, f"the requeued job did not start again ({state})"
     out, err = submitting.communicate(timeout=600)
     assert "Submitted job array" in out + err and "Traceback" not in err and "resource_tracker" not in err
     assert "sacct" not in out + err  # no accounting here: the launcher does not ask it
