@@ -42,7 +42,7 @@ def _binary(name: str) -> str:
 class SlurmCluster:
     def __init__(self, folder: Path, cpus: int | None = None, port: int = 16817):
         self.folder = Path(folder).resolve()
-        self.host = socket.gethostname()
+        self.host = socket.gethostname().split(".")[0]  # slurmd knows itself by the short name
         self.cpus = cpus or os.cpu_count() or 1
         self.port = port
         self.conf = self.folder / "slurm.conf"
@@ -104,8 +104,12 @@ PartitionName=debug Nodes={self.host} Default=YES MaxTime=INFINITE State=UP
                 return self
             time.sleep(0.5)
         self.stop()
-        raise RuntimeError(f"the SLURM node did not come up in {timeout:.0f} s; see {self.folder}/slurmd.log "
-                           "and slurmctld.log")
+        tail = ""
+        for log in ("slurmctld.log", "slurmd.log"):
+            path = self.folder / log
+            lines = path.read_text(errors="replace").splitlines()[-2:] if path.exists() else ["(no log)"]
+            tail += f" {log}: {' | '.join(lines)[:300]};"
+        raise RuntimeError(f"the SLURM node did not come up in {timeout:.0f} s;{tail} (folder {self.folder})")
 
     def stop(self) -> None:
         for name in ("slurmd", "slurmctld"):

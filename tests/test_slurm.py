@@ -32,7 +32,10 @@ RUN = ["algo=spg_p", "er=hybrid", f"seed={SEEDS[0]},{SEEDS[1]}", "episodes=40", 
 def cluster(tmp_path_factory):
     folder = tmp_path_factory.mktemp("slurm")
     cluster = slurm_cluster.SlurmCluster(folder, port=16900)
-    cluster.start()
+    try:
+        cluster.start()
+    except (RuntimeError, OSError, subprocess.CalledProcessError) as err:  # installed, but no cluster here
+        pytest.skip(f"SLURM is installed but a cluster could not be started here: {err}")
     yield cluster
     cluster.stop()
 
