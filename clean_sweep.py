@@ -62,8 +62,9 @@ def exported_commit(code_dir: Path) -> str | None:
 
 def export(commit: str, code_dir: Path) -> Path:
     """``git archive`` of ``commit`` unpacked into ``code_dir`` (kept if it is already there)."""
-    if exported_commit(code_dir) is not None:
-        if exported_commit(code_dir) != commit:
+    existing = exported_commit(code_dir)
+    if existing is not None:
+        if existing != commit:
             raise SweepError(f"{code_dir} holds an export of another commit; remove it or choose --code-dir")
         return code_dir
     if code_dir.exists():

@@ -19,11 +19,14 @@ the oracle's own ``numpy`` generator (``seed``), so a score is reproducible.
 
 from __future__ import annotations
 
+import dataclasses
+import time
 from dataclasses import dataclass
 
 import numpy as np
 
 from racing.config import RacingConfig
+from racing.gym_env import RacingEnv
 from racing.sim import RacingSim, check_seed
 
 
@@ -62,11 +65,11 @@ class Oracle:
         self.planner = RacingSim(settings.candidates, None, config, nearest_ray=nearest_ray)
         self.planner.seed(0)
         self.planner.reset()  # the planning cars' own tracks are replaced by the driven car's below
-        self.plan = np.zeros((settings.horizon, 2))
-        self.plan[:, 0] = 1.0  # full throttle, straight on, until the first round says otherwise
+        self.reset()
 
     def reset(self) -> None:
-        """Forget the plan (call at the start of an episode)."""
+        """Forget the plan (call at the start of an episode): full throttle, straight on, until the
+        first round says otherwise."""
         self.plan = np.zeros((self.settings.horizon, 2))
         self.plan[:, 0] = 1.0
 
@@ -87,14 +90,16 @@ class Oracle:
                 best_return, best_plan = returns[order[0]], samples[order[0]].copy()
             elite = samples[order[:n_elite]]
             mean, std = elite.mean(0), np.maximum(elite.std(0), s.min_std)
-        self.plan = np.concatenate([best_plan[1:], best_plan[-1:], np.tile(best_plan[-1:], (s.horizon - horizon, 1))])
+        # the rest of the plan, its last action repeated to the full horizon
+        self.plan = np.concatenate([best_plan[1:], np.tile(best_plan[-1:], (s.horizon - horizon + 1, 1))])
         return best_plan[0].copy()
 
     def _rollout(self, sim: RacingSim, car: int, samples: np.ndarray) -> np.ndarray:
         """Total reward of each candidate action sequence from ``sim``'s car ``car``'s state."""
         planner, track = self.planner, sim.tracks[car]
-        for k in range(planner.num_cars):
-            planner._use_track(k, track)  # at once when it is already theirs
+        if planner.tracks[0] is not track:  # the planning cars drive on the car's track
+            for k in range(planner.num_cars):
+                planner._use_track(k, track)
         for name in self.STATE:
             getattr(planner, name)[:] = getattr(sim, name)[car]
         planner.finished[:] = False
@@ -128,13 +133,9 @@ def score(track_seeds: list[int], episodes: int, seed: int = 0, settings: Oracle
     """The oracle's mean total reward on each track over ``episodes`` episodes from the start
     states of ``seed``, ``seed + 1``, ... (``evaluate.py``'s protocol for trained policies), with
     the seconds it took per episode: {track: {"mean": ..., "episodes": [...], "seconds_per_episode": ...}}."""
-    import time
-
-    from racing.gym_env import RacingEnv
-
     results = {}
     for track in track_seeds:
-        env = RacingEnv(track_seed=track, **{f: getattr(config, f) for f in config.__dataclass_fields__})
+        env = RacingEnv(track_seed=track, **dataclasses.asdict(config))
         oracle = Oracle(env.config, settings, seed=seed)
         start = time.perf_counter()
         totals = [drive(env, oracle, seed + episode) for episode in range(episodes)]

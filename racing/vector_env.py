@@ -83,14 +83,13 @@ class RacingVectorEnv(VectorEnv):
             mask = np.asarray(mask)
             if mask.dtype != np.bool_ or mask.shape != (self.num_envs,):
                 raise ValueError(f"reset_mask must be a bool array of shape ({self.num_envs},), got {mask!r}")
+        cars = np.arange(self.num_envs) if mask is None else np.flatnonzero(mask)
         if seed is not None:
             if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
                 seed = [(check_seed(seed) + i) % 2**32 for i in range(self.num_envs)]
             elif len(seed) != self.num_envs:
                 raise ValueError(f"got {len(seed)} seeds for {self.num_envs} cars")
-            cars = np.arange(self.num_envs) if mask is None else np.flatnonzero(mask)
             self.sim.seed([seed[c] for c in cars], cars=cars)
-        cars = np.arange(self.num_envs) if mask is None else np.flatnonzero(mask)
         self.sim.reset(cars)
         self._crashed[cars] = False
         self._autoreset[cars] = False
@@ -115,15 +114,13 @@ class RacingVectorEnv(VectorEnv):
             return self._observation(), reward, terminated, truncated, self._info()
         observation, info = self._observation(), self._info()
         if self.autoreset_mode == AutoresetMode.SAME_STEP:
-            done = np.flatnonzero(terminated | truncated)
+            mask = terminated | truncated
+            done = np.flatnonzero(mask)
             if done.size:
                 final_obs = np.full(self.num_envs, None, dtype=object)
                 for car in done:
                     final_obs[car] = observation[car]
-                mask = terminated | truncated
-                final_info = {key: value for key, value in info.items()}
-                for key in [k for k in final_info if not k.startswith("_")]:
-                    final_info[f"_{key}"] = mask.copy()
+                final_info = {key: (mask.copy() if key.startswith("_") else value) for key, value in info.items()}
                 self.sim.reset(done)
                 self._crashed[done] = False
                 observation, info = self._observation(), self._info()
