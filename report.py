@@ -24,7 +24,8 @@ Lists runs that are partial (killed or running), unreadable or diverged. The fig
 ``render`` extra; without it only the tables are written.
 
 Every report states the code version (commit and source hash, from each run's summary.json)
-and the numerics (mode and kernels, ``engine/numerics.py``) that made its runs. Runs of
+and the numerics (mode and kernels, ``engine/numerics.py``, and whether the update steps were
+compiled, ``compile=true``) that made its runs. Runs of
 different code versions are refused unless ``--allow-mixed-versions`` is given, runs of different
 numerics unless ``--allow-mixed-numerics`` is given; then every group is listed with its number of runs.
 """
@@ -67,12 +68,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     modes = numerics_groups(runs)
     if len(modes) > 1 and not args.allow_mixed_numerics:
-        print(f"report: {args.sweep_dir} holds runs of {len(modes)} numerics (engine/numerics.py); they "
-              "rerun bit for bit on different CPUs, so a table mixing them has no single way to rerun. "
+        print(f"report: {args.sweep_dir} holds runs of {len(modes)} numerics (engine/numerics.py; compiled or "
+              "eager update steps round differently too); a table mixing them has no single way to rerun. "
               "Numerics (runs, e.g.):", file=sys.stderr)
         for key, members in modes.items():
             print(f"  {key}: {len(members)} runs, e.g. {members[0].path}", file=sys.stderr)
-        print("Re-run the sweep under one numerics= setting, or pass --allow-mixed-numerics.", file=sys.stderr)
+        print("Re-run the sweep under one numerics= and compile= setting, or pass --allow-mixed-numerics.",
+              file=sys.stderr)
         return 2
     mode = next(iter(modes)).split(" ")[0] if len(modes) == 1 else numerics.DEFAULT
     try:  # only the agent frame computes (a policy's episode): in the runs' mode, before torch loads

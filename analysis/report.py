@@ -83,9 +83,11 @@ class Cell:
 
 def numerics_label(summary: dict) -> str:
     """``"portable (AVX2 kernels)"``: the run's numerics mode (``engine.numerics``) and the torch
-    kernels that ran. Runs from before the modes existed ran the machine's own kernels: native."""
+    kernels that ran, with ``", compiled"`` if its update steps were compiled (``compile=true``:
+    other rounding). Runs from before the modes existed ran the machine's own kernels: native."""
     effect = summary.get("numerics") or {"mode": "native", "kernels": (summary.get("software") or {}).get("cpu")}
-    return f"{effect.get('mode')} ({effect.get('kernels') or 'unknown'} kernels)"
+    compiled = ", compiled" if (summary.get("compile") or {}).get("enabled") else ""
+    return f"{effect.get('mode')} ({effect.get('kernels') or 'unknown'} kernels){compiled}"
 
 
 def numerics_groups(runs: list[Run]) -> dict[str, list[Run]]:

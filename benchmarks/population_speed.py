@@ -2,16 +2,19 @@
 
     python -m benchmarks.population_speed [--episodes 20] [--sizes 1 5 25 100]
                                           [--cells ppo/recent spg_p_multi/hybrid spg/memory]
+                                          [--modes eager compiled] [--numerics portable|native]
                                           [--before COMMIT] [--collectors 25]
 
 Prints three tables (one thread, as training runs use; absolute numbers depend on the machine,
 compare the ratios, all measured in this run):
 
-1. per cell and population size R: wall time, time per member-episode split into collection
-   and training, throughput per core against a solo run (R = 1, the same code), training's
-   achieved GFLOP/s (matmul FLOPs counted with ``torch.utils.flop_counter`` on a population of
-   one, forward and backward, padding rows included) beside this core's matmul peak
-   (a 1024 x 1024 float32 matmul, and ``bmm`` at a training layer's shape, measured here);
+1. per cell, population size R and mode (eager, or ``compile=true``): wall time (compiling
+   included), the seconds spent compiling, time per member-episode split into collection and
+   training (compiling excluded, so the steady rate), throughput per core against an eager solo
+   run (R = 1, the same code; compiling included), training's achieved GFLOP/s (matmul FLOPs
+   counted with ``torch.utils.flop_counter`` on a population of one, forward and backward,
+   padding rows included) beside this core's matmul peak (a 1024 x 1024 float32 matmul, and
+   ``bmm`` at a training layer's shape, measured here in the same numerics);
 2. collection per member-step with the direct loop and with TorchRL's ``Collector`` at the
    sizes given by ``--collectors``;
 3. with ``--before COMMIT``: the same solo runs with that commit's code (a clean export, run
@@ -33,7 +36,9 @@ os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
 
 from engine import numerics  # noqa: E402
 
-numerics.apply(numerics.DEFAULT)  # before torch loads (engine/numerics.py)
+# Before torch loads (engine/numerics.py); --numerics is read here, before the argument parser.
+MODE = sys.argv[sys.argv.index("--numerics") + 1] if "--numerics" in sys.argv[:-1] else numerics.DEFAULT
+numerics.apply(MODE)
 
 import torch  # noqa: E402
 from torch.utils._python_dispatch import TorchDispatchMode  # noqa: E402
@@ -55,7 +60,7 @@ def member_seeds(count: int) -> list[int]:
 def config(cell: str, members: int, episodes: int, *extra: str) -> RunConfig:
     algo, er = cell.split("/")
     seeds = ",".join(map(str, member_seeds(members)))
-    return RunConfig.compose(f"algo={algo}", f"er={er}", f"episodes={episodes}", "progress=false",
+    return RunConfig.compose(f"algo={algo}", f"er={er}", f"episodes={episodes}", "progress=false", f"numerics={MODE}",
                              "logger=none", "checkpoint_every=0", f"seeds=[{seeds}]", *extra)
 
 
@@ -64,7 +69,9 @@ def timed_run(cfg: RunConfig) -> dict:
         start = time.perf_counter()
         summary = train_population(cfg, Path(out))[0]
         wall = time.perf_counter() - start
-    return {"wall": wall, "rollout": summary["time/rollout_s"], "train": summary["time/train_s"]}
+    compiling = summary.get("time/compile_s", 0.0)
+    return {"wall": wall, "rollout": summary["time/rollout_s"], "train": summary["time/train_s"] - compiling,
+            "compile": compiling}
 
 
 class _FlopCount(TorchDispatchMode):
@@ -125,6 +132,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--sizes", type=int, nargs="+", default=[1, 5, 25, 100])
     parser.add_argument("--cells", nargs="+", default=CELLS)
+    parser.add_argument("--numerics", choices=numerics.MODES, default=numerics.DEFAULT,
+                        help="the numerics of every run and of the matmul peak (engine/numerics.py)")
+    parser.add_argument("--modes", nargs="+", default=["eager"], choices=["eager", "compiled"],
+                        help="eager and/or compiled update steps (compile=true)")
     parser.add_argument("--collectors", type=int, nargs="*", default=[25],
                         help="population sizes at which to compare the two collectors")
     parser.add_argument("--before", default=None, help="a commit whose solo runs are the baseline")
@@ -133,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--sizes must include 1 (the solo baseline)")
     torch.set_num_threads(1)
     peaks = matmul_peaks()
-    print(f"episodes per run: {args.episodes}; torch {torch.__version__}, one thread; matmul peak here: "
+    print(f"episodes per run: {args.episodes}; numerics {MODE}; torch {torch.__version__}, one thread; matmul peak here: "
           + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in peaks.items()))
     peak = peaks["matmul 1024^2"]
 
@@ -141,18 +152,21 @@ def main(argv: list[str] | None = None) -> int:
     for cell in args.cells:
         flops = counted_flops(cell, args.episodes)
         for size in args.sizes:
-            t = timed[cell, size] = timed_run(config(cell, size, args.episodes))
-            per = size * args.episodes
-            if size == 1:
-                solo[cell] = t
-            gflops = flops * size / t["train"] / 1e9
-            rows.append([cell, size, f"{t['wall']:.1f}", f"{1000 * t['wall'] / per:.1f}",
-                         f"{1000 * t['rollout'] / per:.1f}", f"{1000 * t['train'] / per:.1f}",
-                         f"{solo[cell]['wall'] / (t['wall'] / size):.2f}x",
-                         f"{gflops:.1f}", f"{gflops / peak:.0%}"])
-    table("Populations against a solo run (same code); per member-episode times",
-          ["cell", "R", "wall s", "ms/member-ep", "collect ms", "train ms", "throughput vs solo",
-           "train GFLOP/s", "of matmul peak"], rows)
+            for mode in args.modes:
+                t = timed[cell, size, mode] = timed_run(config(cell, size, args.episodes,
+                                                               f"compile={mode == 'compiled'}"))
+                per = size * args.episodes
+                if size == 1 and mode == args.modes[0]:
+                    solo[cell] = t
+                gflops = flops * size / t["train"] / 1e9
+                rows.append([cell, size, mode, f"{t['wall']:.1f}", f"{t['compile']:.1f}",
+                             f"{1000 * t['wall'] / per:.1f}", f"{1000 * t['rollout'] / per:.1f}",
+                             f"{1000 * t['train'] / per:.1f}", f"{solo[cell]['wall'] / (t['wall'] / size):.2f}x",
+                             f"{gflops:.1f}", f"{gflops / peak:.0%}"])
+    table(f"Populations against a solo run (same code, {args.modes[0]}); per member-episode times; wall includes "
+          "compiling, train ms excludes it",
+          ["cell", "R", "mode", "wall s", "compile s", "ms/member-ep", "collect ms", "train ms",
+           "throughput vs solo", "train GFLOP/s", "of matmul peak"], rows)
 
     rows = []
     for size in args.collectors:
@@ -174,8 +188,8 @@ def main(argv: list[str] | None = None) -> int:
             old = before_solo(args.before, cell, args.episodes)
             per = args.episodes
             old_ms = 1000 * (old["rollout"] + old["train"]) / per
-            ours = {size: 1000 * (t["rollout"] + t["train"]) / (size * per) for (c, size), t in timed.items()
-                    if c == cell}
+            ours = {size: 1000 * (t["rollout"] + t["train"]) / (size * per) for (c, size, mode), t in timed.items()
+                    if c == cell and mode == args.modes[0]}
             rows.append([cell, f"{1000 * old['rollout'] / per:.1f}", f"{1000 * old['train'] / per:.1f}",
                          f"{old_ms:.1f}", f"{ours[1]:.1f}", f"{ours[largest]:.1f}",
                          f"{old_ms / ours[largest]:.2f}x"])

@@ -200,6 +200,7 @@ class RunConfig:
     threads: int
     device: str
     numerics: str
+    compile: bool
     progress: bool
     logger: str
     overwrite: bool

@@ -18,8 +18,10 @@ population's checkpoint (``out_dir/checkpoint.pt``) holds every member.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,6 +34,7 @@ from engine.config import ConfigError, RunConfig
 from engine.outputs import SUMMARY_FILE, MetricsWriter, metric_columns, read_summary, write_json_atomic
 from engine.progress import Progress
 from engine.version import code_version, software_versions
+from learners import compiling
 from learners.base import MetricTotals
 
 
@@ -96,6 +99,7 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
     of the same settings, the population continues from it exactly as if it had never stopped.
     """
     numerics.apply(cfg.numerics)  # torch has loaded: a check that it runs the mode asked for
+    cfg, compiled = _compile_mode(cfg)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
@@ -124,13 +128,30 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
         raise checkpoint.CheckpointError(f"the checkpoint holds members {list(seeds)} but not {missing}, whose runs "
                                          "are not finished either; delete it to start afresh")
     if seeds:
-        for summary in _train(cfg, out_dir, seeds, member_settings, settings, payload, start):
+        for summary in _train(cfg, out_dir, seeds, member_settings, settings, payload, start, compiled):
             done[summary["seed"]] = summary
     return [done[s] for s in cfg.members]
 
 
+def _compile_mode(cfg: RunConfig) -> tuple[RunConfig, dict]:
+    """``cfg`` as it will run, and the summary's record of ``compile``: asked for, in effect, and why not.
+
+    Without a C++ compiler (or off Linux x86-64) a run asked to compile warns once and runs eagerly."""
+    record = {"requested": cfg.compile, "enabled": False, "reason": None}
+    if not cfg.compile:
+        return cfg, record
+    reason = compiling.unavailable_reason(cfg.device)
+    if reason is not None:
+        warnings.warn(f"compile=true: running eagerly instead, because {reason}", stacklevel=2)
+        return dataclasses.replace(cfg, compile=False), {**record, "reason": reason}
+    return cfg, {**record, "enabled": True}
+
+
 def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_settings: dict, settings: dict | None,
-           payload: dict | None, start: float) -> list[dict]:
+           payload: dict | None, start: float, compiled: dict) -> list[dict]:
+    if compiled["enabled"]:
+        compiling.configure(cfg.numerics)  # from a clean slate, so a run compiles the same in any process
+    compile_start = compiling.seconds_spent() if compiled["enabled"] else 0.0
     run = setup.build(cfg, seeds)
     env, generators, learner, schedule, minibatch = run.env, run.generators, run.learner, run.schedule, run.minibatch_size
     memory, phases = learner.memory, learner.phases
@@ -151,6 +172,13 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             code["resumed_from"] = {k: v for k, v in earlier.items() if k != "resumed_from"}
         elif earlier.get("resumed_from"):
             code["resumed_from"] = earlier["resumed_from"]
+    earlier_compile = timing.pop("compile_s", 0.0)
+
+    def compile_time() -> dict:  # seconds spent compiling, every session of a resumed run included
+        if not compiled["enabled"]:
+            return {}
+        return {"compile_s": earlier_compile + compiling.seconds_spent() - compile_start}
+
     collector = setup.make_episode_collector(cfg, env, learner.sampler, episodes=cfg.episodes - first)
     columns = metric_columns(phases)
     for member in members:
@@ -185,7 +213,8 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             done = episode + 1
             if cfg.checkpoint_every and done % cfg.checkpoint_every == 0 and done < cfg.episodes:
                 so_far = {} if earlier_wall is None else {"wall_s": earlier_wall + time.perf_counter() - start}
-                checkpoint.save(checkpoint_path, _payload(done, {**timing, **so_far}, settings, parts, env, code,
+                checkpoint.save(checkpoint_path, _payload(done, {**timing, **so_far, **compile_time()}, settings,
+                                                          parts, env, code,
                                                           generators, phases, members, learner.sampler))
     finally:
         progress.close()
@@ -219,11 +248,11 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             "status": member.status, "diverged": member.failure,
             "wall_time_s": wall, **session_wall,
             "resumed_at": first or None,
-            **{f"time/{key}": round(value, 3) for key, value in timing.items()},
+            **{f"time/{key}": round(value, 3) for key, value in {**timing, **compile_time()}.items()},
             "population": {"seeds": list(seeds), "size": len(seeds)},
             **({"evaluation": evaluation} if evaluation is not None else {}),
             "code": code, "software": software_versions(), "numerics": numerics.in_effect(),
-            "settings": member.settings,
+            "compile": compiled, "settings": member.settings,
         }
         write_json_atomic(member.folder / SUMMARY_FILE, summary)
         summaries.append(summary)

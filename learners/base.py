@@ -89,6 +89,16 @@ def prioritised_minibatch(data: TensorDictBase, size: int, generators, sampler) 
     return batch, index
 
 
+def objective(out: TensorDictBase, active: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """(the step's objective, the loss output's entries by name) from a loss's output: the sum over
+    members of each active member's loss terms. Terms without a gradient (e.g. a zero-weight
+    entropy bonus) are reported, not optimised."""
+    entries = dict(out.items())
+    losses = [value for key, value in entries.items() if key.startswith("loss_") and value.requires_grad]
+    per_member = losses[0] if len(losses) == 1 else torch.stack(losses).sum(0)
+    return (per_member * active).sum(), entries
+
+
 def freeze_member(optimisers, member: int, others: list[tuple[torch.Tensor, int]] = ()) -> None:
     """Zero ``member``'s parameters and Adam moments in ``optimisers`` (and the (tensor, member
     dim) pairs of ``others``, e.g. target networks)."""

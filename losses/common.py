@@ -91,6 +91,10 @@ class PhaseLoss(LossModule):
         """A scalar, or one mean per member in a population."""
         return F.mean(values, self.members is not None)
 
+    def draw(self, tensordict: TensorDictBase) -> None:
+        """Add to an actor step's minibatch the random draws its loss needs (none here), before
+        ``actor_loss``: a compiled loss cannot call the members' generators."""
+
     def before_critic_phase(self, data: TensorDictBase) -> None:
         """Called once with the phase's whole data before its critic steps."""
 

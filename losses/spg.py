@@ -12,6 +12,7 @@ from losses import functional as F
 from losses.common import PhaseLoss, _members
 
 BASELINES = ("mean", "action")
+NOISE_KEY = "spg_noise"  # the perturbations of a minibatch, when drawn ahead of the loss (``SPGLoss.draw``)
 
 
 class SPGLoss(PhaseLoss):
@@ -40,7 +41,8 @@ class SPGLoss(PhaseLoss):
             generator (``set_generators``).
 
     Input keys: the actor's and critic's inputs, ``action`` and ``value_target`` (the
-    Monte-Carlo return G, for the critic).
+    Monte-Carlo return G, for the critic); optionally ``spg_noise`` (``draw``), else the actor's
+    loss draws its perturbations itself.
     """
 
     @dataclass
@@ -97,6 +99,12 @@ class SPGLoss(PhaseLoss):
         return torch.stack([torch.randn(shape[1:], dtype=like.dtype, device=like.device, generator=g)
                             for g in self.generators])
 
+    def draw(self, tensordict: TensorDictBase) -> None:
+        """Draw the perturbations of ``tensordict``'s states into it (``spg_noise``), as ``actor_loss``
+        would: so that a compiled ``actor_loss`` does not call the generators."""
+        action = tensordict[self.tensor_keys.action]
+        tensordict.set(NOISE_KEY, self._noise(action.shape[:-1] + (self.num_samples, action.shape[-1]), action))
+
     # ------------------------------------------------------------------ phase preparation
     # Nothing to precompute before a phase: SPG scores candidates per minibatch.
     def after_actor_phase(self) -> None:
@@ -110,7 +118,9 @@ class SPGLoss(PhaseLoss):
         action = tensordict[keys.action]
         with torch.no_grad():
             mean = dist.mean
-            noise = self._noise(mean.shape[:-1] + (self.num_samples, mean.shape[-1]), mean)
+            noise = tensordict.get(NOISE_KEY, None)
+            if noise is None:
+                noise = self._noise(mean.shape[:-1] + (self.num_samples, mean.shape[-1]), mean)
             temperature = (self.temperature.item() if self.members is None
                            else self.temperature.to(mean.dtype).reshape(-1, *[1] * (noise.dim() - 1)))
             candidates = F.spg_candidates(action, mean, noise, temperature, self.sample_around)

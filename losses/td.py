@@ -76,8 +76,9 @@ def member_means(values: torch.Tensor) -> torch.Tensor:
 
 
 def make_td3_loss(actor, qvalue_networks, action_spec, *, policy_noise: float, noise_clip: float,
-                  loss_function: str) -> TD3Loss:
-    """TorchRL's ``TD3Loss`` with per-transition losses (``reduction="none"``)."""
+                  loss_function: str, deactivate_vmap: bool = True) -> TD3Loss:
+    """TorchRL's ``TD3Loss`` with per-transition losses (``reduction="none"``). ``deactivate_vmap``:
+    loop over the Q-networks (faster eagerly; ``torch.compile`` recompiles it on every call)."""
     return TD3Loss(actor, qvalue_networks, action_spec=action_spec, num_qvalue_nets=len(qvalue_networks),
                    policy_noise=policy_noise, noise_clip=noise_clip, loss_function=loss_function,
-                   reduction="none", deactivate_vmap=True)
+                   reduction="none", deactivate_vmap=deactivate_vmap)

@@ -14,7 +14,7 @@ PORTABLE = {"mode": "portable", "kernels": "AVX2", "mkl_branch": "COMPATIBLE"}
 
 
 def fake_run(root, algo, er, seed, final=None, status="completed", summary=True, episodes=3, code=CODE,
-             numerics=PORTABLE):
+             numerics=PORTABLE, compiled=None):
     folder = root / algo / er / f"seed{seed}"
     folder.mkdir(parents=True)
     rows = ["episode,total_reward"] + [f"{i},{(final or 0.0) + i - 1}" for i in range(episodes)]
@@ -22,7 +22,9 @@ def fake_run(root, algo, er, seed, final=None, status="completed", summary=True,
     if summary is True:
         (folder / "summary.json").write_text(json.dumps(
             {"algo": algo, "er": er, "seed": seed, "final_mean": final, "status": status, "episodes": episodes,
-             "code": code, **({"numerics": numerics} if numerics else {"software": {"cpu": "AVX2"}})}))
+             "code": code, **({"numerics": numerics} if numerics else {"software": {"cpu": "AVX2"}}),
+             **({"compile": {"requested": compiled, "enabled": compiled, "reason": None}} if compiled is not None
+                else {})}))
     elif summary:
         (folder / "summary.json").write_text(summary)
     return folder
@@ -130,6 +132,19 @@ def test_report_refuses_to_mix_numerics_unless_allowed(tmp_path, capsys):
     assert report.main([str(tmp_path), "--no-figures", "--allow-mixed-numerics"]) == 0
     table = (tmp_path / "report" / "table.md").read_text()
     assert table.count("Code: ") == 3 and "numerics: native (AVX512 kernels) (1 runs)" in table
+
+
+def test_report_refuses_to_mix_compiled_and_eager_runs(tmp_path, capsys):
+    """Compiled update steps round differently from eager ones: like numerics, never mixed silently."""
+    fake_run(tmp_path, "spg", "recent", 1, 90.0, compiled=True)
+    fake_run(tmp_path, "spg", "recent", 2, 100.0, compiled=False)
+    fake_run(tmp_path, "spg", "recent", 3, 95.0)  # from before compile=: eager
+    assert report.main([str(tmp_path), "--no-figures"]) == 2
+    err = capsys.readouterr().err
+    assert "holds runs of 2 numerics" in err and "compile=" in err
+    assert "portable (AVX2 kernels), compiled: 1 runs" in err and "portable (AVX2 kernels): 2 runs" in err
+    assert report.main([str(tmp_path), "--no-figures", "--allow-mixed-numerics"]) == 0
+    assert "numerics: portable (AVX2 kernels), compiled (1 runs)" in (tmp_path / "report" / "table.md").read_text()
 
 
 def test_report_refuses_a_folder_without_runs(tmp_path, capsys):

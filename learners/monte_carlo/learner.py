@@ -17,7 +17,9 @@ from tensordict import TensorDictBase
 
 from collectors import ReplayMemory, sample_minibatch
 from collectors.returns import TRANSITION_KEYS
-from learners.base import Learner, MetricTotals, Optimisers, diverged_members, freeze_member, prioritised_minibatch
+from learners.base import (Learner, MetricTotals, Optimisers, diverged_members, freeze_member, objective,
+                           prioritised_minibatch)
+from learners.compiling import compile_step
 from learners.networks import MemberNormal, MemberSampler, StackedCriticNet, StackedGaussianPolicyNet, reset_parameters
 from learners.optim import MemberAdam
 from learners.solo import make_actor, make_critic
@@ -82,10 +84,11 @@ class PhaseRunner:
     loss's diagnostics per member."""
 
     def __init__(self, loss, optimisers, value_epochs: int, policy_epochs: int,
-                 generators: list[torch.Generator], sampler=None):
+                 generators: list[torch.Generator], sampler=None, compiled: bool = False):
         """``sampler``: a ``collectors.prioritised.ProportionalSampler`` holding the replay
         memory's priorities (prioritised replay: every minibatch is drawn by priority, the critic's
-        loss weighted by importance and its errors |G - critic| become the new priorities), or None."""
+        loss weighted by importance and its errors |G - critic| become the new priorities), or None.
+        ``compiled``: compile each step's objective (``learners.compiling``)."""
         self.loss = loss
         self.optimisers = optimisers
         self.value_epochs = value_epochs
@@ -94,6 +97,14 @@ class PhaseRunner:
         self.sampler = sampler
         self.active = torch.ones(len(self.generators), device=optimisers.critic.params[0].device)  # 0: frozen
         self.critic_metrics, self.actor_metrics = loss.critic_metrics, loss.actor_metrics
+        self._critic_objective = compile_step(self._critic_step_objective, compiled)
+        self._actor_objective = compile_step(self._actor_step_objective, compiled)
+
+    def _critic_step_objective(self, batch: TensorDictBase) -> tuple[torch.Tensor, dict]:
+        return objective(self.loss.critic_loss(batch), self.active)
+
+    def _actor_step_objective(self, batch: TensorDictBase) -> tuple[torch.Tensor, dict]:
+        return objective(self.loss.actor_loss(batch), self.active)
 
     def run(self, data: TensorDictBase, minibatch_size: int, totals: "MetricTotals", episode: int = 0) -> dict[int, str]:
         """One phase on ``data`` (``[R, n]``) before or after episode ``episode`` (unused: every phase
@@ -102,14 +113,16 @@ class PhaseRunner:
         loss.before_critic_phase(data)
         for _ in range(self.value_epochs):
             batch, index = self._minibatch(data, minibatch_size)
-            out = loss.critic_loss(batch)
+            total, entries = self._critic_objective(batch)
             if index is not None:
-                self.sampler.update_priority(index.cpu(), out.pop(PRIORITY_KEY).cpu())
-            self._step(self.optimisers.critic, out, "critic", totals)
+                self.sampler.update_priority(index.cpu(), entries.pop(PRIORITY_KEY).cpu())
+            self._step(self.optimisers.critic, total, entries, "critic", totals)
         loss.before_actor_phase(data)
         for _ in range(self.policy_epochs):
-            out = loss.actor_loss(self._minibatch(data, minibatch_size)[0])
-            self._step(self.optimisers.actor, out, "actor", totals)
+            batch = self._minibatch(data, minibatch_size)[0]
+            loss.draw(batch)
+            total, entries = self._actor_objective(batch)
+            self._step(self.optimisers.actor, total, entries, "actor", totals)
         loss.after_actor_phase()
         # Checked once per phase: a NaN or inf loss or gradient leaves non-finite parameters
         # (Adam propagates it), and one check per phase costs little per step.
@@ -121,13 +134,9 @@ class PhaseRunner:
             return sample_minibatch(data, size, self.generators), None
         return prioritised_minibatch(data, size, self.generators, self.sampler)
 
-    def _step(self, optimiser, out: TensorDictBase, prefix: str, totals: "MetricTotals") -> None:
-        entries = dict(out.items())
-        # Terms without a gradient (e.g. a zero-weight entropy bonus) are reported, not optimised.
-        losses = [value for key, value in entries.items() if key.startswith("loss_") and value.requires_grad]
-        per_member = losses[0] if len(losses) == 1 else torch.stack(losses).sum(0)
+    def _step(self, optimiser, total: torch.Tensor, entries: dict, prefix: str, totals: "MetricTotals") -> None:
         optimiser.zero_grad(set_to_none=True)
-        (per_member * self.active).sum().backward()
+        total.backward()
         optimiser.step()
         totals.add(prefix, entries)
 
@@ -149,6 +158,6 @@ def build(cfg, env, generators: list[torch.Generator], memory: ReplayMemory) -> 
     loss = make_loss(cfg, networks, generators)
     optimisers = make_optimisers(cfg, networks)
     phases = PhaseRunner(loss, optimisers, cfg.algo.value_epochs, cfg.algo.policy_epochs, generators,
-                         sampler=memory.sampler)
+                         sampler=memory.sampler, compiled=cfg.compile)
     return Learner(networks, loss, optimisers, memory, phases,
                    TRANSITION_KEYS, monte_carlo=True)

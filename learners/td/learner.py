@@ -30,6 +30,7 @@ from torchrl.objectives import SoftUpdate
 
 from collectors import ReplayMemory, sample_minibatch
 from learners.base import Learner, MetricTotals, Optimisers, diverged_members, freeze_member, prioritised_minibatch
+from learners.compiling import compile_step
 from learners.networks import BlockSampler, StackedCriticNet, StackedMLP, reset_parameters
 from learners.optim import MemberAdam
 from losses.td import PRIORITY_KEY, MemberSACLoss, make_td3_loss, member_means
@@ -144,16 +145,19 @@ class OffPolicySampler(BlockSampler):
 def make_loss(cfg, networks: Networks, generators: Sequence[torch.Generator]):
     algo, td = cfg.algo, cfg.algo.td
     members, action_dim = len(generators), networks.sampler.action_dim
+    # Eagerly, looping over the Q-networks is faster than vmap; compiled, the loop's pytree
+    # bookkeeping would recompile the graph on every call, and vmap compiles into one graph.
     spec = Bounded(-1.0, 1.0, (action_dim,), device=generators[0].device)
     if algo.loss == "sac":
         sac = algo.sac
         target_entropy = sac.target_entropy if sac.target_entropy is not None else -float(action_dim)
         loss = MemberSACLoss(networks.actor, networks.qvalues, members=members, num_qvalue_nets=len(networks.qvalues),
                              loss_function=td.loss_function, alpha_init=sac.alpha_init, fixed_alpha=sac.fixed_alpha,
-                             target_entropy=target_entropy, action_spec=spec, deactivate_vmap=True)
+                             target_entropy=target_entropy, action_spec=spec, deactivate_vmap=not cfg.compile)
     else:
         loss = make_td3_loss(networks.actor, networks.qvalues, spec, policy_noise=algo.td3.policy_noise,
-                             noise_clip=algo.td3.noise_clip, loss_function=td.loss_function)
+                             noise_clip=algo.td3.noise_clip, loss_function=td.loss_function,
+                             deactivate_vmap=not cfg.compile)
     loss.make_value_estimator(gamma=cfg.gamma)
     return loss.to(generators[0].device)
 
@@ -177,6 +181,8 @@ class TDPhaseRunner:
 
     def __init__(self, cfg, loss, optimisers: Optimisers, generators: Sequence[torch.Generator],
                  memory=None):
+        """``memory``: the replay memory when its sampler is prioritised (else None). Each step's
+        objective is compiled when ``cfg.compile`` (``learners.compiling``)."""
         self.loss, self.optimisers, self.generators = loss, optimisers, list(generators)
         self.kind, self.td = cfg.algo.loss, cfg.algo.td
         self.steps = cfg.env.episode_steps
@@ -186,6 +192,9 @@ class TDPhaseRunner:
         self.active = torch.ones(len(self.generators), device=optimisers.critic.params[0].device)
         self.critic_metrics = ("loss_qvalue",)
         self.actor_metrics = ("loss_actor", "loss_alpha", "alpha") if self.kind == "sac" else ("loss_actor",)
+        self._sac_objective = compile_step(self._sac_losses, cfg.compile)
+        self._critic_objective = compile_step(self._td3_critic_losses, cfg.compile)
+        self._actor_objective = compile_step(self._td3_actor_losses, cfg.compile)
 
     def updates(self, episode: int) -> tuple[int, int]:
         """(steps taken before, steps to take now) before episode ``episode``."""
@@ -204,28 +213,40 @@ class TDPhaseRunner:
                 self.sampler.update_priority(index.cpu(), priority.detach().cpu())
         return diverged_members(self.optimisers, totals, self.active)
 
-    def _sac_step(self, batch: TensorDictBase, totals: MetricTotals) -> torch.Tensor:
+    def _sac_losses(self, batch: TensorDictBase) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """SAC's three losses per member and the minibatch's priorities (TorchRL's loss writes them)."""
         out = self.loss(batch)
         losses = {key: member_means(out[key]) for key in ("loss_qvalue", "loss_actor", "loss_alpha")}
+        return losses, batch.get(PRIORITY_KEY)
+
+    def _sac_step(self, batch: TensorDictBase, totals: MetricTotals) -> torch.Tensor:
+        losses, priority = self._sac_objective(batch)
         self._minimise(sum(losses.values()), self.optimisers.critic, self.optimisers.actor)
         self.updater.step()
         totals.add("critic", {"loss_qvalue": losses["loss_qvalue"]})
         totals.add("actor", {"loss_actor": losses["loss_actor"], "loss_alpha": losses["loss_alpha"],
                              "alpha": self.loss.alpha})
-        return batch.get(PRIORITY_KEY)
+        return priority
+
+    def _td3_critic_losses(self, batch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        """TD3's Q loss per member and the minibatch's priorities (the largest error of the Q-networks;
+        TorchRL's TD3 reports squared errors per Q-network)."""
+        loss_qvalue, meta = self.loss.value_loss(batch)
+        return member_means(loss_qvalue), meta["td_error"].max(0).values.sqrt()
+
+    def _td3_actor_losses(self, batch: TensorDictBase) -> torch.Tensor:
+        return member_means(self.loss.actor_loss(batch)[0])
 
     def _td3_step(self, batch: TensorDictBase, step: int, totals: MetricTotals) -> torch.Tensor:
-        loss_qvalue, meta = self.loss.value_loss(batch)
-        loss_qvalue = member_means(loss_qvalue)
+        loss_qvalue, priority = self._critic_objective(batch)
         self._minimise(loss_qvalue, self.optimisers.critic)
         totals.add("critic", {"loss_qvalue": loss_qvalue})
         if (step + 1) % self.policy_delay == 0:
-            loss_actor, _ = self.loss.actor_loss(batch)
-            loss_actor = member_means(loss_actor)
+            loss_actor = self._actor_objective(batch)
             self._minimise(loss_actor, self.optimisers.actor)
             self.updater.step()
             totals.add("actor", {"loss_actor": loss_actor})
-        return meta["td_error"].max(0).values.sqrt()  # TorchRL's TD3 reports squared errors per Q-network
+        return priority
 
     def _minimise(self, per_member: torch.Tensor, *optimisers: MemberAdam) -> None:
         for optimiser in optimisers:

@@ -1,0 +1,82 @@
+"""Compiled update steps (``compile=true``): each step's loss, forward and backward, through
+``torch.compile`` (TorchInductor's C++ backend on the CPU).
+
+What is compiled: the function from a minibatch to the step's objective (the loss module's
+forward pass and the sum of its terms); its backward pass is compiled with it (AOTAutograd).
+Drawing the minibatch and the optimiser's step stay eager: they use the members' generators and
+a step counter that would recompile the graph every step.
+
+Numerics: the matrix products stay ATen's (MKL's, as in eager mode); inductor generates and
+fuses the element-wise work, which rounds differently from eager kernels, so a compiled run is
+not an eager run to the bit (``summary.json`` says which ran, and ``report.py`` refuses to mix
+them). Generated kernels are pinned to AVX2 (``simdlen=256``) in both numerics modes: in
+portable mode so that every AVX2 or AVX-512 CPU runs the same code, and in native mode because
+the AVX-512 kernels inductor generated for these networks corrupted the heap with torch 2.13 and
+gcc 12 (seen on an AVX-512 Xeon). Portable mode also compiles for ``-march=x86-64-v3`` (the AVX2
+level) instead of ``-march=native``. Random draws inside a compiled loss (TorchRL's SAC and
+TD3 losses draw from torch's global generator) use ATen's generators (``fallback_random``), as
+eager mode does.
+"""
+
+from __future__ import annotations
+
+import functools
+import platform
+import shutil
+import sys
+import warnings
+from collections.abc import Callable
+
+import torch
+
+
+def unavailable_reason(device: str = "cpu") -> str | None:
+    """Why update steps cannot be compiled here (one line), or None if they can."""
+    if not str(device).startswith("cpu"):
+        return None  # CUDA compiles through Triton, which torch brings along
+    if not sys.platform.startswith("linux"):
+        return f"compiling on the CPU is supported on Linux only (this is {sys.platform})"
+    if platform.machine() not in ("x86_64", "AMD64"):
+        return f"compiling on the CPU is set up for x86-64 only (this is {platform.machine()})"
+    from torch._inductor import config
+
+    compiler = config.cpp.cxx[-1] if isinstance(config.cpp.cxx, tuple) else config.cpp.cxx
+    if not compiler or shutil.which(compiler) is None:
+        return (f"no C++ compiler {compiler!r} found (TorchInductor builds its CPU kernels with one; "
+                "install g++ or set CXX)")
+    return None
+
+
+def configure(numerics: str) -> None:
+    """Set TorchInductor up for this process's numerics mode (see the module docstring), from a
+    clean slate: what a run compiles must not depend on what the process compiled before it
+    (graphs compiled for other shapes or objects would be reused, recompiled with dynamic
+    shapes, or past the cache limit replaced by eager code, each rounding differently)."""
+    from torch._inductor import config
+
+    torch._dynamo.reset()
+    config.cpp.simdlen = 256
+    config.cpp.march = "x86-64-v3" if numerics == "portable" else None
+    config.fallback_random = True
+    _quiet()
+
+
+@functools.cache
+def _quiet() -> None:
+    """TensorDict's notes on tracing (a deprecated dynamo flag it sets, locks it cannot enforce in a
+    graph) say nothing about a run; they would be printed on every compiled step's first call."""
+    warnings.filterwarnings("ignore", message=r"Using lock_\(\) inside a compiled graph", category=UserWarning)
+    warnings.filterwarnings("ignore", message=r"torch._dynamo.config.inline_inbuilt_nn_modules is deprecated",
+                            category=FutureWarning)
+
+
+def compile_step(fn: Callable, enabled: bool) -> Callable:
+    """``fn`` compiled (or ``fn`` itself when not ``enabled``)."""
+    return torch.compile(fn, dynamic=False) if enabled else fn
+
+
+def seconds_spent() -> float:
+    """Seconds this process has spent compiling so far (graphs and their backward passes)."""
+    from torch._dynamo.utils import calculate_time_spent
+
+    return float(calculate_time_spent().get("total_wall_time", 0.0))

@@ -1,0 +1,99 @@
+"""Compiled update steps (``compile=true``, ``learners/compiling.py``).
+
+What holds, and is checked here: a compiled run is deterministic; a compiled member trains
+exactly as its compiled solo run (every reward, loss and weight), except one diagnostic, SPG's
+``actor/q_target`` (the mean critic value of the chosen targets), whose mean over a minibatch
+inductor reduces in another order for a population of one, so it may differ in its last bits
+there; populations of any size agree in every column. A machine without a C++ compiler runs
+eagerly, says why once, and records it. Compiled and eager runs round differently: the report
+keeps them apart (``tests/test_report.py``).
+"""
+
+import csv
+import json
+import math
+import warnings
+
+import pytest
+import torch
+
+from engine.runner import train, train_population
+from learners import compiling
+from tests.test_config import load
+
+REASON = compiling.unavailable_reason()
+needs_compiler = pytest.mark.skipif(REASON is not None, reason=f"cannot compile here: {REASON}")
+A, B, C = 2067791, 5468063, 773203
+SOLO_ONLY = {"actor/q_target"}  # the one column a population of one may round differently
+
+
+def common(algo, er, episodes=3):
+    return [f"algo={algo}", f"er={er}", f"episodes={episodes}", "progress=false", "logger=none", "compile=true"]
+
+
+def rows(folder):
+    with open(folder / "metrics.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@needs_compiler
+@pytest.mark.parametrize("algo, er", [("spg_p_multi", "hybrid"), ("ppo_log", "memory")])
+def test_a_compiled_member_trains_as_its_compiled_solo_run(tmp_path, algo, er):
+    train(load(*common(algo, er), f"seed={B}"), tmp_path / "solo")
+    train_population(load(*common(algo, er), f"seeds=[{A},{B}]"), tmp_path / "ab")
+    train_population(load(*common(algo, er), f"seeds=[{C},{B},{A}]"), tmp_path / "cba")
+    solo, member = rows(tmp_path / "solo"), rows(tmp_path / "ab" / f"seed{B}")
+    assert [r.keys() for r in solo] == [r.keys() for r in member] and len(solo) == 3
+    for mine, theirs in zip(solo, member):
+        assert {k: v for k, v in mine.items() if k not in SOLO_ONLY} == \
+               {k: v for k, v in theirs.items() if k not in SOLO_ONLY}
+        for key in SOLO_ONLY & mine.keys():
+            assert math.isclose(float(mine[key]), float(theirs[key]), rel_tol=1e-5, abs_tol=1e-6)
+    for seed in (A, B):  # populations of two and three sizes agree in every column, diagnostics included
+        assert (tmp_path / "ab" / f"seed{seed}" / "metrics.csv").read_bytes() == \
+               (tmp_path / "cba" / f"seed{seed}" / "metrics.csv").read_bytes()
+    for name in ("actor", "critic"):
+        solo_weights = torch.load(tmp_path / "solo" / f"{name}.pt")
+        member_weights = torch.load(tmp_path / "ab" / f"seed{B}" / f"{name}.pt")
+        assert all(torch.equal(solo_weights[k], member_weights[k]) for k in solo_weights)
+    summary = json.loads((tmp_path / "ab" / f"seed{B}" / "summary.json").read_text())
+    assert summary["compile"] == {"requested": True, "enabled": True, "reason": None}
+    assert 0 < summary["time/compile_s"] <= summary["time/train_s"]
+
+
+@needs_compiler
+def test_a_compiled_run_is_deterministic_and_differs_from_eager_only_in_rounding(tmp_path):
+    run = ["algo=spg_p_multi", "er=hybrid", "episodes=3", "progress=false", "logger=none", f"seed={A}"]
+    train(load(*run, "compile=true"), tmp_path / "one")
+    train(load(*run, "compile=true"), tmp_path / "two")
+    train(load(*run), tmp_path / "eager")
+    assert (tmp_path / "one" / "metrics.csv").read_bytes() == (tmp_path / "two" / "metrics.csv").read_bytes()
+    compiled, eager = rows(tmp_path / "one"), rows(tmp_path / "eager")
+    assert compiled[0]["total_reward"] == eager[0]["total_reward"]  # the first episode acts before any update
+    first = {k: (float(compiled[0][k]), float(eager[0][k])) for k in compiled[0] if "/" in k}
+    assert all(math.isclose(c, e, rel_tol=1e-3, abs_tol=1e-4) for c, e in first.values()), first
+
+
+def test_without_a_compiler_a_run_says_why_and_runs_eagerly(tmp_path, monkeypatch):
+    from torch._inductor import config
+
+    monkeypatch.setattr(config.cpp, "cxx", (None, "no-such-c++-compiler"))
+    assert "no C++ compiler 'no-such-c++-compiler' found" in compiling.unavailable_reason()
+    run = ["algo=spg", "er=recent", "episodes=2", "progress=false", "logger=none", f"seed={A}"]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        train(load(*run, "compile=true"), tmp_path / "fallback")
+    messages = [str(w.message) for w in caught if "compile=true" in str(w.message)]
+    assert len(messages) == 1 and "running eagerly instead, because no C++ compiler" in messages[0]
+    summary = json.loads((tmp_path / "fallback" / "summary.json").read_text())
+    assert summary["compile"]["requested"] is True and summary["compile"]["enabled"] is False
+    assert "no C++ compiler" in summary["compile"]["reason"] and "time/compile_s" not in summary
+    train(load(*run), tmp_path / "eager")
+    assert (tmp_path / "fallback" / "metrics.csv").read_bytes() == (tmp_path / "eager" / "metrics.csv").read_bytes()
+
+
+def test_compile_is_validated():
+    from engine.config import ConfigError
+
+    with pytest.raises(ConfigError, match="compile"):
+        load("compile=maybe")
