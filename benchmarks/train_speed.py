@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -24,7 +25,9 @@ os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
 
 from engine import numerics  # noqa: E402
 
-numerics.apply(numerics.DEFAULT)  # before torch loads (engine/numerics.py)
+# Before torch loads (engine/numerics.py). Imported by a benchmark that loaded torch in its own mode: that one.
+if "torch" not in sys.modules:
+    numerics.apply(numerics.DEFAULT)
 
 import torch  # noqa: E402
 

@@ -20,7 +20,6 @@ eager mode does.
 
 from __future__ import annotations
 
-import functools
 import platform
 import shutil
 import sys
@@ -61,10 +60,10 @@ def configure(numerics: str) -> None:
     _quiet()
 
 
-@functools.cache
 def _quiet() -> None:
     """TensorDict's notes on tracing (a deprecated dynamo flag it sets, locks it cannot enforce in a
-    graph) say nothing about a run; they would be printed on every compiled step's first call."""
+    graph) say nothing about a run; they would be printed on every compiled step's first call.
+    (Set per run: the filters may have been reset since, as pytest does per test.)"""
     warnings.filterwarnings("ignore", message=r"Using lock_\(\) inside a compiled graph", category=UserWarning)
     warnings.filterwarnings("ignore", message=r"torch._dynamo.config.inline_inbuilt_nn_modules is deprecated",
                             category=FutureWarning)

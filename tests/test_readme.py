@@ -23,6 +23,7 @@ ELSEWHERE = {
     "clean_sweep.py": "tests/test_launchers.py::test_clean_sweep_runs_an_export_of_the_commit",
     "hydra/launcher=slurm": "tests/test_slurm.py (a real single-node SLURM) and tests/test_launchers.py",
     "--oracle": "tests/test_oracle.py::test_the_documented_oracle_command_runs",
+    "compile=true": "tests/test_compile.py (compiled SPG-p, SAC and TD3 runs at a tiny size)",
 }
 
 
