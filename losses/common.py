@@ -131,6 +131,12 @@ class PhaseLoss(LossModule):
         term = -self.entropy_coeff * (entropy if self.entropy_coeff else entropy.detach())
         return entropy.detach(), term
 
+    def bind_calls(self) -> None:
+        """Build the cheap network calls now rather than at first use (a compiled step guards on
+        them, and would compile again when the other phase adds its own)."""
+        cached(self, self.actor_network, distribution_function)
+        cached(self, getattr(self, self.critic_attr), value_function)
+
     def _policy(self, tensordict: TensorDictBase) -> torch.distributions.Distribution:
         return cached(self, self.actor_network, distribution_function)(tensordict)
 

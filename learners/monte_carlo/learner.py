@@ -97,6 +97,8 @@ class PhaseRunner:
         self.sampler = sampler
         self.active = torch.ones(len(self.generators), device=optimisers.critic.params[0].device)  # 0: frozen
         self.critic_metrics, self.actor_metrics = loss.critic_metrics, loss.actor_metrics
+        if compiled:
+            loss.bind_calls()
         self._critic_objective = compile_step(self._critic_step_objective, compiled)
         self._actor_objective = compile_step(self._actor_step_objective, compiled)
 
