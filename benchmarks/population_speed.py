@@ -13,8 +13,9 @@ compare the ratios, all measured in this run):
    training (compiling excluded, so the steady rate), throughput per core against an eager solo
    run (R = 1, the same code; compiling included), training's achieved GFLOP/s (matmul FLOPs
    counted with ``torch.utils.flop_counter`` on a population of one, forward and backward,
-   padding rows included) beside this core's matmul peak (a 1024 x 1024 float32 matmul, and
-   ``bmm`` at a training layer's shape, measured here in the same numerics);
+   padding rows included) beside this core's matmul peak (a 1024 x 1024 float32 matmul in the
+   same numerics, measured again right before each row; the header also gives ``bmm`` at a
+   training layer's shape);
 2. collection per member-step with the direct loop and with TorchRL's ``Collector`` at the
    sizes given by ``--collectors``;
 3. with ``--before COMMIT``: the same solo runs with that commit's code (a clean export, run
@@ -99,6 +100,13 @@ def counted_flops(cell: str, episodes: int) -> float:
     return float(counter.total)
 
 
+def square_matmul_peak() -> float:
+    """GFLOP/s of a 1024^2 float32 matmul now (measured again before every row: a shared machine's
+    speed drifts within a benchmark run, by 2x over an hour here)."""
+    a, b = torch.randn(1024, 1024), torch.randn(1024, 1024)
+    return 2 * 1024 ** 3 / best_of(lambda: [a @ b for _ in range(5)], 3) * 5 / 1e9
+
+
 def matmul_peaks() -> dict[str, float]:
     """GFLOP/s of a 1024^2 matmul and of bmm at a 25-member 200 x 100 x 100 layer."""
     a, b = torch.randn(1024, 1024), torch.randn(1024, 1024)
@@ -146,13 +154,13 @@ def main(argv: list[str] | None = None) -> int:
     peaks = matmul_peaks()
     print(f"episodes per run: {args.episodes}; numerics {MODE}; torch {torch.__version__}, one thread; matmul peak here: "
           + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in peaks.items()))
-    peak = peaks["matmul 1024^2"]
 
     rows, solo, timed = [], {}, {}
     for cell in args.cells:
         flops = counted_flops(cell, args.episodes)
         for size in args.sizes:
             for mode in args.modes:
+                peak = square_matmul_peak()
                 t = timed[cell, size, mode] = timed_run(config(cell, size, args.episodes,
                                                                f"compile={mode == 'compiled'}"))
                 per = size * args.episodes
@@ -162,11 +170,11 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append([cell, size, mode, f"{t['wall']:.1f}", f"{t['compile']:.1f}",
                              f"{1000 * t['wall'] / per:.1f}", f"{1000 * t['rollout'] / per:.1f}",
                              f"{1000 * t['train'] / per:.1f}", f"{solo[cell]['wall'] / (t['wall'] / size):.2f}x",
-                             f"{gflops:.1f}", f"{gflops / peak:.0%}"])
+                             f"{gflops:.1f}", f"{peak:.1f}", f"{gflops / peak:.0%}"])
     table(f"Populations against a solo run (same code, {args.modes[0]}); per member-episode times; wall includes "
           "compiling, train ms excludes it",
           ["cell", "R", "mode", "wall s", "compile s", "ms/member-ep", "collect ms", "train ms",
-           "throughput vs solo", "train GFLOP/s", "of matmul peak"], rows)
+           "throughput vs solo", "train GFLOP/s", "peak GFLOP/s (before the row)", "of matmul peak"], rows)
 
     rows = []
     for size in args.collectors:
