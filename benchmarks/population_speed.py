@@ -100,20 +100,18 @@ def counted_flops(cell: str, episodes: int) -> float:
     return float(counter.total)
 
 
-def square_matmul_peak() -> float:
+def square_matmul_peak(calls: int = 5, repeats: int = 3) -> float:
     """GFLOP/s of a 1024^2 float32 matmul now (measured again before every row: a shared machine's
     speed drifts within a benchmark run, by 2x over an hour here)."""
     a, b = torch.randn(1024, 1024), torch.randn(1024, 1024)
-    return 2 * 1024 ** 3 / best_of(lambda: [a @ b for _ in range(5)], 3) * 5 / 1e9
+    return 2 * 1024 ** 3 / best_of(lambda: [a @ b for _ in range(calls)], repeats) * calls / 1e9
 
 
 def matmul_peaks() -> dict[str, float]:
     """GFLOP/s of a 1024^2 matmul and of bmm at a 25-member 200 x 100 x 100 layer."""
-    a, b = torch.randn(1024, 1024), torch.randn(1024, 1024)
     x, w = torch.randn(25, 200, 100), torch.randn(25, 100, 100)
-    square = 2 * 1024 ** 3 / best_of(lambda: [a @ b for _ in range(10)], 5) * 10
     batched = 2 * 25 * 200 * 100 * 100 / best_of(lambda: [torch.bmm(x, w) for _ in range(50)], 5) * 50
-    return {"matmul 1024^2": square / 1e9, "bmm 25x200x100x100": batched / 1e9}
+    return {"matmul 1024^2": square_matmul_peak(10, 5), "bmm 25x200x100x100": batched / 1e9}
 
 
 def before_solo(commit: str, cell: str, episodes: int) -> dict:

@@ -134,14 +134,20 @@ class PhaseLoss(LossModule):
     def bind_calls(self) -> None:
         """Build the cheap network calls now rather than at first use (a compiled step guards on
         them, and would compile again when the other phase adds its own)."""
-        cached(self, self.actor_network, distribution_function)
-        cached(self, getattr(self, self.critic_attr), value_function)
+        self._policy_call()
+        self._value_call()
+
+    def _policy_call(self) -> Callable[[TensorDictBase], torch.distributions.Distribution]:
+        return cached(self, self.actor_network, distribution_function)
+
+    def _value_call(self) -> Callable[[TensorDictBase], torch.Tensor]:
+        return cached(self, getattr(self, self.critic_attr), value_function)
 
     def _policy(self, tensordict: TensorDictBase) -> torch.distributions.Distribution:
-        return cached(self, self.actor_network, distribution_function)(tensordict)
+        return self._policy_call()(tensordict)
 
     def _value(self, tensordict: TensorDictBase) -> torch.Tensor:
-        return cached(self, getattr(self, self.critic_attr), value_function)(tensordict)
+        return self._value_call()(tensordict)
 
 
 def _members(members: int | None) -> int | None:

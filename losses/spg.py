@@ -99,11 +99,14 @@ class SPGLoss(PhaseLoss):
         return torch.stack([torch.randn(shape[1:], dtype=like.dtype, device=like.device, generator=g)
                             for g in self.generators])
 
+    def _perturbations(self, like: torch.Tensor) -> torch.Tensor:
+        """N(0, I) noise for ``num_samples`` candidates per state of ``like`` (``[..., B, D]``)."""
+        return self._noise(like.shape[:-1] + (self.num_samples, like.shape[-1]), like)
+
     def draw(self, tensordict: TensorDictBase) -> None:
         """Draw the perturbations of ``tensordict``'s states into it (``spg_noise``), as ``actor_loss``
         would: so that a compiled ``actor_loss`` does not call the generators."""
-        action = tensordict[self.tensor_keys.action]
-        tensordict.set(NOISE_KEY, self._noise(action.shape[:-1] + (self.num_samples, action.shape[-1]), action))
+        tensordict.set(NOISE_KEY, self._perturbations(tensordict[self.tensor_keys.action]))
 
     # ------------------------------------------------------------------ phase preparation
     # Nothing to precompute before a phase: SPG scores candidates per minibatch.
@@ -120,7 +123,7 @@ class SPGLoss(PhaseLoss):
             mean = dist.mean
             noise = tensordict.get(NOISE_KEY, None)
             if noise is None:
-                noise = self._noise(mean.shape[:-1] + (self.num_samples, mean.shape[-1]), mean)
+                noise = self._perturbations(mean)
             temperature = (self.temperature.item() if self.members is None
                            else self.temperature.to(mean.dtype).reshape(-1, *[1] * (noise.dim() - 1)))
             candidates = F.spg_candidates(action, mean, noise, temperature, self.sample_around)

@@ -145,9 +145,9 @@ class OffPolicySampler(BlockSampler):
 def make_loss(cfg, networks: Networks, generators: Sequence[torch.Generator]):
     algo, td = cfg.algo, cfg.algo.td
     members, action_dim = len(generators), networks.sampler.action_dim
+    spec = Bounded(-1.0, 1.0, (action_dim,), device=generators[0].device)
     # Eagerly, looping over the Q-networks is faster than vmap; compiled, the loop's pytree
     # bookkeeping would recompile the graph on every call, and vmap compiles into one graph.
-    spec = Bounded(-1.0, 1.0, (action_dim,), device=generators[0].device)
     if algo.loss == "sac":
         sac = algo.sac
         target_entropy = sac.target_entropy if sac.target_entropy is not None else -float(action_dim)
