@@ -37,14 +37,15 @@ def main(cfg: DictConfig) -> float | list | None:
     except numerics.NumericsError as err:
         print(f"Refusing to run: {err}", file=sys.stderr)
         raise SystemExit(2) from None
-    from engine.checkpoint import CHECKPOINT_FILE, CheckpointError
+    from engine.checkpoint import CheckpointError, in_folder
     from engine.runner import train_population  # after validation: torch loads slowly
     from engine.version import describe
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
         if run_cfg.overwrite:
-            (out_dir / CHECKPOINT_FILE).unlink(missing_ok=True)
+            for path in in_folder(out_dir):
+                path.unlink()
         skipped: list[tuple[Path, dict]] = []
         summaries = train_population(run_cfg, out_dir, settings, skipped=skipped)
     except (ConfigError, CheckpointError, numerics.NumericsError) as err:

@@ -3,7 +3,7 @@
     python -m benchmarks.population_speed [--episodes 20] [--sizes 1 5 25 100]
                                           [--cells ppo/recent spg_p_multi/hybrid spg/memory]
                                           [--modes eager compiled] [--numerics portable|native]
-                                          [--before COMMIT] [--collectors 25]
+                                          [--before COMMIT] [--collectors 25] [--processes 2]
 
 Prints three tables (one thread, as training runs use; absolute numbers depend on the machine,
 compare the ratios, all measured in this run):
@@ -19,7 +19,10 @@ compare the ratios, all measured in this run):
 2. collection per member-step with the direct loop and with TorchRL's ``Collector`` at the
    sizes given by ``--collectors``;
 3. with ``--before COMMIT``: the same solo runs with that commit's code (a clean export, run
-   as a subprocess of this script), the baseline of "today's solo run".
+   as a subprocess of this script), the baseline of "today's solo run";
+4. with ``--processes N``: the largest population of each cell (first mode) split over N
+   processes (``processes=N``: the same results), wall time against one process, process
+   start-up included.
 """
 
 from __future__ import annotations
@@ -145,6 +148,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--collectors", type=int, nargs="*", default=[25],
                         help="population sizes at which to compare the two collectors")
     parser.add_argument("--before", default=None, help="a commit whose solo runs are the baseline")
+    parser.add_argument("--processes", type=int, nargs="*", default=[],
+                        help="also train the largest population split over this many processes")
     args = parser.parse_args(argv)
     if 1 not in args.sizes:
         parser.error("--sizes must include 1 (the solo baseline)")
@@ -203,6 +208,18 @@ def main(argv: list[str] | None = None) -> int:
               "training; process start-up excluded)",
               ["cell", "before: collect", "before: train", "before: total", "today solo",
                f"today R={largest}", f"R={largest} vs before"], rows)
+
+    if args.processes:
+        rows, largest, mode = [], max(args.sizes), args.modes[0]
+        for cell in args.cells:
+            one = timed[cell, largest, mode]["wall"]
+            for count in args.processes:
+                wall = timed_run(config(cell, largest, args.episodes, f"compile={mode == 'compiled'}",
+                                        f"processes={count}"))["wall"]
+                rows.append([cell, largest, mode, count, f"{one:.1f}", f"{wall:.1f}", f"{one / wall:.2f}x"])
+        table(f"One population over several processes (processes=N; wall time, start-up and compiling included; "
+              f"{os.cpu_count()} cores here)",
+              ["cell", "R", "mode", "processes", "wall s, one process", "wall s, split", "speed-up"], rows)
     return 0
 
 

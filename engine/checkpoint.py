@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-CHECKPOINT_FILE = "checkpoint.pt"
+CHECKPOINT_FILE = "checkpoint.pt"  # a population's; each part of a split one has checkpoint-<first seed>.pt
 VERSION = 3  # 2: the simulator's whole state; 3: populations (every member, their generators)
 
 
@@ -62,6 +62,11 @@ def save(path: Path, payload: dict) -> None:
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
+
+
+def in_folder(folder: Path) -> list[Path]:
+    """The checkpoints in a run folder: ``checkpoint.pt`` and those of a split population's parts."""
+    return sorted(p for p in Path(folder).glob("checkpoint*.pt") if p.is_file())
 
 
 def load(path: Path) -> dict:

@@ -198,6 +198,7 @@ class RunConfig:
     gamma: float
     final_window: int
     threads: int
+    processes: int
     device: str
     numerics: str
     compile: bool
@@ -230,6 +231,7 @@ class RunConfig:
         _at_least("final_window", self.final_window, 1)
         _at_least("checkpoint_every", self.checkpoint_every, 0, " (0: never)")
         _at_least("threads", self.threads, 1)
+        _at_least("processes", self.processes, 1)
         _check_device(self.device)
         _choice("numerics", self.numerics, NUMERIC_MODES)
         _at_least("eval_episodes", self.eval_episodes, 1)
@@ -264,8 +266,9 @@ class RunConfig:
         trained in a population and the same run trained alone are recognised as one."""
         return {**settings, "seed": seed, "seeds": None}
 
-    # Keys that change how a run reports, not what it computes.
-    PRESENTATION_KEYS = ("progress", "logger", "overwrite", "checkpoint_every")
+    # Keys that change how a run reports or is scheduled, not what it computes (every member
+    # computes what its solo run does, so splitting a population over processes changes nothing).
+    PRESENTATION_KEYS = ("progress", "logger", "overwrite", "checkpoint_every", "processes")
 
     @classmethod
     def compose(cls, *overrides: str) -> "RunConfig":

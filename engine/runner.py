@@ -14,14 +14,21 @@ Each member writes the folder a solo run writes (metrics.csv, summary.json, acto
 critic.pt): ``out_dir`` itself for a solo run, ``out_dir/seed<seed>/`` in a population
 (``cfg.seeds``). A member that diverges is frozen and recorded; the others go on. The
 population's checkpoint (``out_dir/checkpoint.pt``) holds every member.
+
+With ``cfg.processes`` > 1 the members are split into that many parts, each trained as a
+population of its own in a process of its own (each with its checkpoint,
+``out_dir/checkpoint-<first seed>.pt``): since every member computes what its solo run does,
+the results are the same files, on more cores.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import multiprocessing
 import time
 import warnings
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -107,13 +114,9 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
     settings = run_settings(settings) if settings is not None else None
     member_settings = {s: cfg.member_settings(settings, s) if settings is not None else None for s in cfg.members}
 
-    checkpoint_path = out_dir / checkpoint.CHECKPOINT_FILE
-    payload = checkpoint.load(checkpoint_path) if checkpoint_path.exists() else None
-    if payload is not None and payload.get("settings") != settings:
-        raise ConfigError("the run folder holds a checkpoint of a different configuration; choose another "
-                          "folder (hydra.run.dir=...) or pass overwrite=true to start afresh")
+    parts = _resumed_parts(out_dir, settings)  # each continues as the population it was
+    resumed = {seed for _, seeds, _ in parts for seed in seeds}
     done: dict[int, dict] = {}
-    resumed = set(payload["members"]) if payload is not None else set()  # they go on from the checkpoint
     for seed in cfg.members:
         if seed in resumed:
             continue
@@ -122,15 +125,62 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
             done[seed] = summary
             if skipped is not None:
                 skipped.append((member_folder(cfg, out_dir, seed), summary))
-    seeds = tuple(payload["members"]) if payload is not None else tuple(s for s in cfg.members if s not in done)
-    missing = [s for s in cfg.members if s not in done and s not in seeds]
-    if missing:
-        raise checkpoint.CheckpointError(f"the checkpoint holds members {list(seeds)} but not {missing}, whose runs "
-                                         "are not finished either; delete it to start afresh")
-    if seeds:
-        for summary in _train(cfg, out_dir, seeds, member_settings, settings, payload, start, compiled):
-            done[summary["seed"]] = summary
+    fresh = tuple(s for s in cfg.members if s not in done and s not in resumed)
+    chunks = split_members(fresh, max(1, cfg.processes - len(parts)), at_least=2 if compiled["enabled"] else 1)
+    for chunk in chunks:
+        name = checkpoint.CHECKPOINT_FILE if not parts and len(chunks) == 1 else f"checkpoint-{chunk[0]}.pt"
+        parts.append((out_dir / name, chunk, None))
+    if not parts:  # every member had finished
+        summaries = []
+    elif len(parts) == 1:
+        path, seeds, payload = parts[0]
+        summaries = _train(cfg, out_dir, seeds, member_settings, settings, payload, path, start, compiled)
+    else:  # one process per part, ``cfg.processes`` at a time
+        context = multiprocessing.get_context("spawn")  # torch does not survive fork with threads running
+        with ProcessPoolExecutor(min(cfg.processes, len(parts)), mp_context=context) as pool:
+            futures = [pool.submit(_train_part, cfg, out_dir, seeds, member_settings, settings, path, compiled)
+                       for path, seeds, _ in parts]
+            summaries = [summary for future in futures for summary in future.result()]
+    for summary in summaries:
+        done[summary["seed"]] = summary
     return [done[s] for s in cfg.members]
+
+
+def split_members(seeds: tuple[int, ...], parts: int, at_least: int = 1) -> list[tuple[int, ...]]:
+    """``seeds`` in at most ``parts`` consecutive parts of near-equal size, each of at least
+    ``at_least`` members (unless there are fewer seeds); no part if no seeds."""
+    count = max(1, min(parts, len(seeds) // at_least))
+    if not seeds:
+        return []
+    size, extra = divmod(len(seeds), count)
+    bounds = [0]
+    for i in range(count):
+        bounds.append(bounds[-1] + size + (i < extra))
+    return [tuple(seeds[a:b]) for a, b in zip(bounds, bounds[1:])]
+
+
+def _resumed_parts(out_dir: Path, settings: dict | None) -> list[tuple[Path, tuple[int, ...], dict]]:
+    """The checkpoints in ``out_dir`` (``checkpoint.pt``, or one per part of a split population):
+    (path, members, payload) each; ``ConfigError`` if one is of other settings."""
+    parts = []
+    for path in checkpoint.in_folder(out_dir):
+        payload = checkpoint.load(path)
+        if payload.get("settings") != settings:
+            raise ConfigError(f"the run folder holds a checkpoint of a different configuration ({path.name}); "
+                              "choose another folder (hydra.run.dir=...) or pass overwrite=true to start afresh")
+        parts.append((path, tuple(payload["members"]), payload))
+    return parts
+
+
+def _train_part(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_settings: dict,
+                settings: dict | None, path: Path, compiled: dict) -> list[dict]:
+    """One part of a split population, in a process of its own (it inherits the parent's numerics
+    variables, so torch loaded with the same kernels)."""
+    numerics.apply(cfg.numerics)
+    torch.set_num_threads(cfg.threads)
+    start = time.perf_counter()
+    payload = checkpoint.load(path) if path.exists() else None
+    return _train(cfg, out_dir, seeds, member_settings, settings, payload, path, start, compiled)
 
 
 def _compile_mode(cfg: RunConfig) -> tuple[RunConfig, dict]:
@@ -148,7 +198,7 @@ def _compile_mode(cfg: RunConfig) -> tuple[RunConfig, dict]:
 
 
 def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_settings: dict, settings: dict | None,
-           payload: dict | None, start: float, compiled: dict) -> list[dict]:
+           payload: dict | None, checkpoint_path: Path, start: float, compiled: dict) -> list[dict]:
     if compiled["enabled"]:
         compiling.configure(cfg.numerics)  # from a clean slate, so a run compiles the same in any process
     compile_start = compiling.seconds_spent() if compiled["enabled"] else 0.0
@@ -163,7 +213,6 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
     first, timing = 0, {"rollout_s": 0.0, "train_s": 0.0}
     earlier_wall: float | None = 0.0  # wall time of the sessions before a resume (None: not recorded)
     code = dict(code_version())
-    checkpoint_path = out_dir / checkpoint.CHECKPOINT_FILE
     if payload is not None:
         first, timing = _restore(payload, parts, env, generators, phases, members)
         earlier_wall = timing.pop("wall_s", None)

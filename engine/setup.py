@@ -36,8 +36,8 @@ class Run:
 
 def build(cfg: RunConfig, seeds: tuple[int, ...]) -> Run:
     """Seed, then the members' generators, cars, learner (``learners.<family>.build``) and schedule."""
-    # The paper's algorithms draw only from the members' generators; TorchRL's SAC and TD3 losses
-    # draw their inner noise from torch's global generator, seeded here with the first member's seed.
+    # Every learner draws only from the members' generators; the global generators are seeded
+    # anyway (with the first member's seed), so that nothing left to them varies run to run.
     seed_everything(seeds[0])
     generators = make_generators(seeds, cfg.device)
     env = make_env(cfg, seeds)

@@ -13,9 +13,9 @@ them). Generated kernels are pinned to AVX2 (``simdlen=256``) in both numerics m
 portable mode so that every AVX2 or AVX-512 CPU runs the same code, and in native mode because
 the AVX-512 kernels inductor generated for these networks corrupted the heap with torch 2.13 and
 gcc 12 (seen on an AVX-512 Xeon). Portable mode also compiles for ``-march=x86-64-v3`` (the AVX2
-level) instead of ``-march=native``. Random draws inside a compiled loss (TorchRL's SAC and
-TD3 losses draw from torch's global generator) use ATen's generators (``fallback_random``), as
-eager mode does.
+level) instead of ``-march=native``. No loss draws random numbers inside a compiled step (the
+members' draws are made ahead, eagerly); should one, ``fallback_random`` keeps ATen's generators,
+as eager mode does.
 """
 
 from __future__ import annotations

@@ -11,31 +11,68 @@ The losses are TorchRL's own; what a population needs on top is small:
   turns them into one value per member, whose sum is minimised (each member's gradient its own).
 - SAC's entropy temperature: one per member (``MemberSACLoss``), since a shared temperature
   would couple the members.
-
-What stays shared: the Gaussian noise TorchRL's losses draw inside (SAC's reparameterised
-actions, TD3's target smoothing) comes from torch's global generator, so a member's numbers
-depend on which members it is trained with (they are reproducible for the same population).
+- The Gaussian noise inside the losses (SAC's reparameterised actions, TD3's target policy
+  smoothing) is drawn ahead of each step from each member's own generator (``draw``) and read
+  from the minibatch: TorchRL would draw it from torch's global generator, which would make a
+  member's numbers depend on the members it is trained with (and a compiled step cannot call
+  the members' generators). With the same draws the losses compute what TorchRL's do (tested).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 from tensordict import TensorDictBase
+from torch import nn
+from torch.distributions.utils import _sum_rightmost
+from torchrl.modules import TanhNormal
 from torchrl.objectives import SACLoss, TD3Loss
 
 from losses.common import PRIORITY_KEY  # noqa: F401  (TorchRL's SAC writes each transition's |TD error| there)
 
+ACTION_NOISE_KEY = "action_noise"  # SAC: N(0, I) behind the reparameterised action (root: the actor
+#                                    loss's, under "next": the target's)
+SMOOTHING_KEY = "smoothing_noise"  # TD3: the clipped target smoothing noise under "next" (zeros at the root)
+
+
+def member_normal(generators: Sequence[torch.Generator], shape: Sequence[int], like: torch.Tensor) -> torch.Tensor:
+    """``[R, *shape]`` standard normal draws, member r's from ``generators[r]``."""
+    return torch.stack([torch.randn(tuple(shape), generator=g, dtype=like.dtype, device=like.device)
+                        for g in generators])
+
+
+class DrawnTanhNormal(TanhNormal):
+    """TorchRL's ``TanhNormal`` whose reparameterised draw takes its N(0, I) noise as an argument:
+    ``tanh(loc + noise * scale)``, scored as TorchRL scores its own draw (``rsample_and_log_prob``).
+    Without ``noise`` it is TorchRL's distribution."""
+
+    def __init__(self, loc: torch.Tensor, scale: torch.Tensor, noise: torch.Tensor | None = None, **kwargs):
+        self.noise = noise
+        super().__init__(loc, scale, **kwargs)
+
+    def rsample_and_log_prob(self, sample_shape=()) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.noise is None or tuple(sample_shape) != ():
+            return super().rsample_and_log_prob(sample_shape)
+        normal = self.root_dist
+        preimage = normal.loc + self.noise * normal.scale  # what Normal.rsample computes from its own draw
+        transform = self.transforms[0]
+        sample = transform(preimage)
+        log_prob = self.base_dist.log_prob(preimage) - _sum_rightmost(
+            transform.log_abs_det_jacobian(preimage, sample), len(self.event_shape))
+        return sample, log_prob
 
 
 class MemberSACLoss(SACLoss):
     """``torchrl.objectives.SACLoss`` with one entropy temperature per member (``log_alpha`` of
-    shape ``[R]``); everything else is TorchRL's."""
+    shape ``[R]``) and the members' own noise (``draw``; the actor's distribution must be
+    ``DrawnTanhNormal`` reading ``ACTION_NOISE_KEY``); everything else is TorchRL's."""
 
-    def __init__(self, *args, members: int, **kwargs):
+    def __init__(self, *args, members: int, generators: Sequence[torch.Generator] | None = None, **kwargs):
         super().__init__(*args, reduction="none", scalar_output_mode="exclude", **kwargs)
         self.members = members
+        self.generators = list(generators) if generators is not None else None
         log_alpha = torch.full((members,), math.log(float(self.alpha_init)), device=self.alpha_init.device)
         del self.log_alpha
         if self.fixed_alpha:
@@ -43,6 +80,14 @@ class MemberSACLoss(SACLoss):
         else:
             self.log_alpha = torch.nn.Parameter(log_alpha)
         self._alpha_shape = (members, 1)  # broadcasts against [R, B] log-probabilities
+
+    def draw(self, tensordict: TensorDictBase) -> None:
+        """Each member's N(0, I) noise for this minibatch (``[R, B, D]``) into ``tensordict``: the
+        target's (under ``"next"``) first, then the actor loss's, both from the member's generator."""
+        action = tensordict.get("action")
+        noise = member_normal(self.generators, (2, *action.shape[1:]), action)
+        tensordict.set(("next", ACTION_NOISE_KEY), noise[:, 0])
+        tensordict.set(ACTION_NOISE_KEY, noise[:, 1])
 
     @property
     def _alpha(self) -> torch.Tensor:
@@ -75,10 +120,37 @@ def member_means(values: torch.Tensor) -> torch.Tensor:
     return values.reshape(values.shape[0], -1).mean(-1)
 
 
-def make_td3_loss(actor, qvalue_networks, action_spec, *, policy_noise: float, noise_clip: float,
-                  loss_function: str, deactivate_vmap: bool = True) -> TD3Loss:
-    """TorchRL's ``TD3Loss`` with per-transition losses (``reduction="none"``). ``deactivate_vmap``:
-    loop over the Q-networks (faster eagerly; ``torch.compile`` recompiles it on every call)."""
-    return TD3Loss(actor, qvalue_networks, action_spec=action_spec, num_qvalue_nets=len(qvalue_networks),
-                   policy_noise=policy_noise, noise_clip=noise_clip, loss_function=loss_function,
-                   reduction="none", deactivate_vmap=deactivate_vmap)
+class MemberTD3Loss(TD3Loss):
+    """``torchrl.objectives.TD3Loss`` with the members' own target smoothing noise (``draw``).
+
+    TorchRL's ``value_loss`` adds ``clip(policy_noise * n, -c, c)`` to the target actor's action,
+    with n from the global generator; here that term is zero (``policy_noise=0``) and the actor
+    (``SmoothedActor``) adds the noise ``draw`` put under ``("next", SMOOTHING_KEY)``: the target
+    is ``clip(mu'(s') + clip(policy_noise * n, -c, c), -1, 1)`` as TorchRL computes it. At the
+    root the noise is zeros, so the actor loss sees ``mu(s)`` itself."""
+
+    def __init__(self, actor, qvalue_networks, action_spec, *, policy_noise: float, noise_clip: float,
+                 loss_function: str, generators: Sequence[torch.Generator] | None = None,
+                 deactivate_vmap: bool = True):
+        super().__init__(actor, qvalue_networks, action_spec=action_spec, num_qvalue_nets=len(qvalue_networks),
+                         policy_noise=0.0, noise_clip=noise_clip, loss_function=loss_function,
+                         reduction="none", deactivate_vmap=deactivate_vmap)
+        self.smoothing, self.generators = policy_noise, list(generators) if generators is not None else None
+
+    def draw(self, tensordict: TensorDictBase) -> None:
+        """Each member's target smoothing noise for this minibatch into ``tensordict``."""
+        action = tensordict.get("action")
+        noise = member_normal(self.generators, action.shape[1:], action)
+        tensordict.set(("next", SMOOTHING_KEY), (noise * self.smoothing).clamp(-self.noise_clip, self.noise_clip))
+        tensordict.set(SMOOTHING_KEY, torch.zeros_like(action))
+
+
+class SmoothedActor(nn.Module):
+    """TD3's actor as ``MemberTD3Loss`` calls it: ``(observation, noise) -> mu(observation) + noise``."""
+
+    def __init__(self, net: nn.Module):
+        super().__init__()
+        self.net = net
+
+    def forward(self, observation: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        return self.net(observation) + noise

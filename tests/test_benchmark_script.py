@@ -35,11 +35,12 @@ def test_population_speed_benchmark_prints_its_tables():
     # Both modes where a C++ compiler is present (a solo run, to keep the test short), else eager populations.
     sizes = ["--sizes", "1", "--modes", "eager", "compiled"] if unavailable_reason() is None else ["--sizes", "1", "2"]
     result = subprocess.run([sys.executable, "-m", "benchmarks.population_speed", "--episodes", "2",
-                             "--cells", "ppo/recent", "--collectors", "2", *sizes],
+                             "--cells", "ppo/recent", "--collectors", "2", "--processes", "2", *sizes],
                             capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
-    assert len(rows) == (1 + 2) + (1 + 1)
+    assert len(rows) == (1 + 2) + (1 + 1) + (1 + 1)
+    assert "| ppo/recent | 1 | eager | 2 |" in result.stdout or "| ppo/recent | 2 | eager | 2 |" in result.stdout
     assert "matmul peak here" in result.stdout
     assert "| ppo/recent | 1 | compiled |" in result.stdout or "| ppo/recent | 2 | eager |" in result.stdout
 

@@ -12,14 +12,18 @@ import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-from torchrl.objectives import SACLoss, SoftUpdate
+from tensordict.nn import TensorDictModule
+from torch.distributions.utils import _standard_normal
+from torchrl.data import Bounded, LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.modules import ProbabilisticActor, TanhNormal
+from torchrl.objectives import SACLoss, SoftUpdate, TD3Loss
 
 from collectors.prioritised import WEIGHT_KEY, ProportionalSampler
 from engine.config import ConfigError
 from engine.evaluation import load_policy
 from engine.setup import make_env, make_generators, make_learner
 from learners.base import MetricTotals
+from losses.td import ACTION_NOISE_KEY, SMOOTHING_KEY
 from engine.runner import train_population
 from tests.test_config import load
 from tests.test_resilience import interrupted_after
@@ -50,10 +54,14 @@ def transitions(members, n, seed=0):
 
 # --------------------------------------------------------------------------- the losses
 def test_sac_of_a_population_of_one_equals_torchrl_sac_loss():
-    """MemberSACLoss (per-member temperature, per-transition terms averaged per member) gives
-    TorchRL's SACLoss (reduction="mean", one scalar temperature) on the same networks and noise."""
+    """MemberSACLoss (per-member temperature, per-transition terms averaged per member, noise drawn
+    ahead) gives TorchRL's SACLoss (reduction="mean", one scalar temperature, TanhNormal drawing
+    from the global generator) on the same networks and the same N(0, I) draws."""
     cfg, t = training("sac", seeds=(A,))
-    plain = SACLoss(t.networks.actor, t.networks.qvalues, num_qvalue_nets=2, loss_function="l2", alpha_init=1.0,
+    actor = ProbabilisticActor(TensorDictModule(t.networks.actor_net, ["observation"], ["loc", "scale"]),
+                               in_keys=["loc", "scale"], distribution_class=TanhNormal,
+                               distribution_kwargs={"low": -1.0, "high": 1.0})
+    plain = SACLoss(actor, t.networks.qvalues, num_qvalue_nets=2, loss_function="l2", alpha_init=1.0,
                     target_entropy=-2.0, deactivate_vmap=True)
     plain.make_value_estimator(gamma=cfg.gamma)
     SoftUpdate(plain, tau=0.005)
@@ -62,11 +70,40 @@ def test_sac_of_a_population_of_one_equals_torchrl_sac_loss():
     plain.target_qvalue_network_params.data.copy_(t.loss.target_qvalue_network_params.data)
     data = transitions(1, 64)
     torch.manual_seed(1)
-    ours = t.loss(data.clone())
-    torch.manual_seed(1)
     theirs = plain(data.clone())
+    torch.manual_seed(1)  # TorchRL's draws, in its order: the target's action, then the actor loss's
+    mine = data.clone()
+    mine.set(("next", ACTION_NOISE_KEY), _standard_normal((1, 64, 2), dtype=torch.float32, device="cpu"))
+    mine.set(ACTION_NOISE_KEY, _standard_normal((1, 64, 2), dtype=torch.float32, device="cpu"))
+    ours = t.loss(mine)
     for key in ("loss_actor", "loss_qvalue", "loss_alpha"):
         torch.testing.assert_close(ours[key].mean(), theirs[key], rtol=1e-6, atol=1e-6)
+    assert not torch.equal(t.loss(data.clone().update(mine.select(ACTION_NOISE_KEY, ("next", ACTION_NOISE_KEY))
+                                                      .apply(torch.neg)))["loss_actor"], ours["loss_actor"])
+
+
+def test_td3_with_drawn_smoothing_noise_equals_torchrl_td3_loss():
+    """MemberTD3Loss's target (smoothing noise drawn ahead, added by the actor) and actor loss are
+    TorchRL's TD3Loss's, bit for bit, given the same draw."""
+    cfg, t = training("td3", seeds=(A,))
+    plain = TD3Loss(TensorDictModule(t.networks.actor_net, ["observation"], ["action"]), t.networks.qvalues,
+                    action_spec=Bounded(-1.0, 1.0, (2,)), num_qvalue_nets=2, policy_noise=0.2, noise_clip=0.5,
+                    loss_function="l2", reduction="none", deactivate_vmap=True)
+    plain.make_value_estimator(gamma=cfg.gamma)
+    SoftUpdate(plain, tau=0.005)
+    for name in ("qvalue_network_params", "target_qvalue_network_params", "target_actor_network_params"):
+        for theirs, ours in zip(getattr(plain, name).values(True, True), getattr(t.loss, name).values(True, True),
+                                strict=True):  # the same leaves; the actor's sit one module deeper in ours
+            theirs.data.copy_(ours.data)
+    data = transitions(1, 64)
+    torch.manual_seed(1)
+    theirs = plain.value_loss(data.clone())[0]
+    torch.manual_seed(1)
+    mine = data.clone()
+    mine.set(("next", SMOOTHING_KEY), (torch.randn(1, 64, 2) * 0.2).clamp(-0.5, 0.5))
+    mine.set(SMOOTHING_KEY, torch.zeros(1, 64, 2))
+    assert torch.equal(t.loss.value_loss(mine)[0], theirs)
+    assert torch.equal(t.loss.actor_loss(mine)[0], plain.actor_loss(data.clone())[0])
 
 
 @pytest.mark.parametrize("algo", ["sac", "td3"])
@@ -76,10 +113,14 @@ def test_each_loss_term_reaches_only_its_own_networks_and_members_do_not_mix(alg
     actor = t.optimisers.actor.params
     critic = t.optimisers.critic.params
 
+    keys = set(data.keys(True, True))
+    t.loss.draw(data)  # the members' noise, kept for every call below
+    noise = [key for key in data.keys(True, True) if key not in keys]
+    assert noise
+
     def grads(term, batch):
         for p in actor + critic:
             p.grad = None
-        torch.manual_seed(3)
         if algo == "sac":
             out = t.loss(batch.clone())[term]
         else:
@@ -97,10 +138,12 @@ def test_each_loss_term_reaches_only_its_own_networks_and_members_do_not_mix(alg
         a, c = grads("loss_alpha", data)
         assert a[-1] is not None and a[-1].ne(0).all()  # log_alpha, one per member
         assert all(g is None or not g.any() for g in a[:-1] + c)
-    # Member 1's data changes: member 0's gradients do not (same noise: same global seed).
+    # Member 1's data changes: member 0's gradients do not.
     a0, c0 = grads("loss_qvalue", data)
-    other = data.clone()
-    other[1] = transitions(2, 32, seed=9)[1]
+    other, changed = data.clone(), transitions(2, 32, seed=9)
+    for key in noise:
+        changed.set(key, data.get(key))
+    other[1] = changed[1]
     a1, c1 = grads("loss_qvalue", other)
     for g0, g1 in zip(c0, c1):  # Q-network parameters are [Q-net, member, ...]
         torch.testing.assert_close(g0[:, 0], g1[:, 0], rtol=0, atol=0)
@@ -224,6 +267,16 @@ def test_an_interrupted_population_resumes_exactly(tmp_path, algo, er):
     for seed in (A, B):
         assert ((tmp_path / "run" / f"seed{seed}" / "metrics.csv").read_bytes()
                 == (tmp_path / "reference" / f"seed{seed}" / "metrics.csv").read_bytes())
+
+
+@pytest.mark.parametrize("algo, er", [("sac", "memory"), ("td3", "prioritised")])
+def test_each_member_equals_its_solo_run(tmp_path, algo, er):
+    """Every draw (minibatches, priorities, the losses' noise) comes from the member's own generator."""
+    run = [f"algo={algo}", f"er={er}", *FAST, "algo.td.updates_per_step=0.1"]
+    train_population(load(*run, f"seed={B}"), tmp_path / "solo")
+    train_population(load(*run, f"seeds=[{B},{A}]"), tmp_path / "pair")
+    assert ((tmp_path / "pair" / f"seed{B}" / "metrics.csv").read_bytes()
+            == (tmp_path / "solo" / "metrics.csv").read_bytes())
 
 
 def test_a_diverging_sac_member_is_frozen_and_the_other_finishes(tmp_path, monkeypatch):

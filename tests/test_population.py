@@ -7,6 +7,7 @@ resumes exactly.
 """
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -17,7 +18,7 @@ import torch
 
 from engine import checkpoint
 from learners.monte_carlo.learner import PhaseRunner
-from engine.runner import train, train_population
+from engine.runner import split_members, train, train_population
 from tests.test_config import load
 from tests.test_resilience import interrupted_after
 from tests.test_train import ENV, ROOT, read_rows, run_train
@@ -78,30 +79,44 @@ def test_a_diverging_member_is_frozen_and_the_others_go_on(tmp_path, monkeypatch
             == (tmp_path / "solo" / "metrics.csv").read_bytes())
 
 
-def test_sigkill_mid_population_then_resume_gives_every_member_its_uninterrupted_metrics(tmp_path):
-    run = [*common("spg_p", "hybrid", episodes=8), "checkpoint_every=2", seeds(A, B)]
+def test_a_population_split_over_processes_killed_and_resumed_gives_its_unsplit_results(tmp_path):
+    """processes=2 trains [A, B, C] as two populations, (A, B) and (C), in two processes, each with its
+    own checkpoint. Killed (SIGKILL, every process) after both have saved one, and resumed with
+    processes=1 (the parts go on as they were, one at a time): every member's metrics.csv is
+    its unsplit, uninterrupted population's."""
+    run = [*common("spg_p", "hybrid", episodes=8), "checkpoint_every=2", seeds(A, B, C)]
     reference = tmp_path / "reference"
     train_population(load(*run), reference)
     run_dir = tmp_path / "run"
     cmd = [sys.executable, str(ROOT / "train.py"), *run, f"hydra.run.dir={run_dir}"]
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    parts = [run_dir / f"checkpoint-{A}.pt", run_dir / f"checkpoint-{C}.pt"]
+    proc = subprocess.Popen([*cmd, "processes=2"], cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.time() + 300
     while time.time() < deadline and proc.poll() is None:
-        if ((run_dir / checkpoint.CHECKPOINT_FILE).exists()
-                and len(read_rows(run_dir / f"seed{B}" / "metrics.csv")) >= 5):
+        if all(p.exists() for p in parts) and len(read_rows(run_dir / f"seed{B}" / "metrics.csv")) >= 5:
             break
         time.sleep(0.05)
     assert proc.poll() is None, "the population finished before it could be killed"
-    proc.send_signal(signal.SIGKILL)
+    os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
-    resumed = subprocess.run(cmd, cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600)
+    assert not (run_dir / checkpoint.CHECKPOINT_FILE).exists()
+    resumed = subprocess.run([*cmd, "processes=1"], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
-    for seed in (A, B):
+    for seed in (A, B, C):
         summary = json.loads((run_dir / f"seed{seed}" / "summary.json").read_text())
         assert summary["status"] == "completed" and summary["resumed_at"] in (2, 4, 6)
+        assert summary["population"]["seeds"] == ([C] if seed == C else [A, B])
         assert ((run_dir / f"seed{seed}" / "metrics.csv").read_bytes()
                 == (reference / f"seed{seed}" / "metrics.csv").read_bytes())
-    assert not (run_dir / checkpoint.CHECKPOINT_FILE).exists()
+    assert not checkpoint.in_folder(run_dir)
+
+
+def test_members_split_into_near_equal_parts():
+    assert split_members((1, 2, 3, 4, 5), 2) == [(1, 2, 3), (4, 5)]
+    assert split_members((1, 2, 3), 2, at_least=2) == [(1, 2, 3)]  # compiled: no part of one
+    assert split_members((1, 2, 3, 4), 8, at_least=2) == [(1, 2), (3, 4)]
+    assert split_members((1,), 4) == [(1,)] and split_members((), 2) == []
 
 
 def test_finished_members_are_skipped(tmp_path):

@@ -24,6 +24,8 @@ ELSEWHERE = {
     "hydra/launcher=slurm": "tests/test_slurm.py (a real single-node SLURM) and tests/test_launchers.py",
     "--oracle": "tests/test_oracle.py::test_the_documented_oracle_command_runs",
     "compile=true": "tests/test_compile.py (compiled SPG-p, SAC and TD3 runs at a tiny size)",
+    "processes=2": "tests/test_population.py::test_a_population_split_over_processes_killed_and_resumed_gives_its_"
+                   "unsplit_results",
 }
 
 

@@ -11,7 +11,8 @@ run folders, checkpoints, divergence, populations); what differs is built here:
   its own generator;
 - the updates (``TDPhaseRunner``): before each episode, the gradient steps owed to the
   environment steps collected since the last ones (``td.updates_per_step``), each on a
-  minibatch per member from its memory (uniform or prioritised), with TorchRL's soft target
+  minibatch per member from its memory (uniform or prioritised) and the loss's noise drawn from
+  the member's generator (``draw``), with TorchRL's soft target
   updates (``SoftUpdate``); TD3 steps its actor (and targets) every ``policy_delay`` critic steps.
 """
 
@@ -25,7 +26,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
 from torchrl.data import Bounded
-from torchrl.modules import ProbabilisticActor, TanhNormal
+from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import SoftUpdate
 
 from collectors import ReplayMemory, sample_minibatch
@@ -33,7 +34,8 @@ from learners.base import Learner, MetricTotals, Optimisers, diverged_members, f
 from learners.compiling import compile_step
 from learners.networks import BlockSampler, StackedCriticNet, StackedMLP, reset_parameters
 from learners.optim import MemberAdam
-from losses.td import PRIORITY_KEY, MemberSACLoss, make_td3_loss, member_means
+from losses.td import (ACTION_NOISE_KEY, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhNormal, MemberSACLoss, MemberTD3Loss,
+                       SmoothedActor, member_means)
 
 TD_TRANSITION_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
                       ("next", "terminated"))
@@ -75,12 +77,13 @@ def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
     action_dim = env.action_spec.shape[-1]
     device = generators[0].device
     actor_net = make_actor_net(algo.loss, members, obs_dim, action_dim, net.actor_hidden, net.activation).to(device)
-    if algo.loss == "sac":
+    if algo.loss == "sac":  # its reparameterised draws use the noise the loss draws per member
         actor = ProbabilisticActor(TensorDictModule(actor_net, ["observation"], ["loc", "scale"]),
-                                   in_keys=["loc", "scale"], distribution_class=TanhNormal,
+                                   in_keys={"loc": "loc", "scale": "scale", "noise": ACTION_NOISE_KEY},
+                                   distribution_class=DrawnTanhNormal,
                                    distribution_kwargs={"low": -1.0, "high": 1.0}, return_log_prob=False)
-    else:
-        actor = TensorDictModule(actor_net, ["observation"], ["action"])
+    else:  # the target actor adds the smoothing noise the loss draws per member
+        actor = TensorDictModule(SmoothedActor(actor_net), ["observation", SMOOTHING_KEY], ["action"])
     reset_parameters(actor_net, generators)
     qvalue_nets = []
     for _ in range(2):
@@ -151,12 +154,13 @@ def make_loss(cfg, networks: Networks, generators: Sequence[torch.Generator]):
     if algo.loss == "sac":
         sac = algo.sac
         target_entropy = sac.target_entropy if sac.target_entropy is not None else -float(action_dim)
-        loss = MemberSACLoss(networks.actor, networks.qvalues, members=members, num_qvalue_nets=len(networks.qvalues),
-                             loss_function=td.loss_function, alpha_init=sac.alpha_init, fixed_alpha=sac.fixed_alpha,
-                             target_entropy=target_entropy, action_spec=spec, deactivate_vmap=not cfg.compile)
+        loss = MemberSACLoss(networks.actor, networks.qvalues, members=members, generators=generators,
+                             num_qvalue_nets=len(networks.qvalues), loss_function=td.loss_function,
+                             alpha_init=sac.alpha_init, fixed_alpha=sac.fixed_alpha, target_entropy=target_entropy,
+                             action_spec=spec, deactivate_vmap=not cfg.compile)
     else:
-        loss = make_td3_loss(networks.actor, networks.qvalues, spec, policy_noise=algo.td3.policy_noise,
-                             noise_clip=algo.td3.noise_clip, loss_function=td.loss_function,
+        loss = MemberTD3Loss(networks.actor, networks.qvalues, spec, policy_noise=algo.td3.policy_noise,
+                             noise_clip=algo.td3.noise_clip, loss_function=td.loss_function, generators=generators,
                              deactivate_vmap=not cfg.compile)
     loss.make_value_estimator(gamma=cfg.gamma)
     return loss.to(generators[0].device)
@@ -208,6 +212,7 @@ class TDPhaseRunner:
                 batch, index = prioritised_minibatch(data, minibatch_size, self.generators, self.sampler)
             else:
                 batch = sample_minibatch(data, minibatch_size, self.generators)
+            self.loss.draw(batch)  # the loss's noise, from each member's generator
             priority = self._sac_step(batch, totals) if self.kind == "sac" else self._td3_step(batch, step, totals)
             if self.sampler is not None:
                 self.sampler.update_priority(index.cpu(), priority.detach().cpu())
