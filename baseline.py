@@ -1,0 +1,71 @@
+"""Outside reference learners: Stable-Baselines3's SAC and PPO with their defaults, one run per track:
+
+    python baseline.py --algos sac ppo --tracks 2067791 5468063 [--episodes 201] [--jobs 2]
+                       [--out outputs/sweeps/sb3]
+
+Each run writes ``<out>/sb3_<algo>/default/seed<track>/`` (``metrics.csv``, ``summary.json``,
+``model.zip``), which ``report.py`` reads like a ``train.py`` run; finished runs of the same
+settings are skipped. ``--jobs`` runs that many at once, one process each (one torch thread
+per run). Needs the ``baselines`` extra (``pip install -c constraints/cpu.txt -e '.[baselines]'``).
+What a run is, exactly: ``engine/sb3.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import multiprocessing
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+from engine import numerics
+from engine.sb3 import ALGOS, BaselineError, run_folder, settings_of, train
+
+
+def _train(args: tuple) -> dict:
+    algo, seed, episodes, out, window, mode = args
+    numerics.apply(mode)  # a fresh process: before torch loads
+    return train(algo, seed, episodes, out, window, mode)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--algos", nargs="+", default=list(ALGOS), help=f"of {', '.join(ALGOS)}")
+    parser.add_argument("--tracks", type=int, nargs="+", required=True, help="track seeds, one run each")
+    parser.add_argument("--episodes", type=int, default=201)
+    parser.add_argument("--final-window", type=int, default=20)
+    parser.add_argument("--jobs", type=int, default=1, help="runs at once, one process each")
+    parser.add_argument("--numerics", choices=numerics.MODES, default=numerics.DEFAULT)
+    parser.add_argument("--out", type=Path, default=Path("outputs/sweeps/sb3"))
+    args = parser.parse_args(argv)
+    if importlib.util.find_spec("stable_baselines3") is None:
+        print("baseline.py needs Stable-Baselines3: pip install -c constraints/cpu.txt -e '.[baselines]'",
+              file=sys.stderr)
+        return 2
+    try:
+        for algo in args.algos:
+            for seed in args.tracks:
+                settings_of(algo, seed, args.episodes, args.final_window, args.numerics)
+        if args.jobs < 1:
+            raise BaselineError(f"--jobs must be at least 1, got {args.jobs}")
+        numerics.apply(args.numerics)
+    except (BaselineError, numerics.NumericsError) as err:
+        print(f"Refusing to run: {err}", file=sys.stderr)
+        return 2
+    work = [(algo, seed, args.episodes, args.out, args.final_window, args.numerics)
+            for algo in args.algos for seed in args.tracks]
+    if args.jobs == 1:
+        summaries = [_train(item) for item in work]
+    else:
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(args.jobs, mp_context=context) as pool:
+            summaries = list(pool.map(_train, work))
+    for (algo, seed, *_), summary in zip(work, summaries):
+        print(f"{run_folder(args.out, algo, seed)}: {summary['status']}, final_mean {summary['final_mean']:.2f}, "
+              f"{summary['wall_time_s'] / 60:.1f} min")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

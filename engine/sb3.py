@@ -1,0 +1,138 @@
+"""Stable-Baselines3's SAC and PPO, with their own defaults, on ``racing/Racing-v0``: outside
+reference learners, written as run folders the report reads like this project's.
+
+One run per track seed: ``gym.make("racing/Racing-v0", track_seed=seed)`` (200-step episodes
+ending by truncation, which SB3 bootstraps through), SB3's algorithm with every hyperparameter
+at its default (``"MlpPolicy"``: 256x256 networks for SAC, 64x64 for PPO; SAC: one gradient
+step per environment step, batch 256, gamma 0.99, learned temperature; PPO: 2048-step rollouts,
+10 epochs of minibatches of 64, gamma 0.99, GAE 0.95), seeded with the track seed, on one torch
+thread, for ``episodes`` episodes (the paper's budget: 201). The first episode starts from
+``reset(seed=track seed)``, as a run of ``train.py`` does.
+
+A run's folder holds ``metrics.csv`` (one row per episode: total reward, crashes, final
+checkpoint; SB3's losses are not recorded), ``summary.json`` (final performance over the last
+``final_window`` episodes, status, timing, code and software versions, SB3's included, numerics,
+and the settings: the script's arguments and SB3's hyperparameters as the model holds them)
+and ``model.zip`` (SB3's own format). A folder holding a finished run of the same settings is
+skipped; there is no checkpoint, so a killed run starts again.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+from engine.outputs import EPISODE_COLUMNS, MetricsWriter, read_summary, write_json_atomic
+
+ALGOS = ("sac", "ppo")
+# The hyperparameters recorded in summary.json, as the SB3 model holds them after construction.
+RECORDED = ("learning_rate", "gamma", "batch_size", "buffer_size", "learning_starts", "tau", "train_freq",
+            "gradient_steps", "ent_coef", "target_entropy", "n_steps", "n_epochs", "gae_lambda", "clip_range",
+            "vf_coef", "max_grad_norm", "use_sde")
+
+
+class BaselineError(ValueError):
+    """An argument the baseline cannot run with."""
+
+
+def run_folder(out: Path, algo: str, seed: int) -> Path:
+    """``<out>/sb3_<algo>/default/seed<seed>``: the report's cell is (sb3_<algo>, default)."""
+    return Path(out) / f"sb3_{algo}" / "default" / f"seed{seed}"
+
+
+def settings_of(algo: str, seed: int, episodes: int, final_window: int, numerics_mode: str) -> dict:
+    """What decides a run's numbers, before SB3's own hyperparameters are added."""
+    if algo not in ALGOS:
+        raise BaselineError(f"algo must be one of {', '.join(ALGOS)}, got {algo!r}")
+    if episodes < 1 or final_window < 1:
+        raise BaselineError(f"episodes and final_window must be at least 1, got {episodes} and {final_window}")
+    if not 0 <= seed < 2**32:
+        raise BaselineError(f"track seeds are in [0, 2**32), got {seed}")
+    return {"baseline": "stable-baselines3", "algo": algo, "seed": seed, "episodes": episodes,
+            "final_window": final_window, "numerics": numerics_mode, "threads": 1}
+
+
+def _hyperparameters(model) -> dict:
+    values = {}
+    for name in RECORDED:
+        if hasattr(model, name):
+            value = getattr(model, name)
+            if callable(value):  # SB3 turns constant schedules into functions
+                value = value(1.0)
+            values[name] = value if isinstance(value, (int, float, str, bool, type(None))) else repr(value)
+    values["net_arch"] = repr(model.policy.net_arch) if hasattr(model.policy, "net_arch") else None
+    return values
+
+
+def train(algo: str, seed: int, episodes: int, out: Path, final_window: int = 20,
+          numerics_mode: str = "portable") -> dict:
+    """Train one SB3 run into its folder (``run_folder``); returns its summary (an earlier
+    finished run of the same settings is returned without training)."""
+    import gymnasium as gym
+    import stable_baselines3
+    import torch
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    import racing
+    from engine import numerics
+    from engine.version import code_version, software_versions
+
+    settings = settings_of(algo, seed, episodes, final_window, numerics_mode)
+    folder = run_folder(out, algo, seed)
+    earlier = read_summary(folder)
+    if earlier is not None and earlier.get("status") == "completed" and \
+            {k: v for k, v in (earlier.get("settings") or {}).items() if k != "sb3"} == settings:
+        return earlier
+    folder.mkdir(parents=True, exist_ok=True)
+    numerics.apply(numerics_mode)
+    torch.set_num_threads(1)
+
+    env = gym.make(racing.ENV_ID, track_seed=seed)
+    kind = {"sac": stable_baselines3.SAC, "ppo": stable_baselines3.PPO}[algo]
+    model = kind("MlpPolicy", env, seed=seed, device="cpu", verbose=0)
+    settings["sb3"] = _hyperparameters(model)
+    metrics = MetricsWriter(folder, list(EPISODE_COLUMNS))
+    rewards: list[float] = []
+
+    class Episodes(BaseCallback):
+        """Writes each finished episode's row; stops training after ``episodes`` episodes."""
+
+        def __init__(self):
+            super().__init__()
+            self.total, self.crashes = 0.0, 0
+
+        def _on_step(self) -> bool:
+            info = self.locals["infos"][0]
+            self.total += float(self.locals["rewards"][0])
+            self.crashes += int(info["crashed"])
+            if not self.locals["dones"][0]:
+                return True
+            metrics.write({"episode": len(rewards), "total_reward": self.total, "crashes": self.crashes,
+                           "final_checkpoint": int(info["checkpoint"])})
+            rewards.append(self.total)
+            self.total, self.crashes = 0.0, 0
+            return len(rewards) < episodes
+
+    start = time.perf_counter()
+    try:
+        model.learn(total_timesteps=episodes * env.unwrapped.config.max_steps + 1, callback=Episodes())
+    finally:
+        metrics.close()
+        env.close()
+    wall = time.perf_counter() - start
+    model.save(folder / "model.zip")
+    window = rewards[-final_window:]
+    summary = {
+        "algo": f"sb3_{algo}", "er": "default", "seed": seed, "episodes": len(rewards),
+        "episodes_planned": episodes, "final_mean": math.fsum(window) / len(window) if window else None,
+        "final_window": len(window), "status": "completed" if len(rewards) == episodes else "incomplete",
+        "diverged": None, "wall_time_s": round(wall, 3), "resumed_at": None,
+        "population": {"seeds": [seed], "size": 1},
+        "code": code_version(),
+        "software": {**software_versions(), "stable_baselines3": stable_baselines3.__version__},
+        "numerics": numerics.in_effect(), "compile": {"requested": False, "enabled": False, "reason": None},
+        "settings": settings,
+    }
+    write_json_atomic(folder / "summary.json", summary)
+    return summary

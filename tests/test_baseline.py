@@ -1,0 +1,74 @@
+"""baseline.py: Stable-Baselines3's SAC and PPO with their defaults, written as run folders.
+
+The command the docs show runs at a tiny size (one episode, one track): each run's folder has
+the learning curve and a summary the report reads, a rerun of the same settings is skipped, the
+same settings train the same curve again, and bad arguments are refused with a reason.
+"""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from tests.test_readme import readme_commands
+from tests.test_train import ENV, ROOT, read_rows
+
+pytest.importorskip("stable_baselines3", reason="Stable-Baselines3 is the baselines extra (pip install -e '.[baselines]')")
+
+
+def baseline(*args):
+    return subprocess.run([sys.executable, str(ROOT / "baseline.py"), *args], cwd=ROOT, env=ENV,
+                          capture_output=True, text=True, timeout=600)
+
+
+def tiny(args: list[str], out) -> list[str]:
+    """The documented command at one episode (SAC: 100 gradient steps) on its first track, into ``out``."""
+    args = list(args)
+    tracks = args.index("--tracks")
+    end = next((i for i in range(tracks + 1, len(args)) if args[i].startswith("--")), len(args))
+    args[tracks + 1:end] = [args[tracks + 1]]
+    for flag in ("--episodes", "--out"):
+        if flag in args:
+            del args[args.index(flag):args.index(flag) + 2]
+    return [*args, "--episodes", "1", "--out", str(out)]
+
+
+def test_the_documented_command_writes_runs_the_report_reads_and_reruns_identically(tmp_path):
+    commands = readme_commands("baseline.py", include_elsewhere=True)
+    assert commands, "the docs show no baseline.py command"
+    args = tiny(commands[0], tmp_path / "a")
+    assert "sac" in args and "ppo" in args
+    result = baseline(*args)
+    assert result.returncode == 0, result.stderr[-3000:]
+    track = args[args.index("--tracks") + 1]
+    for algo in ("sac", "ppo"):
+        folder = tmp_path / "a" / f"sb3_{algo}" / "default" / f"seed{track}"
+        summary = json.loads((folder / "summary.json").read_text())
+        assert summary["status"] == "completed" and summary["episodes"] == 1 and summary["algo"] == f"sb3_{algo}"
+        assert summary["software"]["stable_baselines3"] and summary["code"]["source"]
+        assert summary["settings"]["sb3"]["gamma"] == 0.99
+        assert [int(r["episode"]) for r in read_rows(folder / "metrics.csv")] == [0]
+        assert (folder / "model.zip").exists()
+    assert json.loads((tmp_path / "a" / "sb3_sac" / "default" / f"seed{track}" / "summary.json").read_text()
+                      )["settings"]["sb3"]["net_arch"] == "[256, 256]"
+    sac = tmp_path / "a" / "sb3_sac" / "default" / f"seed{track}" / "metrics.csv"
+    written = sac.stat().st_mtime_ns
+    assert baseline(*args).returncode == 0 and sac.stat().st_mtime_ns == written  # finished: skipped
+    again = baseline(*tiny(["--algos", "sac", "--tracks", track], tmp_path / "b"))
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert (tmp_path / "b" / "sb3_sac" / "default" / f"seed{track}" / "metrics.csv").read_bytes() == sac.read_bytes()
+    report = subprocess.run([sys.executable, str(ROOT / "report.py"), str(tmp_path / "a")], cwd=ROOT, env=ENV,
+                            capture_output=True, text=True, timeout=300)
+    assert report.returncode == 0, report.stderr[-3000:]
+    assert "sb3_sac" in (tmp_path / "a" / "report" / "runs.csv").read_text()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--algos", "td3", "--tracks", "1"], "algo must be one of sac, ppo"),
+    (["--tracks", "1", "--episodes", "0"], "episodes and final_window must be at least 1"),
+    (["--tracks", "-1"], "track seeds are in [0, 2**32)"),
+])
+def test_bad_arguments_are_refused_with_a_reason(tmp_path, args, message):
+    result = baseline(*args, "--out", str(tmp_path))
+    assert result.returncode == 2 and message in result.stderr and "Traceback" not in result.stderr
