@@ -20,11 +20,14 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from engine import numerics
+from engine.processes import exit_with_parent
 from engine.sb3 import ALGOS, BaselineError, run_folder, settings_of, train
 
 
-def _train(args: tuple) -> dict:
+def _train(args: tuple, worker: bool = True) -> dict:
     algo, seed, episodes, out, window, mode = args
+    if worker:
+        exit_with_parent()
     numerics.apply(mode)  # a fresh process: before torch loads
     return train(algo, seed, episodes, out, window, mode)
 
@@ -56,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     work = [(algo, seed, args.episodes, args.out, args.final_window, args.numerics)
             for algo in args.algos for seed in args.tracks]
     if args.jobs == 1:
-        summaries = [_train(item) for item in work]
+        summaries = [_train(item, worker=False) for item in work]
     else:
         context = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(args.jobs, mp_context=context) as pool:

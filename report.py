@@ -12,7 +12,7 @@ Writes into ``SWEEP_DIR/report/``:
 - ``collapse.md``: per cell, the runs whose final performance is below 20 (collapsed);
 - ``iqm.md`` and ``iqm.png``: interquartile mean of the runs' final performances per cell
   (one score per run) with 95% bootstrap intervals over runs (tracks);
-- ``beyond.md`` (if the sweep has SAC, TD3 or prioritised-replay runs): those cells and the paper's
+- ``beyond.md`` (if the sweep has SAC, TD3, prioritised-replay or Stable-Baselines3 runs): those cells and the paper's
   best and PPO cells, with IQM intervals over runs, paired differences from the paper's best cell and
   wall time per run; ``generalisation.md`` (if runs were evaluated on ``eval_seeds``): own-track and
   unseen-track scores and their gap, for fixed- and random-track training; ``normalised.md`` (if

@@ -1,7 +1,7 @@
 """Beyond the paper: other algorithms against the paper's best cell, and generalisation.
 
 ``beyond_markdown``: per cell (SAC, TD3, with uniform or prioritised replay, the paper's best
-cell and its PPO cells, and any other cell in the sweep), on the paper's five tracks and on all
+cell and its PPO cells, Stable-Baselines3's runs from ``baseline.py``, and any other cell in the sweep), on the paper's five tracks and on all
 tracks: runs, mean ± SE of the final performance, IQM with a 95% bootstrap interval over runs,
 the difference from the paper's best cell paired by track (95% bootstrap interval over tracks,
 with a verdict), collapsed runs (final performance below 20), diverged runs, and wall time
@@ -25,7 +25,7 @@ from analysis.report import COLLAPSE_BELOW, COLUMN_TITLES, PAPER_SEEDS, Run, _me
 REFERENCE = ("memory", "spg_p_multi")  # the paper's best cell (Table 1: 141.1)
 ROWS = (("memory", "sac"), ("prioritised", "sac"), ("memory", "td3"), ("prioritised", "td3"),
         ("memory", "spg_p_multi"), ("prioritised", "spg_p_multi"), ("memory", "ppo_log"), ("recent", "ppo"))
-TITLES = {**COLUMN_TITLES, "sac": "SAC", "td3": "TD3"}
+TITLES = {**COLUMN_TITLES, "sac": "SAC", "td3": "TD3", "sb3_sac": "Stable-Baselines3 SAC", "sb3_ppo": "Stable-Baselines3 PPO"}
 
 
 def label(er: str, algo: str) -> str:
@@ -97,7 +97,7 @@ def _diff_text(row: dict) -> str:
 
 def beyond_markdown(runs: list[Run]) -> str:
     """The beyond-the-paper table (see the module docstring), or '' if the sweep has no such cells."""
-    if not any(r.algo in ("sac", "td3") or r.er == "prioritised" for r in runs):
+    if not any(r.algo in ("sac", "td3") or str(r.algo).startswith("sb3_") or r.er == "prioritised" for r in runs):
         return ""
     parts = ["Beyond the paper: final performance (mean total reward of the last 20 training episodes) per run, "
              f"on fixed tracks. IQM intervals resample runs (tracks); \"vs {label(*REFERENCE)}\" is the mean "

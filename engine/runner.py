@@ -37,6 +37,7 @@ from tensordict import TensorDictBase
 
 from collectors import add_monte_carlo_returns
 from engine import checkpoint, numerics, setup
+from engine.processes import exit_with_parent
 from engine.config import ConfigError, RunConfig
 from engine.outputs import SUMMARY_FILE, MetricsWriter, metric_columns, read_summary, write_json_atomic
 from engine.progress import Progress
@@ -175,7 +176,8 @@ def _resumed_parts(out_dir: Path, settings: dict | None) -> list[tuple[Path, tup
 def _train_part(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_settings: dict,
                 settings: dict | None, path: Path, compiled: dict) -> list[dict]:
     """One part of a split population, in a process of its own (it inherits the parent's numerics
-    variables, so torch loaded with the same kernels)."""
+    variables, so torch loaded with the same kernels); it ends if the parent dies."""
+    exit_with_parent()
     numerics.apply(cfg.numerics)
     torch.set_num_threads(cfg.threads)
     start = time.perf_counter()

@@ -62,6 +62,7 @@ def test_the_documented_command_writes_runs_the_report_reads_and_reruns_identica
                             capture_output=True, text=True, timeout=300)
     assert report.returncode == 0, report.stderr[-3000:]
     assert "sb3_sac" in (tmp_path / "a" / "report" / "runs.csv").read_text()
+    assert "Stable-Baselines3 SAC, default" in (tmp_path / "a" / "report" / "beyond.md").read_text()
 
 
 @pytest.mark.parametrize("args, message", [

@@ -23,7 +23,7 @@ from tests.test_config import load
 from tests.test_resilience import interrupted_after
 from tests.test_train import ENV, ROOT, read_rows, run_train
 
-A, B, C = 2067791, 5468063, 773203
+A, B, C, D = 2067791, 5468063, 773203, 5412436
 CASES = [("spg_p", "hybrid"), ("ppo_log", "memory")]  # SPG and PPO, both replay phases
 
 
@@ -80,16 +80,16 @@ def test_a_diverging_member_is_frozen_and_the_others_go_on(tmp_path, monkeypatch
 
 
 def test_a_population_split_over_processes_killed_and_resumed_gives_its_unsplit_results(tmp_path):
-    """processes=2 trains [A, B, C] as two populations, (A, B) and (C), in two processes, each with its
-    own checkpoint. Killed (SIGKILL, every process) after both have saved one, and resumed with
-    processes=1 (the parts go on as they were, one at a time): every member's metrics.csv is
-    its unsplit, uninterrupted population's."""
-    run = [*common("spg_p", "hybrid", episodes=8), "checkpoint_every=2", seeds(A, B, C)]
+    """processes=2 trains [A, B, C, D] as two populations, (A, B) and (C, D), in two processes, each with its
+    own checkpoint. The parent is killed (SIGKILL, it alone) after both parts have saved one: the
+    parts end with it (none writes on). Resumed with processes=1 (the parts go on as they were,
+    one at a time), every member's metrics.csv is its unsplit, uninterrupted population's."""
+    run = [*common("spg_p", "hybrid", episodes=8), "checkpoint_every=2", seeds(A, B, C, D)]
     reference = tmp_path / "reference"
     train_population(load(*run), reference)
     run_dir = tmp_path / "run"
     cmd = [sys.executable, str(ROOT / "train.py"), *run, f"hydra.run.dir={run_dir}"]
-    parts = [run_dir / f"checkpoint-{A}.pt", run_dir / f"checkpoint-{C}.pt"]
+    parts = [run_dir / f"checkpoint-{A}.pt", run_dir / f"checkpoint-{C}.pt"]  # the same speed
     proc = subprocess.Popen([*cmd, "processes=2"], cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.time() + 300
@@ -98,18 +98,30 @@ def test_a_population_split_over_processes_killed_and_resumed_gives_its_unsplit_
             break
         time.sleep(0.05)
     assert proc.poll() is None, "the population finished before it could be killed"
-    os.killpg(proc.pid, signal.SIGKILL)
+    proc.send_signal(signal.SIGKILL)
     proc.wait()
+    deadline = time.time() + 10  # the parts notice within a second
+    while time.time() < deadline and _group_alive(proc.pid):
+        time.sleep(0.1)
+    assert not _group_alive(proc.pid), "a part trained on after its parent died"
     assert not (run_dir / checkpoint.CHECKPOINT_FILE).exists()
     resumed = subprocess.run([*cmd, "processes=1"], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
-    for seed in (A, B, C):
+    for seed in (A, B, C, D):
         summary = json.loads((run_dir / f"seed{seed}" / "summary.json").read_text())
         assert summary["status"] == "completed" and summary["resumed_at"] in (2, 4, 6)
-        assert summary["population"]["seeds"] == ([C] if seed == C else [A, B])
+        assert summary["population"]["seeds"] == ([C, D] if seed in (C, D) else [A, B])
         assert ((run_dir / f"seed{seed}" / "metrics.csv").read_bytes()
                 == (reference / f"seed{seed}" / "metrics.csv").read_bytes())
     assert not checkpoint.in_folder(run_dir)
+
+
+def _group_alive(group: int) -> bool:
+    try:
+        os.killpg(group, 0)
+    except ProcessLookupError:
+        return False
+    return True
 
 
 def test_members_split_into_near_equal_parts():
