@@ -14,13 +14,12 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import multiprocessing
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from engine import numerics
-from engine.processes import exit_with_parent
+from engine.processes import exit_with_parent, spawn_context
 from engine.sb3 import ALGOS, BaselineError, run_folder, settings_of, train
 
 
@@ -61,8 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.jobs == 1:
         summaries = [_train(item, worker=False) for item in work]
     else:
-        context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(args.jobs, mp_context=context) as pool:
+        with ProcessPoolExecutor(args.jobs, mp_context=spawn_context()) as pool:
             summaries = list(pool.map(_train, work))
     for (algo, seed, *_), summary in zip(work, summaries):
         print(f"{run_folder(args.out, algo, seed)}: {summary['status']}, final_mean {summary['final_mean']:.2f}, "

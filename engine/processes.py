@@ -32,3 +32,14 @@ def exit_with_parent(poll_seconds: float = 1.0) -> None:
         os._exit(1)
 
     threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
+def spawn_context():
+    """multiprocessing's ``spawn`` context, usable inside a joblib (loky) worker too: there the
+    global start method reads ``loky``, which a spawned child would try to set and cannot, so it
+    is set back to ``spawn`` first."""
+    import multiprocessing
+
+    if multiprocessing.get_start_method(allow_none=True) not in (None, "fork", "spawn", "forkserver"):
+        multiprocessing.set_start_method("spawn", force=True)
+    return multiprocessing.get_context("spawn")

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import multiprocessing
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor
@@ -37,7 +36,7 @@ from tensordict import TensorDictBase
 
 from collectors import add_monte_carlo_returns
 from engine import checkpoint, numerics, setup
-from engine.processes import exit_with_parent
+from engine.processes import exit_with_parent, spawn_context
 from engine.config import ConfigError, RunConfig
 from engine.outputs import SUMMARY_FILE, MetricsWriter, metric_columns, read_summary, write_json_atomic
 from engine.progress import Progress
@@ -137,8 +136,8 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
         path, seeds, payload = parts[0]
         summaries = _train(cfg, out_dir, seeds, member_settings, settings, payload, path, start, compiled)
     else:  # one process per part, ``cfg.processes`` at a time
-        context = multiprocessing.get_context("spawn")  # torch does not survive fork with threads running
-        with ProcessPoolExecutor(min(cfg.processes, len(parts)), mp_context=context) as pool:
+        # spawn: torch does not survive fork with threads running
+        with ProcessPoolExecutor(min(cfg.processes, len(parts)), mp_context=spawn_context()) as pool:
             futures = [pool.submit(_train_part, cfg, out_dir, seeds, member_settings, settings, path, compiled)
                        for path, seeds, _ in parts]
             summaries = [summary for future in futures for summary in future.result()]

@@ -39,6 +39,18 @@ def test_launchers_run_the_same_sweep(tmp_path, basic_sweep, launcher):
     assert _sweep(launcher, tmp_path) == basic_sweep
 
 
+def test_a_population_splits_over_processes_inside_a_joblib_worker(tmp_path):
+    """processes=2 in a joblib job: the parts are spawned from a loky worker (whose start method
+    a spawned child cannot set: engine.processes.spawn_context)."""
+    result = run_train("-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "algo=spg", "er=recent",
+                       "seeds=[11,12]", "processes=2", "episodes=1", "progress=false", "logger=none",
+                       f"hydra.sweep.dir={tmp_path}")
+    assert result.returncode == 0, result.stderr[-3000:]
+    for seed in (11, 12):
+        summary = json.loads((tmp_path / "spg" / "recent" / f"seed{seed}" / "summary.json").read_text())
+        assert summary["status"] == "completed" and summary["population"] == {"seeds": [seed], "size": 1}
+
+
 def test_submitit_rerun_skips_finished_runs(tmp_path):
     _sweep("submitit_local", tmp_path)
     summary = tmp_path / "spg" / "recent" / "seed11" / "summary.json"
