@@ -84,7 +84,7 @@ def test_a_population_split_over_processes_killed_and_resumed_gives_its_unsplit_
     own checkpoint. The parent is killed (SIGKILL, it alone) after both parts have saved one: the
     parts end with it (none writes on). Resumed with processes=1 (the parts go on as they were,
     one at a time), every member's metrics.csv is its unsplit, uninterrupted population's."""
-    run = [*common("spg_p", "hybrid", episodes=8), "checkpoint_every=2", seeds(A, B, C, D)]
+    run = [*common("spg_p", "hybrid", episodes=10), "checkpoint_every=2", seeds(A, B, C, D)]
     reference = tmp_path / "reference"
     train_population(load(*run), reference)
     run_dir = tmp_path / "run"
@@ -94,7 +94,8 @@ def test_a_population_split_over_processes_killed_and_resumed_gives_its_unsplit_
                             stderr=subprocess.DEVNULL, start_new_session=True)
     deadline = time.time() + 300
     while time.time() < deadline and proc.poll() is None:
-        if all(p.exists() for p in parts) and len(read_rows(run_dir / f"seed{B}" / "metrics.csv")) >= 5:
+        # both parts have saved a checkpoint, and B has written an episode past one (a resume must drop it)
+        if all(p.exists() for p in parts) and len(read_rows(run_dir / f"seed{B}" / "metrics.csv")) % 2 == 1:
             break
         time.sleep(0.05)
     assert proc.poll() is None, "the population finished before it could be killed"
@@ -109,7 +110,7 @@ def test_a_population_split_over_processes_killed_and_resumed_gives_its_unsplit_
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     for seed in (A, B, C, D):
         summary = json.loads((run_dir / f"seed{seed}" / "summary.json").read_text())
-        assert summary["status"] == "completed" and summary["resumed_at"] in (2, 4, 6)
+        assert summary["status"] == "completed" and summary["resumed_at"] in (2, 4, 6, 8)
         assert summary["population"]["seeds"] == ([C, D] if seed in (C, D) else [A, B])
         assert ((run_dir / f"seed{seed}" / "metrics.csv").read_bytes()
                 == (reference / f"seed{seed}" / "metrics.csv").read_bytes())
