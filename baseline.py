@@ -27,7 +27,6 @@ def _train(args: tuple, worker: bool = True) -> dict:
     algo, seed, episodes, out, window, mode = args
     if worker:
         exit_with_parent()
-    numerics.apply(mode)  # a fresh process: before torch loads
     return train(algo, seed, episodes, out, window, mode)
 
 

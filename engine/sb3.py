@@ -68,14 +68,17 @@ def _hyperparameters(model) -> dict:
 def train(algo: str, seed: int, episodes: int, out: Path, final_window: int = 20,
           numerics_mode: str = "portable") -> dict:
     """Train one SB3 run into its folder (``run_folder``); returns its summary (an earlier
-    finished run of the same settings is returned without training)."""
+    finished run of the same settings is returned without training). In a fresh process this sets
+    the numerics before anything loads torch; in one that has, it checks them."""
+    from engine import numerics
+
+    numerics.apply(numerics_mode)
     import gymnasium as gym
     import stable_baselines3
     import torch
     from stable_baselines3.common.callbacks import BaseCallback
 
     import racing
-    from engine import numerics
     from engine.version import code_version, software_versions
 
     settings = settings_of(algo, seed, episodes, final_window, numerics_mode)
@@ -85,7 +88,6 @@ def train(algo: str, seed: int, episodes: int, out: Path, final_window: int = 20
             {k: v for k, v in (earlier.get("settings") or {}).items() if k != "sb3"} == settings:
         return earlier
     folder.mkdir(parents=True, exist_ok=True)
-    numerics.apply(numerics_mode)
     torch.set_num_threads(1)
 
     env = gym.make(racing.ENV_ID, track_seed=seed)
