@@ -20,12 +20,17 @@ import math
 import numpy as np
 
 from analysis.aggregate import iqm, stratified_bootstrap_ci
-from analysis.report import COLLAPSE_BELOW, COLUMN_TITLES, PAPER_SEEDS, Run, _mean_difference, paired_bootstrap
+from analysis.report import ALGO_COLUMNS, COLLAPSE_BELOW, COLUMN_TITLES, PAPER_SEEDS, Run, _mean_difference, paired_bootstrap
 
 REFERENCE = ("memory", "spg_p_multi")  # the paper's best cell (Table 1: 141.1)
-ROWS = (("memory", "sac"), ("prioritised", "sac"), ("memory", "td3"), ("prioritised", "td3"),
+ROWS = (("memory", "sac"), ("memory", "sac_sb3"), ("prioritised", "sac"), ("memory", "td3"), ("prioritised", "td3"),
         ("memory", "spg_p_multi"), ("prioritised", "spg_p_multi"), ("memory", "ppo_log"), ("recent", "ppo"))
-TITLES = {**COLUMN_TITLES, "sac": "SAC", "td3": "TD3", "sb3_sac": "Stable-Baselines3 SAC", "sb3_ppo": "Stable-Baselines3 PPO"}
+TITLES = {**COLUMN_TITLES, "sac": "SAC", "sac_sb3": "SAC at SB3's settings", "td3": "TD3", "sb3_sac": "Stable-Baselines3 SAC", "sb3_ppo": "Stable-Baselines3 PPO"}
+
+
+def is_beyond(run: Run) -> bool:
+    """A run of an algorithm or a replay mode the paper did not have (SAC, TD3, SB3's, prioritised)."""
+    return run.algo is not None and (run.algo not in ALGO_COLUMNS or run.er == "prioritised")
 
 
 def label(er: str, algo: str) -> str:
@@ -97,7 +102,7 @@ def _diff_text(row: dict) -> str:
 
 def beyond_markdown(runs: list[Run]) -> str:
     """The beyond-the-paper table (see the module docstring), or '' if the sweep has no such cells."""
-    if not any(r.algo in ("sac", "td3") or str(r.algo).startswith("sb3_") or r.er == "prioritised" for r in runs):
+    if not any(is_beyond(r) for r in runs):
         return ""
     parts = ["Beyond the paper: final performance (mean total reward of the last 20 training episodes) per run, "
              f"on fixed tracks. IQM intervals resample runs (tracks); \"vs {label(*REFERENCE)}\" is the mean "

@@ -39,9 +39,9 @@ def learning_curve_figures(runs: list[Run], out: Path) -> list[Path]:
     groups = [(f"curves_{a}.png", COLUMN_TITLES[a], [(a, er, er) for er in ER_ROWS]) for a in ALGO_COLUMNS]
     groups += [(f"curves_er-{er}.png", f"replay: {er}", [(a, er, COLUMN_TITLES[a]) for a in ALGO_COLUMNS])
                for er in ER_ROWS]
-    if any(r.algo in ("sac", "td3") or r.er == "prioritised" for r in runs):  # beyond the paper
-        from analysis.beyond import ROWS, label
+    from analysis.beyond import ROWS, is_beyond, label
 
+    if any(is_beyond(r) for r in runs):
         groups.append(("curves_beyond.png", "beyond the paper", [(a, er, label(er, a)) for er, a in ROWS]))
     for name, title, members in groups:
         series = [(label, curves(runs, a, er)) for a, er, label in members]

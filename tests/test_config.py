@@ -12,10 +12,15 @@ CONF = Path(__file__).resolve().parent.parent / "conf"
 BEYOND_ALGOS, BEYOND_ERS = ("sac", "td3"), ("prioritised",)  # not the paper's (tests/test_offpolicy.py)
 ALGOS = sorted(p.stem for p in (CONF / "algo").glob("*.yaml") if p.stem not in BEYOND_ALGOS)
 ERS = sorted(p.stem for p in (CONF / "er").glob("*.yaml") if p.stem not in BEYOND_ERS)
-CELLS = sorted(p.stem for p in (CONF / "cell").glob("*.yaml")
-               if not p.stem.endswith(BEYOND_ALGOS) and not p.stem.startswith(BEYOND_ERS))
-BEYOND_CELLS = sorted(p.stem for p in (CONF / "cell").glob("*.yaml")
-                      if p.stem.endswith(BEYOND_ALGOS) or p.stem.startswith(BEYOND_ERS))
+
+
+def _beyond(cell: str) -> bool:
+    er, algo = cell.split("-")
+    return algo.startswith(BEYOND_ALGOS) or er in BEYOND_ERS
+
+
+CELLS = sorted(p.stem for p in (CONF / "cell").glob("*.yaml") if not _beyond(p.stem))
+BEYOND_CELLS = sorted(p.stem for p in (CONF / "cell").glob("*.yaml") if _beyond(p.stem))
 
 
 def load(*overrides: str) -> RunConfig:
@@ -26,7 +31,7 @@ def test_the_groups_hold_the_papers_columns_and_rows():
     assert ALGOS == ["ppo", "ppo_log", "spg", "spg_multi", "spg_p", "spg_p_multi"]
     assert ERS == ["hybrid", "memory", "recent"]
     assert len(CELLS) == 15
-    assert BEYOND_CELLS == ["memory-sac", "memory-td3", "prioritised-sac", "prioritised-spg_p_multi",
+    assert BEYOND_CELLS == ["memory-sac", "memory-sac_sb3", "memory-td3", "prioritised-sac", "prioritised-spg_p_multi",
                             "prioritised-td3"]
 
 
