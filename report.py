@@ -127,6 +127,8 @@ def write_figures(runs, out: Path) -> None:
     lines += [f"| {label} | {point:.1f} | [{low:.1f}, {high:.1f}] | {n} |" for label, point, low, high, n in rows]
     (out / "iqm.md").write_text("\n".join(lines) + "\n")
     written = figures.learning_curve_figures(runs, out)
+    frontier = figures.frontier_figure(runs, read_oracle(), out / "curves_beyond.png")
+    written += [frontier] if frontier is not None else []
     written += [p for p in (figures.iqm_figure(rows, out / "iqm.png"),
                             figures.paper_tracks_figure(out / "paper_tracks.png")) if p is not None]
     written += agent_frame(runs, out, figures)

@@ -107,13 +107,15 @@ def beyond_markdown(runs: list[Run]) -> str:
     parts = ["Beyond the paper: final performance (mean total reward of the last 20 training episodes) per run, "
              f"on fixed tracks. IQM intervals resample runs (tracks); \"vs {label(*REFERENCE)}\" is the mean "
              "difference from the paper's best cell on the same tracks, with a 95% bootstrap interval over "
-             "tracks. Wall time: per run (a population's wall time over its members).", ""]
+             "tracks. Compute per run: the wall time of the process that trained it over the members it "
+             "trained (each process runs one thread, so these are CPU-minutes per run when processes had a "
+             "core each).", ""]
     all_seeds = {r.seed for r in runs if r.track_mode == "fixed" and r.seed is not None}
     for title, seeds in _track_sets(all_seeds):
         rows = beyond_rows(runs, seeds)
         parts += [f"### On {title}", "",
                   f"| cell | runs | mean ± SE | IQM [95% CI] | vs {label(*REFERENCE)} | collapsed (final < "
-                  f"{COLLAPSE_BELOW:g}) | diverged | wall time per run |",
+                  f"{COLLAPSE_BELOW:g}) | diverged | compute per run |",
                   "|---|---:|---:|---|---|---:|---:|---:|"]
         for row in rows:
             ci = (f"{row['iqm']:.1f} [{row['iqm_low']:.1f}, {row['iqm_high']:.1f}]" if row["iqm_low"] is not None

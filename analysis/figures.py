@@ -39,10 +39,6 @@ def learning_curve_figures(runs: list[Run], out: Path) -> list[Path]:
     groups = [(f"curves_{a}.png", COLUMN_TITLES[a], [(a, er, er) for er in ER_ROWS]) for a in ALGO_COLUMNS]
     groups += [(f"curves_er-{er}.png", f"replay: {er}", [(a, er, COLUMN_TITLES[a]) for a in ALGO_COLUMNS])
                for er in ER_ROWS]
-    from analysis.beyond import ROWS, is_beyond, label
-
-    if any(is_beyond(r) for r in runs):
-        groups.append(("curves_beyond.png", "beyond the paper", [(a, er, label(er, a)) for er, a in ROWS]))
     for name, title, members in groups:
         series = [(label, curves(runs, a, er)) for a, er, label in members]
         series = [(label, data) for label, data in series if data is not None]
@@ -59,6 +55,63 @@ def learning_curve_figures(runs: list[Run], out: Path) -> list[Path]:
         plt.close(fig)
         written.append(out / name)
     return written
+
+
+def frontier_series(runs: list[Run], oracle: dict[int, float], smooth: int = 10) -> list[tuple[str, list, float | None]]:
+    """The data of ``frontier_figure``: per track set (the paper's five tracks, then all tracks when
+    the runs go beyond them), its title, one (label, environment steps, mean, SE) per cell and the
+    oracle's mean over the cells' tracks (None unless it scored them all); [] if no run is beyond
+    the paper. A cell's value at a step is the mean over tracks of the total reward per episode,
+    averaged over the last ``smooth`` episodes up to that step."""
+    from analysis.beyond import REFERENCE, _cells_present, _track_sets, is_beyond, label
+
+    finished = [r for r in runs if r.status == "completed" and r.track_mode == "fixed" and r.rewards]
+    if not any(is_beyond(r) for r in finished):
+        return []
+    cells = [REFERENCE] + [c for c in _cells_present(finished)
+                           if c != REFERENCE and (c[1] not in ALGO_COLUMNS or c[0] == "prioritised")]
+    panels = []
+    for title, seeds in _track_sets({r.seed for r in finished}):
+        lines, tracks = [], set()
+        for er, algo in cells:
+            mine = [r for r in finished if (r.er, r.algo) == (er, algo) and (seeds is None or r.seed in seeds)]
+            if not mine:
+                continue
+            tracks |= {r.seed for r in mine}
+            length = min(len(r.rewards) for r in mine)
+            width = min(smooth, length)
+            data = np.array([np.convolve(r.rewards[:length], np.ones(width) / width, mode="valid") for r in mine])
+            steps = mine[0].episode_steps * (np.arange(data.shape[1]) + width)
+            sem = data.std(axis=0, ddof=1) / np.sqrt(len(data)) if len(data) > 1 else np.zeros(data.shape[1])
+            lines.append((f"{label(er, algo)} (n={len(data)})", steps, data.mean(axis=0), sem))
+        ceiling = float(np.mean([oracle[t] for t in sorted(tracks)])) if tracks and tracks <= set(oracle) else None
+        panels.append((title, lines, ceiling))
+    return panels
+
+
+def frontier_figure(runs: list[Run], oracle: dict[int, float], path: Path, smooth: int = 10) -> Path | None:
+    """Every method against environment steps (``frontier_series``): the paper's best cell, the
+    cells beyond the paper (SAC, TD3, prioritised replay, Stable-Baselines3) with ±1 SE bands over
+    tracks, and the oracle as a dashed line. None if no run is beyond the paper."""
+    panels = frontier_series(runs, oracle, smooth)
+    if not panels:
+        return None
+    plt = import_pyplot()
+    fig, axes = plt.subplots(1, len(panels), figsize=(7 * len(panels), 4.5), squeeze=False)
+    for ax, (title, lines, ceiling) in zip(axes[0], panels):
+        for label, steps, mean, sem in lines:
+            ax.plot(steps, mean, label=label, linewidth=1.2)
+            ax.fill_between(steps, mean - sem, mean + sem, alpha=0.2)
+        if ceiling is not None:
+            ax.axhline(ceiling, color="black", linestyle="--", linewidth=1, label=f"oracle ({ceiling:.1f})")
+        ax.axhline(0, color="grey", linewidth=0.5)
+        ax.set(title=f"On {title}", xlabel="environment steps",
+               ylabel=f"total reward per episode (last {smooth}; mean over tracks ±1 SE)")
+        ax.legend(loc="lower right", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def iqm_rows(runs: list[Run], reps: int = 2000) -> list[tuple[str, float, float, float, int]]:

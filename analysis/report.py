@@ -17,6 +17,7 @@ from pathlib import Path
 from engine.outputs import METRICS_FILE, SUMMARY_FILE
 
 PAPER_TABLE = Path(__file__).resolve().parent / "data" / "paper_table1.csv"
+EPISODE_STEPS = 200  # racing.RacingConfig.max_steps (not imported: the report reads folders only)
 ORACLE_TABLE = Path(__file__).resolve().parent / "data" / "oracle.csv"  # evaluate.py --oracle --table
 ER_ROWS = ("recent", "memory", "hybrid")
 ALGO_COLUMNS = ("ppo", "ppo_log", "spg", "spg_multi", "spg_p", "spg_p_multi")
@@ -38,6 +39,7 @@ class Run:
     evaluation: dict | None = None  # summary.json's "evaluation" (eval_seeds set), or None
     wall_time: float | None = None  # seconds per run: the population's wall time (all sessions) over its size
     numerics: str = "not recorded"  # the numerics mode and the kernels that ran (numerics_label)
+    episode_steps: int = 200  # environment steps per episode (env.options.max_steps; racing's default 200)
 
     @property
     def version(self) -> str:
@@ -134,7 +136,8 @@ def read_run(folder: Path) -> Run:
         return Run(folder, summary["status"], summary["algo"], summary["er"], int(summary["seed"]),
                    summary.get("final_mean"), rewards, summary.get("code"),
                    (settings.get("env") or {}).get("track", "fixed"), summary.get("evaluation"),
-                   wall / size if wall is not None else None, numerics_label(summary))
+                   wall / size if wall is not None else None, numerics_label(summary),
+                   int(((settings.get("env") or {}).get("options") or {}).get("max_steps") or EPISODE_STEPS))
     except (json.JSONDecodeError, KeyError, TypeError, ValueError):
         return Run(folder, "unreadable", rewards=rewards)
 

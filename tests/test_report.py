@@ -286,3 +286,31 @@ def test_beyond_the_paper_and_generalisation_tables_by_hand(tmp_path, capsys):
     table = (tmp_path / "report" / "table.md").read_text()
     assert "122.0 ± 0.7 (n=5)" in table  # only the fixed-track runs of the paper's cell
     capsys.readouterr()
+
+
+def test_the_frontier_curves_by_hand(tmp_path):
+    """Every method against environment steps: the paper's best cell first, then the cells beyond
+    the paper (SB3's too), smoothed over the last episodes; the oracle's line is its mean over the
+    plotted tracks, and absent when it did not score them all; a track beyond the paper's adds a
+    panel; the paper's other cells stay out."""
+    pytest.importorskip("matplotlib", reason="the frontier figure needs the render extra")
+    from analysis.figures import frontier_figure, frontier_series
+    from analysis.report import PAPER_SEEDS
+
+    for seed in PAPER_SEEDS[:2]:
+        fake_run(tmp_path, "spg_p_multi", "memory", seed, 100.0, episodes=4)  # rewards 99, 100, 101, 102
+        fake_run(tmp_path, "sb3_sac", "default", seed, 110.0 + (seed == PAPER_SEEDS[1]) * 2, episodes=4)
+        fake_run(tmp_path, "spg", "recent", seed, 50.0, episodes=4)
+    fake_run(tmp_path, "sac", "memory", 77, 10.0, episodes=4)
+    runs = find_runs(tmp_path)
+    oracle = {PAPER_SEEDS[0]: 150.0, PAPER_SEEDS[1]: 160.0}
+    (paper_title, paper, ceiling), (all_title, everything, no_ceiling) = frontier_series(runs, oracle, smooth=2)
+    assert paper_title == "the paper's five tracks" and all_title == "all 3 tracks"
+    assert [line[0] for line in paper] == ["SPG-p multiple, memory (n=2)", "Stable-Baselines3 SAC, default (n=2)"]
+    label, steps, mean, sem = paper[1]
+    assert list(steps) == [400, 600, 800]  # 200 steps an episode; the first point averages episodes 0 and 1
+    assert list(mean) == pytest.approx([110.5, 111.5, 112.5]) and list(sem) == pytest.approx([1.0] * 3)
+    assert ceiling == 155.0 and no_ceiling is None  # track 77: not scored by the oracle
+    assert [line[0] for line in everything][1] == "SAC, memory (n=1)"  # the rows of beyond.md, then SB3
+    assert frontier_figure(runs, oracle, tmp_path / "f.png", smooth=2).stat().st_size > 0
+    assert frontier_series([r for r in runs if r.algo == "spg"], oracle) == []
