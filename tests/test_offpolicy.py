@@ -106,6 +106,24 @@ def test_td3_with_drawn_smoothing_noise_equals_torchrl_td3_loss():
     assert torch.equal(t.loss.actor_loss(mine)[0], plain.actor_loss(data.clone())[0])
 
 
+def test_td3_preact_penalty_adds_the_mean_square_of_the_pre_tanh_action():
+    """algo.td3.preact_penalty=c: each member's actor loss is TorchRL's plus c * mean(u^2), u the
+    pre-tanh actions at the minibatch's states (u = atanh(mu), checked in float64), and the extra
+    gradient reaches the actor's weights (the ones its optimiser steps)."""
+    _, plain = training("td3")
+    _, penalised = training("td3", "algo.td3.preact_penalty=0.5")
+    data = transitions(2, 64)
+    plain.loss.draw(data)
+    base, extra = plain.phases._td3_actor_losses(data), penalised.phases._td3_actor_losses(data)
+    with torch.no_grad():
+        u = torch.atanh(penalised.networks.actor_net(data["observation"]).double())
+    torch.testing.assert_close((extra - base).double(), 0.5 * u.square().mean((1, 2)), rtol=1e-5, atol=1e-6)
+    extra.sum().backward()
+    base.sum().backward()
+    grads = [(p.grad, q.grad) for p, q in zip(penalised.optimisers.actor.params, plain.optimisers.actor.params)]
+    assert all(g is not None for pair in grads for g in pair) and not all(torch.equal(a, b) for a, b in grads)
+
+
 @pytest.mark.parametrize("algo", ["sac", "td3"])
 def test_each_loss_term_reaches_only_its_own_networks_and_members_do_not_mix(algo):
     cfg, t = training(algo)
@@ -234,6 +252,7 @@ def test_the_sampler_plugs_into_a_torchrl_replay_buffer():
     (["er=prioritised", "er.train_on_recent=true"], "priority samples the replay memory"),
     (["algo=sac", "+algo.value_epochs=3"], "belong to the paper's protocol"),
     (["algo=td3", "algo.td3.policy_delay=0"], "policy_delay must be >= 1"),
+    (["algo=td3", "algo.td3.preact_penalty=-0.1"], "preact_penalty must be >= 0"),
     (["algo=sac", "algo.td.tau=0"], "tau must be in (0, 1]"),
     (["algo=sac", "er=prioritised", "er.priority.beta=2"], "beta must be in [0, 1]"),
 ])

@@ -64,9 +64,10 @@ class TD3Options:
     policy_noise: float
     noise_clip: float
     policy_delay: int
+    preact_penalty: float = 0.0  # the actor loss adds this x the mean square of its pre-tanh outputs
 
     def __post_init__(self) -> None:
-        for key in ("exploration_noise", "policy_noise", "noise_clip"):
+        for key in ("exploration_noise", "policy_noise", "noise_clip", "preact_penalty"):
             at_least(f"algo.td3.{key}", getattr(self, key), 0)
         at_least("algo.td3.policy_delay", self.policy_delay, 1)
 

@@ -191,6 +191,7 @@ class TDPhaseRunner:
         self.kind, self.td = cfg.algo.loss, cfg.algo.td
         self.steps = cfg.env.episode_steps
         self.policy_delay = cfg.algo.td3.policy_delay if self.kind == "td3" else 1
+        self.preact_penalty = cfg.algo.td3.preact_penalty if self.kind == "td3" else 0.0
         self.updater = SoftUpdate(loss, tau=self.td.tau)
         self.sampler = memory.sampler if memory is not None else None  # prioritised replay, or None
         self.active = torch.ones(len(self.generators), device=optimisers.critic.params[0].device)
@@ -240,7 +241,14 @@ class TDPhaseRunner:
         return member_means(loss_qvalue), meta["td_error"].max(0).values.sqrt()
 
     def _td3_actor_losses(self, batch: TensorDictBase) -> torch.Tensor:
-        return member_means(self.loss.actor_loss(batch)[0])
+        """TorchRL's actor loss -Q(s, mu(s)) per member, plus ``td3.preact_penalty`` x the mean
+        square of the actor's pre-tanh outputs u(s) (mu = tanh(u)): a gradient that pulls u back
+        from tanh's flat tails, where -Q's vanishes (TD3's collapse at full brake, docs/beyond.md)."""
+        loss = member_means(self.loss.actor_loss(batch)[0])
+        if self.preact_penalty:
+            body = self.loss.actor_network.module.net[0]  # the actor before its tanh (make_actor_net)
+            loss = loss + self.preact_penalty * member_means(body(batch.get("observation")).square())
+        return loss
 
     def _td3_step(self, batch: TensorDictBase, step: int, totals: MetricTotals) -> torch.Tensor:
         loss_qvalue, priority = self._critic_objective(batch)
