@@ -57,7 +57,7 @@ def _check_device(device: str) -> None:
 class AlgoConfig:
     """One algorithm (``conf/algo/*.yaml``) of one learner family (``learners``): the paper's
     (``loss: ppo|spg``, a critic phase then an actor phase per episode on Monte-Carlo returns) or
-    TorchRL's off-policy losses (``loss: sac|td3``, bootstrapped TD targets, options in ``td:``).
+    TorchRL's off-policy losses (``loss: sac|tqc|td3``, bootstrapped TD targets, options in ``td:``).
     The family decides which of the optional keys and blocks are required (``KEYS``, ``BLOCKS``)."""
 
     name: str
@@ -72,8 +72,9 @@ class AlgoConfig:
     joint_log_prob: bool | None = None
     ppo: dict | None = None  # options of the PPO losses (loss: ppo only)
     spg: dict | None = None  # options of the SPG losses (loss: spg only)
-    td: dict | None = None  # the off-policy schedule and targets (loss: sac or td3)
-    sac: dict | None = None  # options of TorchRL's SACLoss (loss: sac only)
+    td: dict | None = None  # the off-policy schedule and targets (loss: sac, tqc or td3)
+    sac: dict | None = None  # options of TorchRL's SACLoss (loss: sac, and tqc: a SACLoss too)
+    tqc: dict | None = None  # options of TorchRL's TQCLoss (loss: tqc only)
     td3: dict | None = None  # options of TorchRL's TD3Loss (loss: td3 only)
 
     def __post_init__(self) -> None:

@@ -177,11 +177,13 @@ class StackedGaussianPolicyNet(nn.Module):
 
 
 class StackedCriticNet(nn.Module):
-    """``learners.solo.CriticNet`` for R members: V(s) or Q(s, a), ``[R, ..., 1]``."""
+    """``learners.solo.CriticNet`` for R members: V(s) or Q(s, a), ``[R, ..., outputs]`` (one value,
+    or TQC's quantiles of the return)."""
 
-    def __init__(self, members: int, in_features: int, hidden: Sequence[int], activation: str = "tanh"):
+    def __init__(self, members: int, in_features: int, hidden: Sequence[int], activation: str = "tanh",
+                 outputs: int = 1):
         super().__init__()
-        self.net = StackedMLP(members, [in_features, *hidden, 1], activation, linear_output=True)
+        self.net = StackedMLP(members, [in_features, *hidden, outputs], activation, linear_output=True)
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
         return self.net(inputs[0] if len(inputs) == 1 else torch.cat(inputs, dim=-1))

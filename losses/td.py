@@ -1,4 +1,4 @@
-"""TorchRL's off-policy losses (``SACLoss``, ``TD3Loss``) for a population of stacked members.
+"""TorchRL's off-policy losses (``SACLoss``, ``TQCLoss``, ``TD3Loss``) for a population of stacked members.
 
 The losses are TorchRL's own; what a population needs on top is small:
 
@@ -9,8 +9,8 @@ The losses are TorchRL's own; what a population needs on top is small:
   resampling of one network's weights over all members' range.
 - ``reduction="none"``: the losses come back per transition (``[R, B]``); ``member_means``
   turns them into one value per member, whose sum is minimised (each member's gradient its own).
-- SAC's entropy temperature: one per member (``MemberSACLoss``), since a shared temperature
-  would couple the members.
+- SAC's (and TQC's) entropy temperature: one per member (``MemberTemperature``), since a shared
+  temperature would couple the members.
 - The Gaussian noise inside the losses (SAC's reparameterised actions, TD3's target policy
   smoothing) is drawn ahead of each step from each member's own generator (``draw``) and read
   from the minibatch: TorchRL would draw it from torch's global generator, which would make a
@@ -28,7 +28,7 @@ from tensordict import TensorDictBase
 from torch import nn
 from torch.distributions.utils import _sum_rightmost
 from torchrl.modules import TanhNormal
-from torchrl.objectives import SACLoss, TD3Loss
+from torchrl.objectives import SACLoss, TD3Loss, TQCLoss
 
 from losses.common import PRIORITY_KEY  # noqa: F401  (TorchRL's SAC writes each transition's |TD error| there)
 
@@ -64,13 +64,12 @@ class DrawnTanhNormal(TanhNormal):
         return sample, log_prob
 
 
-class MemberSACLoss(SACLoss):
-    """``torchrl.objectives.SACLoss`` with one entropy temperature per member (``log_alpha`` of
-    shape ``[R]``) and the members' own noise (``draw``; the actor's distribution must be
-    ``DrawnTanhNormal`` reading ``ACTION_NOISE_KEY``); everything else is TorchRL's."""
+class MemberTemperature:
+    """SAC's entropy temperature, one per member (``log_alpha`` of shape ``[R]``), and the members'
+    own noise (``draw``; the actor's distribution must be ``DrawnTanhNormal`` reading
+    ``ACTION_NOISE_KEY``), for TorchRL's ``SACLoss`` and its subclasses (``TQCLoss``)."""
 
-    def __init__(self, *args, members: int, generators: Sequence[torch.Generator] | None = None, **kwargs):
-        super().__init__(*args, reduction="none", scalar_output_mode="exclude", **kwargs)
+    def _member_setup(self, members: int, generators: Sequence[torch.Generator] | None) -> None:
         self.members = members
         self.generators = list(generators) if generators is not None else None
         log_alpha = torch.full((members,), math.log(float(self.alpha_init)), device=self.alpha_init.device)
@@ -96,11 +95,12 @@ class MemberSACLoss(SACLoss):
         with torch.no_grad():
             return self.log_alpha.exp().reshape(self._alpha_shape)
 
-    def _compute_target_v2(self, tensordict: TensorDictBase) -> torch.Tensor:
-        # There TorchRL scales [Q-nets, R, B, 1] values by alpha: one more trailing dimension.
+    def _with_target_alpha(self, compute, tensordict: TensorDictBase) -> torch.Tensor:
+        # The targets scale values with one more trailing dimension by alpha ([Q-nets, R, B, 1]
+        # for SAC, [R, B, atoms] for TQC): the temperature broadcasts as [R, 1, 1] there.
         self._alpha_shape = (self.members, 1, 1)
         try:
-            return super()._compute_target_v2(tensordict)
+            return compute(tensordict)
         finally:
             self._alpha_shape = (self.members, 1)
 
@@ -113,6 +113,31 @@ class MemberSACLoss(SACLoss):
     def alpha(self) -> torch.Tensor:
         """Each member's temperature, ``[R]``."""
         return self.log_alpha.detach().exp()
+
+
+class MemberSACLoss(MemberTemperature, SACLoss):
+    """``torchrl.objectives.SACLoss`` with one entropy temperature per member and the members' own
+    noise (``MemberTemperature``); everything else is TorchRL's."""
+
+    def __init__(self, *args, members: int, generators: Sequence[torch.Generator] | None = None, **kwargs):
+        super().__init__(*args, reduction="none", scalar_output_mode="exclude", **kwargs)
+        self._member_setup(members, generators)
+
+    def _compute_target_v2(self, tensordict: TensorDictBase) -> torch.Tensor:
+        return self._with_target_alpha(super()._compute_target_v2, tensordict)
+
+
+class MemberTQCLoss(MemberTemperature, TQCLoss):
+    """``torchrl.objectives.TQCLoss`` (truncated quantile critics: each Q-network outputs quantiles
+    of the return; the target pools every target network's quantiles and drops the highest) with
+    one entropy temperature per member and the members' own noise (``MemberTemperature``)."""
+
+    def __init__(self, *args, members: int, generators: Sequence[torch.Generator] | None = None, **kwargs):
+        super().__init__(*args, reduction="none", scalar_output_mode="exclude", **kwargs)
+        self._member_setup(members, generators)
+
+    def compute_target(self, tensordict: TensorDictBase) -> torch.Tensor:
+        return self._with_target_alpha(super().compute_target, tensordict)
 
 
 def member_means(values: torch.Tensor) -> torch.Tensor:

@@ -16,11 +16,11 @@ from tensordict.nn import TensorDictModule
 from torch.distributions.utils import _standard_normal
 from torchrl.data import Bounded, LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.modules import ProbabilisticActor, TanhNormal
-from torchrl.objectives import SACLoss, SoftUpdate, TD3Loss
+from torchrl.objectives import SACLoss, SoftUpdate, TD3Loss, TQCLoss
 
 from collectors.prioritised import WEIGHT_KEY, ProportionalSampler
 from engine.config import ConfigError
-from engine.evaluation import load_policy
+from engine.evaluation import load_policy, make_policy
 from engine.setup import make_env, make_generators, make_learner
 from learners.base import MetricTotals
 from losses.td import ACTION_NOISE_KEY, SMOOTHING_KEY
@@ -82,6 +82,33 @@ def test_sac_of_a_population_of_one_equals_torchrl_sac_loss():
                                                       .apply(torch.neg)))["loss_actor"], ours["loss_actor"])
 
 
+def test_tqc_of_a_population_of_one_equals_torchrl_tqc_loss():
+    """MemberTQCLoss (per-member temperature, noise drawn ahead) gives TorchRL's TQCLoss on the same
+    quantile critics and the same N(0, I) draws: the pooled target without its highest quantiles,
+    the quantile Huber critic loss, the actor's mixture mean."""
+    cfg, t = training("tqc", "algo.tqc.quantiles=5", "algo.tqc.drop_per_critic=1", seeds=(A,))
+    actor = ProbabilisticActor(TensorDictModule(t.networks.actor_net, ["observation"], ["loc", "scale"]),
+                               in_keys=["loc", "scale"], distribution_class=TanhNormal,
+                               distribution_kwargs={"low": -1.0, "high": 1.0})
+    plain = TQCLoss(actor, t.networks.qvalues, num_qvalue_nets=2, top_quantiles_to_drop_per_net=1,
+                    alpha_init=1.0, target_entropy=-2.0, deactivate_vmap=True, reduction="mean")
+    plain.make_value_estimator(gamma=cfg.gamma)
+    SoftUpdate(plain, tau=0.005)
+    plain.qvalue_network_params.data.copy_(t.loss.qvalue_network_params.data)
+    plain.target_qvalue_network_params.data.copy_(t.loss.target_qvalue_network_params.data)
+    assert t.loss.qvalue_network_params.flatten_keys(".")["module.net.layers.2.weight"].shape[-2] == 5  # quantiles
+    data = transitions(1, 64)
+    torch.manual_seed(1)
+    theirs = plain(data.clone())
+    torch.manual_seed(1)  # TorchRL's draws, in its order: the target's action, then the actor loss's
+    mine = data.clone()
+    mine.set(("next", ACTION_NOISE_KEY), _standard_normal((1, 64, 2), dtype=torch.float32, device="cpu"))
+    mine.set(ACTION_NOISE_KEY, _standard_normal((1, 64, 2), dtype=torch.float32, device="cpu"))
+    ours = t.loss(mine)
+    for key in ("loss_actor", "loss_qvalue", "loss_alpha"):
+        torch.testing.assert_close(ours[key].mean(), theirs[key], rtol=1e-6, atol=1e-6)
+
+
 def test_td3_with_drawn_smoothing_noise_equals_torchrl_td3_loss():
     """MemberTD3Loss's target (smoothing noise drawn ahead, added by the actor) and actor loss are
     TorchRL's TD3Loss's, bit for bit, given the same draw."""
@@ -124,7 +151,7 @@ def test_td3_preact_penalty_adds_the_mean_square_of_the_pre_tanh_action():
     assert all(g is not None for pair in grads for g in pair) and not all(torch.equal(a, b) for a, b in grads)
 
 
-@pytest.mark.parametrize("algo", ["sac", "td3"])
+@pytest.mark.parametrize("algo", ["sac", "tqc", "td3"])
 def test_each_loss_term_reaches_only_its_own_networks_and_members_do_not_mix(algo):
     cfg, t = training(algo)
     data = transitions(2, 32)
@@ -139,7 +166,7 @@ def test_each_loss_term_reaches_only_its_own_networks_and_members_do_not_mix(alg
     def grads(term, batch):
         for p in actor + critic:
             p.grad = None
-        if algo == "sac":
+        if algo in ("sac", "tqc"):
             out = t.loss(batch.clone())[term]
         else:
             out = (t.loss.value_loss if term == "loss_qvalue" else t.loss.actor_loss)(batch.clone())[0]
@@ -152,7 +179,7 @@ def test_each_loss_term_reaches_only_its_own_networks_and_members_do_not_mix(alg
     a, c = grads("loss_actor", data)
     assert all(g is None or not g.any() for g in c)
     assert all(g is not None and g.any() for g in a[:len(list(t.networks.actor_net.parameters()))])
-    if algo == "sac":
+    if algo in ("sac", "tqc"):
         a, c = grads("loss_alpha", data)
         assert a[-1] is not None and a[-1].ne(0).all()  # log_alpha, one per member
         assert all(g is None or not g.any() for g in a[:-1] + c)
@@ -253,6 +280,8 @@ def test_the_sampler_plugs_into_a_torchrl_replay_buffer():
     (["algo=sac", "+algo.value_epochs=3"], "belong to the paper's protocol"),
     (["algo=td3", "algo.td3.policy_delay=0"], "policy_delay must be >= 1"),
     (["algo=td3", "algo.td3.preact_penalty=-0.1"], "preact_penalty must be >= 0"),
+    (["algo=tqc", "algo.tqc.drop_per_critic=25"], "the target would keep no quantile"),
+    (["algo=tqc", "algo.td.loss_function=l2"], "quantile Huber loss"),
     (["algo=sac", "algo.td.tau=0"], "tau must be in (0, 1]"),
     (["algo=sac", "er=prioritised", "er.priority.beta=2"], "beta must be in [0, 1]"),
 ])
@@ -288,14 +317,19 @@ def test_an_interrupted_population_resumes_exactly(tmp_path, algo, er):
                 == (tmp_path / "reference" / f"seed{seed}" / "metrics.csv").read_bytes())
 
 
-@pytest.mark.parametrize("algo, er", [("sac", "memory"), ("td3", "prioritised")])
+@pytest.mark.parametrize("algo, er", [("sac", "memory"), ("tqc", "prioritised"), ("td3", "prioritised")])
 def test_each_member_equals_its_solo_run(tmp_path, algo, er):
-    """Every draw (minibatches, priorities, the losses' noise) comes from the member's own generator."""
+    """Every draw (minibatches, priorities, the losses' noise) comes from the member's own generator;
+    the run's deterministic policy loads for evaluation."""
     run = [f"algo={algo}", f"er={er}", *FAST, "algo.td.updates_per_step=0.1"]
     train_population(load(*run, f"seed={B}"), tmp_path / "solo")
     train_population(load(*run, f"seeds=[{B},{A}]"), tmp_path / "pair")
     assert ((tmp_path / "pair" / f"seed{B}" / "metrics.csv").read_bytes()
             == (tmp_path / "solo" / "metrics.csv").read_bytes())
+    cfg = load(*run)
+    policy = make_policy(algo, {"actor_hidden": cfg.network.actor_hidden, "activation": cfg.network.activation}, 6,
+                         torch.load(tmp_path / "solo" / "actor.pt"))
+    assert policy(np.zeros(6)).shape == (2,)
 
 
 def test_a_diverging_sac_member_is_frozen_and_the_other_finishes(tmp_path, monkeypatch):

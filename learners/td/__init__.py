@@ -1,4 +1,4 @@
-"""TorchRL's off-policy learners (``loss: sac|td3``): bootstrapped TD targets, gradient steps
+"""TorchRL's off-policy learners (``loss: sac|tqc|td3``): bootstrapped TD targets, gradient steps
 paid per environment step, target networks, a replay memory.
 
 The family's torch-free half: its losses, option blocks (validated before torch loads) and
@@ -12,8 +12,9 @@ from dataclasses import dataclass
 
 from learners.options import ConfigError, at_least, choice, positive
 
-LOSSES = ("sac", "td3")
-DESCRIPTION = "TorchRL's off-policy losses (loss sac or td3)"
+LOSSES = ("sac", "tqc", "td3")
+ENTROPY_LOSSES = ("sac", "tqc")  # a tanh-Gaussian actor and a learned entropy temperature (the sac: block)
+DESCRIPTION = "TorchRL's off-policy losses (loss sac, tqc or td3)"
 OFF_POLICY = True  # trains on a replay memory only: er=memory or er=prioritised
 KEYS = ()  # its schedule is in the td: block
 LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
@@ -21,7 +22,7 @@ LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
 
 @dataclass(frozen=True)
 class TDOptions:
-    """The off-policy schedule of ``loss: sac|td3`` (``conf/algo/sac.yaml`` explains each key)."""
+    """The off-policy schedule of ``loss: sac|tqc|td3`` (``conf/algo/sac.yaml`` explains each key)."""
 
     updates_per_step: float
     warmup_episodes: int
@@ -46,7 +47,7 @@ class TDOptions:
 
 @dataclass(frozen=True)
 class SACOptions:
-    """``algo.sac`` (TorchRL's ``SACLoss``)."""
+    """``algo.sac`` (TorchRL's ``SACLoss``; ``TQCLoss`` is one too, so ``loss: tqc`` has this block)."""
 
     alpha_init: float
     target_entropy: float | None  # None: TorchRL's "auto", minus the action dimension
@@ -72,11 +73,33 @@ class TD3Options:
         at_least("algo.td3.policy_delay", self.policy_delay, 1)
 
 
-BLOCKS = {"td": (LOSSES, TDOptions), "sac": (("sac",), SACOptions), "td3": (("td3",), TD3Options)}
+@dataclass(frozen=True)
+class TQCOptions:
+    """``algo.tqc`` (TorchRL's ``TQCLoss``): the ensemble of quantile critics and the truncation."""
+
+    critics: int  # Q-networks, each outputting `quantiles` quantiles of the return
+    quantiles: int
+    drop_per_critic: int  # the target drops the highest critics * drop_per_critic of the pooled quantiles
+
+    def __post_init__(self) -> None:
+        at_least("algo.tqc.critics", self.critics, 1)
+        at_least("algo.tqc.quantiles", self.quantiles, 1)
+        at_least("algo.tqc.drop_per_critic", self.drop_per_critic, 0)
+        if self.drop_per_critic >= self.quantiles:
+            raise ConfigError(f"algo.tqc.drop_per_critic must be below algo.tqc.quantiles ({self.quantiles}), "
+                              f"got {self.drop_per_critic}: the target would keep no quantile")
+
+
+BLOCKS = {"td": (LOSSES, TDOptions), "sac": (ENTROPY_LOSSES, SACOptions), "tqc": (("tqc",), TQCOptions),
+          "td3": (("td3",), TD3Options)}
 
 
 def check(algo) -> None:
-    """No rules beyond the option blocks'."""
+    """TQC's critic loss is TorchRL's quantile Huber loss (threshold 1): ``td.loss_function`` says so."""
+    given = (algo.td or {}).get("loss_function")
+    if algo.loss == "tqc" and given is not None and given != "smooth_l1":
+        raise ConfigError(f"algo {algo.name}: loss tqc trains its critics with the quantile Huber loss; set "
+                          f"algo.td.loss_function: smooth_l1 (got {given})")
 
 
 def build(cfg, env, generators, memory):

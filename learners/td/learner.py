@@ -34,8 +34,9 @@ from learners.base import Learner, MetricTotals, Optimisers, diverged_members, f
 from learners.compiling import compile_step
 from learners.networks import BlockSampler, StackedCriticNet, StackedMLP, reset_parameters
 from learners.optim import MemberAdam
+from learners.td import ENTROPY_LOSSES
 from losses.td import (ACTION_NOISE_KEY, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhNormal, MemberSACLoss, MemberTD3Loss,
-                       SmoothedActor, member_means)
+                       MemberTQCLoss, SmoothedActor, member_means)
 
 TD_TRANSITION_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
                       ("next", "terminated"))
@@ -61,9 +62,9 @@ class _Tanh(nn.Module):
 
 def make_actor_net(loss: str, members: int, obs_dim: int, action_dim: int, hidden: Sequence[int],
                    activation: str) -> nn.Module:
-    """The members' stacked actor: SAC's ``[R, ..., obs] -> (loc, scale)`` of a Gaussian (squashed by
-    tanh when sampled), TD3's ``[R, ..., obs] -> tanh action``."""
-    if loss == "sac":
+    """The members' stacked actor: SAC's and TQC's ``[R, ..., obs] -> (loc, scale)`` of a Gaussian
+    (squashed by tanh when sampled), TD3's ``[R, ..., obs] -> tanh action``."""
+    if loss in ENTROPY_LOSSES:
         body = StackedMLP(members, [obs_dim, *hidden, 2 * action_dim], activation, linear_output=True)
         return nn.Sequential(body, NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4))
     body = StackedMLP(members, [obs_dim, *hidden, action_dim], activation, linear_output=True)
@@ -77,7 +78,7 @@ def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
     action_dim = env.action_spec.shape[-1]
     device = generators[0].device
     actor_net = make_actor_net(algo.loss, members, obs_dim, action_dim, net.actor_hidden, net.activation).to(device)
-    if algo.loss == "sac":  # its reparameterised draws use the noise the loss draws per member
+    if algo.loss in ENTROPY_LOSSES:  # its reparameterised draws use the noise the loss draws per member
         actor = ProbabilisticActor(TensorDictModule(actor_net, ["observation"], ["loc", "scale"]),
                                    in_keys={"loc": "loc", "scale": "scale", "noise": ACTION_NOISE_KEY},
                                    distribution_class=DrawnTanhNormal,
@@ -86,8 +87,10 @@ def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
         actor = TensorDictModule(SmoothedActor(actor_net), ["observation", SMOOTHING_KEY], ["action"])
     reset_parameters(actor_net, generators)
     qvalue_nets = []
-    for _ in range(2):
-        q = StackedCriticNet(members, obs_dim + action_dim, net.critic_hidden, net.activation).to(device)
+    critics, outputs = (algo.tqc.critics, algo.tqc.quantiles) if algo.loss == "tqc" else (2, 1)
+    for _ in range(critics):
+        q = StackedCriticNet(members, obs_dim + action_dim, net.critic_hidden, net.activation,
+                             outputs=outputs).to(device)
         reset_parameters(q, generators)
         qvalue_nets.append(q)
     qvalues = [TensorDictModule(q, ["observation", "action"], ["state_action_value"]) for q in qvalue_nets]
@@ -151,13 +154,17 @@ def make_loss(cfg, networks: Networks, generators: Sequence[torch.Generator]):
     spec = Bounded(-1.0, 1.0, (action_dim,), device=generators[0].device)
     # Eagerly, looping over the Q-networks is faster than vmap; compiled, the loop's pytree
     # bookkeeping would recompile the graph on every call, and vmap compiles into one graph.
-    if algo.loss == "sac":
+    if algo.loss in ENTROPY_LOSSES:
         sac = algo.sac
         target_entropy = sac.target_entropy if sac.target_entropy is not None else -float(action_dim)
-        loss = MemberSACLoss(networks.actor, networks.qvalues, members=members, generators=generators,
-                             num_qvalue_nets=len(networks.qvalues), loss_function=td.loss_function,
-                             alpha_init=sac.alpha_init, fixed_alpha=sac.fixed_alpha, target_entropy=target_entropy,
-                             action_spec=spec, deactivate_vmap=not cfg.compile)
+        common = dict(members=members, generators=generators, num_qvalue_nets=len(networks.qvalues),
+                      alpha_init=sac.alpha_init, fixed_alpha=sac.fixed_alpha, target_entropy=target_entropy,
+                      action_spec=spec, deactivate_vmap=not cfg.compile)
+        if algo.loss == "sac":
+            loss = MemberSACLoss(networks.actor, networks.qvalues, loss_function=td.loss_function, **common)
+        else:  # its critic loss is the quantile Huber loss (td.loss_function smooth_l1, checked)
+            loss = MemberTQCLoss(networks.actor, networks.qvalues,
+                                 top_quantiles_to_drop_per_net=algo.tqc.drop_per_critic, **common)
     else:
         loss = MemberTD3Loss(networks.actor, networks.qvalues, spec, policy_noise=algo.td3.policy_noise,
                              noise_clip=algo.td3.noise_clip, loss_function=td.loss_function, generators=generators,
@@ -196,7 +203,8 @@ class TDPhaseRunner:
         self.sampler = memory.sampler if memory is not None else None  # prioritised replay, or None
         self.active = torch.ones(len(self.generators), device=optimisers.critic.params[0].device)
         self.critic_metrics = ("loss_qvalue",)
-        self.actor_metrics = ("loss_actor", "loss_alpha", "alpha") if self.kind == "sac" else ("loss_actor",)
+        self.entropy = self.kind in ENTROPY_LOSSES  # SAC's step (TQC's loss is a SACLoss)
+        self.actor_metrics = ("loss_actor", "loss_alpha", "alpha") if self.entropy else ("loss_actor",)
         self._sac_objective = compile_step(self._sac_losses, cfg.compile)
         self._critic_objective = compile_step(self._td3_critic_losses, cfg.compile)
         self._actor_objective = compile_step(self._td3_actor_losses, cfg.compile)
@@ -214,7 +222,7 @@ class TDPhaseRunner:
             else:
                 batch = sample_minibatch(data, minibatch_size, self.generators)
             self.loss.draw(batch)  # the loss's noise, from each member's generator
-            priority = self._sac_step(batch, totals) if self.kind == "sac" else self._td3_step(batch, step, totals)
+            priority = self._sac_step(batch, totals) if self.entropy else self._td3_step(batch, step, totals)
             if self.sampler is not None:
                 self.sampler.update_priority(index.cpu(), priority.detach().cpu())
         return diverged_members(self.optimisers, totals, self.active)
@@ -282,7 +290,7 @@ class TDPhaseRunner:
 
 
 def build(cfg, env, generators: Sequence[torch.Generator], memory: ReplayMemory) -> Learner:
-    """Networks, loss, optimisers and update phase of ``cfg.algo`` (loss sac or td3) for one
+    """Networks, loss, optimisers and update phase of ``cfg.algo`` (loss sac, tqc or td3) for one
     member per generator."""
     networks = make_networks(cfg, env, generators)
     loss = make_loss(cfg, networks, generators)
