@@ -23,9 +23,9 @@ from analysis.aggregate import iqm, stratified_bootstrap_ci
 from analysis.report import ALGO_COLUMNS, COLLAPSE_BELOW, COLUMN_TITLES, PAPER_SEEDS, Run, _mean_difference, paired_bootstrap
 
 REFERENCE = ("memory", "spg_p_multi")  # the paper's best cell (Table 1: 141.1)
-ROWS = (("memory", "sac"), ("memory", "sac_sb3"), ("memory", "tqc"), ("prioritised", "sac"), ("memory", "td3"), ("prioritised", "td3"),
+ROWS = (("memory", "sac"), ("memory", "sac_sb3"), ("memory", "tqc"), ("memory", "crossq"), ("prioritised", "sac"), ("memory", "td3"), ("prioritised", "td3"),
         ("memory", "spg_p_multi"), ("prioritised", "spg_p_multi"), ("memory", "ppo_log"), ("recent", "ppo"))
-TITLES = {**COLUMN_TITLES, "sac": "SAC", "sac_sb3": "SAC at SB3's settings", "td3": "TD3", "tqc": "TQC",
+TITLES = {**COLUMN_TITLES, "sac": "SAC", "sac_sb3": "SAC at SB3's settings", "td3": "TD3", "tqc": "TQC", "crossq": "CrossQ",
           "sb3_sac": "Stable-Baselines3 SAC", "sb3_ppo": "Stable-Baselines3 PPO"}
 
 

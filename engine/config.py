@@ -57,7 +57,7 @@ def _check_device(device: str) -> None:
 class AlgoConfig:
     """One algorithm (``conf/algo/*.yaml``) of one learner family (``learners``): the paper's
     (``loss: ppo|spg``, a critic phase then an actor phase per episode on Monte-Carlo returns) or
-    TorchRL's off-policy losses (``loss: sac|tqc|td3``, bootstrapped TD targets, options in ``td:``).
+    TorchRL's off-policy losses (``loss: sac|tqc|crossq|td3``, bootstrapped TD targets, options in ``td:``).
     The family decides which of the optional keys and blocks are required (``KEYS``, ``BLOCKS``)."""
 
     name: str
@@ -72,9 +72,10 @@ class AlgoConfig:
     joint_log_prob: bool | None = None
     ppo: dict | None = None  # options of the PPO losses (loss: ppo only)
     spg: dict | None = None  # options of the SPG losses (loss: spg only)
-    td: dict | None = None  # the off-policy schedule and targets (loss: sac, tqc or td3)
-    sac: dict | None = None  # options of TorchRL's SACLoss (loss: sac, and tqc: a SACLoss too)
+    td: dict | None = None  # the off-policy schedule and targets (loss: sac, tqc, crossq or td3)
+    sac: dict | None = None  # options of TorchRL's SACLoss (loss: sac, and tqc, crossq: built like it)
     tqc: dict | None = None  # options of TorchRL's TQCLoss (loss: tqc only)
+    crossq: dict | None = None  # options of TorchRL's CrossQLoss (loss: crossq only)
     td3: dict | None = None  # options of TorchRL's TD3Loss (loss: td3 only)
 
     def __post_init__(self) -> None:
@@ -248,6 +249,12 @@ class RunConfig:
         if self.algo.bootstrapped and (self.er.train_on_recent or not self.er.train_on_memory):
             raise ConfigError(f"algo {self.algo.name} trains off-policy on a replay memory; use er=memory or "
                               f"er=prioritised, not er={self.er.name}")
+        if self.algo.loss == "crossq" and self.er.priority is not None:
+            raise ConfigError(f"algo {self.algo.name}: TorchRL's CrossQLoss does not weight by priority; "
+                              "use er=memory")
+        if self.algo.loss == "crossq" and self.compile:
+            raise ConfigError(f"algo {self.algo.name}: compile=true is not supported for crossq (its batch "
+                              "normalisation updates running statistics in place); use compile=false")
         minibatch = max(1, round(self.algo.minibatch_size * self.er.minibatch_fraction))
         steps = self.env.episode_steps
         if self.er.train_on_recent and minibatch > steps:

@@ -158,6 +158,61 @@ def _unpad_rows(x: torch.Tensor, shape: torch.Size) -> torch.Tensor:
     return x.reshape(*shape[:-1], x.shape[-1])
 
 
+class StackedBatchNorm(nn.Module):
+    """Batch normalisation of ``[R, ..., F]`` per member: each member's features are normalised
+    by the mean and (biased) variance over its own rows in training mode, by its running
+    estimates in evaluation mode (updated in training as ``torch.nn.BatchNorm1d`` does, with
+    ``momentum`` and the unbiased variance), then scaled and shifted by its own ``weight`` and
+    ``bias`` (``[R, F]``). The standard deviation is taken in float64 and rounded (correctly
+    rounded, as ``learners.optim.exact_sqrt``), so it does not depend on the CPU's vector math."""
+
+    def __init__(self, members: int, features: int, momentum: float = 0.01, eps: float = 1e-3):
+        super().__init__()
+        self.members, self.momentum, self.eps = members, momentum, eps
+        self.weight = nn.Parameter(torch.ones(members, features))
+        self.bias = nn.Parameter(torch.zeros(members, features))
+        self.register_buffer("running_mean", torch.zeros(members, features))
+        self.register_buffer("running_var", torch.ones(members, features))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        flat = x.reshape(self.members, -1, x.shape[-1])
+        if self.training:
+            mean = flat.mean(1)
+            var = (flat - mean.unsqueeze(1)).square().mean(1)
+            with torch.no_grad():
+                rows = flat.shape[1]
+                unbiased = var * (rows / max(rows - 1, 1))
+                self.running_mean.mul_(1 - self.momentum).add_(self.momentum * mean)
+                self.running_var.mul_(1 - self.momentum).add_(self.momentum * unbiased)
+        else:
+            mean, var = self.running_mean, self.running_var
+        std = (var.double() + self.eps).sqrt().to(var.dtype)  # correctly rounded (as learners.optim.exact_sqrt)
+        out = (flat - mean.unsqueeze(1)) / std.unsqueeze(1) * self.weight.unsqueeze(1) + self.bias.unsqueeze(1)
+        return out.reshape(x.shape)
+
+
+class StackedBNCriticNet(nn.Module):
+    """CrossQ's critic for R members, ``Q(s, a)`` as ``[R, ..., 1]``: batch normalisation of the
+    input and after every hidden layer (before its activation), none after the output layer."""
+
+    def __init__(self, members: int, in_features: int, hidden: Sequence[int], activation: str = "relu",
+                 momentum: float = 0.01):
+        super().__init__()
+        sizes = [in_features, *hidden, 1]
+        self.layers = nn.ModuleList(StackedLinear(members, a, b) for a, b in zip(sizes[:-1], sizes[1:]))
+        self.norms = nn.ModuleList(StackedBatchNorm(members, width, momentum) for width in sizes[:-1])
+        self.activation = _STACKED_ACTIVATIONS[activation]
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        x = inputs[0] if len(inputs) == 1 else torch.cat(inputs, dim=-1)
+        x = self.norms[0](x)
+        for i, layer in enumerate(self.layers):
+            x = layer(x)
+            if i + 1 < len(self.layers):
+                x = per_member(self.activation, self.norms[i + 1](x))
+        return x
+
+
 class StackedGaussianPolicyNet(nn.Module):
     """``learners.solo.GaussianPolicyNet`` for R members: ``[R, ..., obs] -> (loc, scale)``."""
 

@@ -28,7 +28,9 @@ from tensordict import TensorDictBase
 from torch import nn
 from torch.distributions.utils import _sum_rightmost
 from torchrl.modules import TanhNormal
-from torchrl.objectives import SACLoss, TD3Loss, TQCLoss
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.objectives import CrossQLoss, SACLoss, TD3Loss, TQCLoss
+from torchrl.objectives.utils import distance_loss
 
 from losses.common import PRIORITY_KEY  # noqa: F401  (TorchRL's SAC writes each transition's |TD error| there)
 
@@ -138,6 +140,40 @@ class MemberTQCLoss(MemberTemperature, TQCLoss):
 
     def compute_target(self, tensordict: TensorDictBase) -> torch.Tensor:
         return self._with_target_alpha(super().compute_target, tensordict)
+
+
+class MemberCrossQLoss(MemberTemperature, CrossQLoss):
+    """``torchrl.objectives.CrossQLoss`` (SAC without target networks: the critics, batch-normalised,
+    score (s, a) and (s', a') in one forward pass, so that the normalisation sees both and the
+    next state's value comes from the online critics) for stacked members: one temperature and
+    the noise per member (``MemberTemperature``), and the joint pass concatenates along the
+    minibatch dimension (1; TorchRL's concatenates along 0, which holds the members here)."""
+
+    def __init__(self, *args, members: int, generators: Sequence[torch.Generator] | None = None, **kwargs):
+        super().__init__(*args, reduction="none", scalar_output_mode="exclude", **kwargs)
+        self._member_setup(members, generators)
+
+    def qvalue_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """TorchRL's CrossQ critic loss per transition ``[R, B]``: each Q-network's distance to
+        ``r + gamma * (min_j Q_j(s', a') - alpha * log pi(a'|s'))`` (a' drawn with the noise under
+        ``("next", ACTION_NOISE_KEY)``, the target detached), summed over the Q-networks."""
+        with (torch.no_grad(), set_exploration_type(ExplorationType.RANDOM),
+              self.actor_network_params.to_module(self.actor_network, preserve_module_state=False)):
+            following = tensordict.get("next").clone(False)
+            next_action, next_log_prob = self.actor_network.get_dist(following).rsample_and_log_prob()
+            following.set(self.tensor_keys.action, next_action)
+        keys = self.qvalue_network.in_keys
+        joint = torch.cat([tensordict.select(*keys, strict=False), following.select(*keys, strict=False)], dim=1)
+        values = self._vmap_qnetworkN0(joint, self.qvalue_network_params).get(self.tensor_keys.state_action_value)
+        current, following_values = values.split(tensordict.batch_size[1], dim=2)  # [Q-nets, R, B, 1] each
+        next_value = (following_values.min(0)[0] - self._alpha.unsqueeze(-1) * next_log_prob.unsqueeze(-1)).detach()
+        target = self.value_estimator.value_estimate(tensordict, next_value=next_value).squeeze(-1)
+        predicted = current.squeeze(-1)
+        loss = distance_loss(predicted, target.expand_as(predicted), loss_function=self.loss_function).sum(0)
+        return loss, {"td_error": (predicted - target).abs().detach().max(0)[0]}
+
+    def alpha_loss(self, log_prob: torch.Tensor, tensordict: TensorDictBase | None = None) -> torch.Tensor:
+        return self._alpha_loss(log_prob)
 
 
 def member_means(values: torch.Tensor) -> torch.Tensor:

@@ -9,7 +9,7 @@ from hydra.errors import MissingConfigException
 from engine.config import ConfigError, RunConfig
 
 CONF = Path(__file__).resolve().parent.parent / "conf"
-BEYOND_ALGOS, BEYOND_ERS = ("sac", "td3", "tqc"), ("prioritised",)  # not the paper's (tests/test_offpolicy.py)
+BEYOND_ALGOS, BEYOND_ERS = ("sac", "td3", "tqc", "crossq"), ("prioritised",)  # not the paper's (tests/test_offpolicy.py)
 ALGOS = sorted(p.stem for p in (CONF / "algo").glob("*.yaml") if p.stem not in BEYOND_ALGOS)
 ERS = sorted(p.stem for p in (CONF / "er").glob("*.yaml") if p.stem not in BEYOND_ERS)
 
@@ -31,7 +31,7 @@ def test_the_groups_hold_the_papers_columns_and_rows():
     assert ALGOS == ["ppo", "ppo_log", "spg", "spg_multi", "spg_p", "spg_p_multi"]
     assert ERS == ["hybrid", "memory", "recent"]
     assert len(CELLS) == 15
-    assert BEYOND_CELLS == ["memory-sac", "memory-sac_sb3", "memory-td3", "memory-tqc", "prioritised-sac", "prioritised-spg_p_multi",
+    assert BEYOND_CELLS == ["memory-crossq", "memory-sac", "memory-sac_sb3", "memory-td3", "memory-tqc", "prioritised-sac", "prioritised-spg_p_multi",
                             "prioritised-td3"]
 
 

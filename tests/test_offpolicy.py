@@ -16,14 +16,14 @@ from tensordict.nn import TensorDictModule
 from torch.distributions.utils import _standard_normal
 from torchrl.data import Bounded, LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.modules import ProbabilisticActor, TanhNormal
-from torchrl.objectives import SACLoss, SoftUpdate, TD3Loss, TQCLoss
+from torchrl.objectives import CrossQLoss, SACLoss, SoftUpdate, TD3Loss, TQCLoss
 
 from collectors.prioritised import WEIGHT_KEY, ProportionalSampler
 from engine.config import ConfigError
 from engine.evaluation import load_policy, make_policy
 from engine.setup import make_env, make_generators, make_learner
 from learners.base import MetricTotals
-from losses.td import ACTION_NOISE_KEY, SMOOTHING_KEY
+from losses.td import ACTION_NOISE_KEY, SMOOTHING_KEY, DrawnTanhNormal
 from engine.runner import train_population
 from tests.test_config import load
 from tests.test_resilience import interrupted_after
@@ -109,6 +109,74 @@ def test_tqc_of_a_population_of_one_equals_torchrl_tqc_loss():
         torch.testing.assert_close(ours[key].mean(), theirs[key], rtol=1e-6, atol=1e-6)
 
 
+class _Solo(torch.nn.Module):
+    """A population of one as TorchRL's losses expect a network: over ``[B, ...]``, no member dim."""
+
+    def __init__(self, net):
+        super().__init__()
+        self.net = net
+
+    def forward(self, *inputs):
+        out = self.net(*(x.unsqueeze(0) for x in inputs))
+        return tuple(o.squeeze(0) for o in out) if isinstance(out, tuple) else out.squeeze(0)
+
+
+class _GivenNoise(DrawnTanhNormal):
+    """TorchRL's CrossQ draws the next action unreparameterised: here from the given noise too."""
+
+    def sample_and_log_prob(self, sample_shape=()):
+        return self.rsample_and_log_prob(sample_shape)
+
+
+def test_crossq_of_a_population_of_one_equals_torchrl_crossq_loss():
+    """MemberCrossQLoss (current and next state-action pairs joined along the minibatch dimension,
+    per-member temperature) gives TorchRL's CrossQLoss (joined along its batch dimension) on the
+    same batch-normalised critics, actor and noise: critic loss, then actor loss against the
+    critics in evaluation mode (running statistics updated by the critic pass), temperature loss."""
+    cfg, t = training("crossq", seeds=(A,))
+    actor = ProbabilisticActor(TensorDictModule(_Solo(t.networks.actor_net), ["observation"], ["loc", "scale"]),
+                               in_keys={"loc": "loc", "scale": "scale", "noise": ACTION_NOISE_KEY},
+                               distribution_class=_GivenNoise, distribution_kwargs={"low": -1.0, "high": 1.0})
+    qvalues = [TensorDictModule(_Solo(q), ["observation", "action"], ["state_action_value"])
+               for q in t.networks.qvalue_nets]
+    plain = CrossQLoss(actor, qvalues, num_qvalue_nets=2, loss_function="l2", alpha_init=1.0, target_entropy=-2.0,
+                       deactivate_vmap=True)
+    plain.make_value_estimator(gamma=cfg.gamma)
+    data = transitions(1, 64)
+    t.loss.draw(data)
+    theirs, mine = plain(data[0].clone()), t.loss(data.clone())
+    for key in ("loss_qvalue", "loss_actor", "loss_alpha"):
+        torch.testing.assert_close(mine[key].mean(), theirs[key], rtol=1e-6, atol=1e-6)
+    stats = [v for v in t.loss.qvalue_network_params.values(True, True) if not v.requires_grad]
+    assert stats and all(torch.equal(a, b) for a, b in zip(
+        stats, [v for v in plain.qvalue_network_params.values(True, True) if not v.requires_grad]))
+    assert not torch.equal(stats[0][:, 0], torch.zeros_like(stats[0][:, 0]))  # the running means moved
+
+
+def test_stacked_batch_norm_is_torch_batch_norm_per_member():
+    """Training mode: each member normalised by its own rows' statistics, running estimates updated
+    as torch's (momentum, unbiased variance); evaluation mode: by the running estimates."""
+    from learners.networks import StackedBatchNorm
+
+    g = torch.Generator().manual_seed(0)
+    norm = StackedBatchNorm(3, 4, momentum=0.1, eps=1e-3)
+    with torch.no_grad():
+        norm.weight.copy_(torch.rand(3, 4, generator=g) + 0.5)
+        norm.bias.copy_(torch.rand(3, 4, generator=g))
+    x = torch.randn(3, 10, 4, generator=g) * 3 + 1
+    out = norm(x)
+    for r in range(3):
+        mean, var = torch.zeros(4), torch.ones(4)
+        expected = torch.nn.functional.batch_norm(x[r], mean, var, norm.weight[r], norm.bias[r], training=True,
+                                                  momentum=0.1, eps=1e-3)
+        torch.testing.assert_close(out[r], expected, rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(norm.running_mean[r], mean)
+        torch.testing.assert_close(norm.running_var[r], var)
+    norm.eval()
+    torch.testing.assert_close(norm(x)[1], torch.nn.functional.batch_norm(
+        x[1], norm.running_mean[1], norm.running_var[1], norm.weight[1], norm.bias[1], eps=1e-3), rtol=1e-5, atol=1e-5)
+
+
 def test_td3_with_drawn_smoothing_noise_equals_torchrl_td3_loss():
     """MemberTD3Loss's target (smoothing noise drawn ahead, added by the actor) and actor loss are
     TorchRL's TD3Loss's, bit for bit, given the same draw."""
@@ -151,7 +219,7 @@ def test_td3_preact_penalty_adds_the_mean_square_of_the_pre_tanh_action():
     assert all(g is not None for pair in grads for g in pair) and not all(torch.equal(a, b) for a, b in grads)
 
 
-@pytest.mark.parametrize("algo", ["sac", "tqc", "td3"])
+@pytest.mark.parametrize("algo", ["sac", "tqc", "crossq", "td3"])
 def test_each_loss_term_reaches_only_its_own_networks_and_members_do_not_mix(algo):
     cfg, t = training(algo)
     data = transitions(2, 32)
@@ -166,7 +234,7 @@ def test_each_loss_term_reaches_only_its_own_networks_and_members_do_not_mix(alg
     def grads(term, batch):
         for p in actor + critic:
             p.grad = None
-        if algo in ("sac", "tqc"):
+        if algo in ("sac", "tqc", "crossq"):
             out = t.loss(batch.clone())[term]
         else:
             out = (t.loss.value_loss if term == "loss_qvalue" else t.loss.actor_loss)(batch.clone())[0]
@@ -179,7 +247,7 @@ def test_each_loss_term_reaches_only_its_own_networks_and_members_do_not_mix(alg
     a, c = grads("loss_actor", data)
     assert all(g is None or not g.any() for g in c)
     assert all(g is not None and g.any() for g in a[:len(list(t.networks.actor_net.parameters()))])
-    if algo in ("sac", "tqc"):
+    if algo in ("sac", "tqc", "crossq"):
         a, c = grads("loss_alpha", data)
         assert a[-1] is not None and a[-1].ne(0).all()  # log_alpha, one per member
         assert all(g is None or not g.any() for g in a[:-1] + c)
@@ -282,6 +350,10 @@ def test_the_sampler_plugs_into_a_torchrl_replay_buffer():
     (["algo=td3", "algo.td3.preact_penalty=-0.1"], "preact_penalty must be >= 0"),
     (["algo=tqc", "algo.tqc.drop_per_critic=25"], "the target would keep no quantile"),
     (["algo=tqc", "algo.td.loss_function=l2"], "quantile Huber loss"),
+    (["algo=crossq", "algo.td.tau=0.005"], "crossq has no target networks"),
+    (["algo=sac", "algo.td.tau=null"], "updates target networks by algo.td.tau"),
+    (["algo=crossq", "er=prioritised"], "does not weight by priority"),
+    (["algo=crossq", "compile=true"], "not supported for crossq"),
     (["algo=sac", "algo.td.tau=0"], "tau must be in (0, 1]"),
     (["algo=sac", "er=prioritised", "er.priority.beta=2"], "beta must be in [0, 1]"),
 ])
@@ -304,7 +376,7 @@ def test_train_py_trains_two_episodes(tmp_path, algo, er):
     assert {"actor", "critic"} <= {p.stem for p in tmp_path.glob("*.pt")}
 
 
-@pytest.mark.parametrize("algo, er", [("sac", "prioritised"), ("td3", "memory")])
+@pytest.mark.parametrize("algo, er", [("sac", "prioritised"), ("crossq", "memory"), ("td3", "memory")])
 def test_an_interrupted_population_resumes_exactly(tmp_path, algo, er):
     run = [f"algo={algo}", f"er={er}", *FAST, "episodes=5", "checkpoint_every=2", f"seeds=[{A},{B}]"]
     train_population(load(*run), tmp_path / "reference")
@@ -317,7 +389,8 @@ def test_an_interrupted_population_resumes_exactly(tmp_path, algo, er):
                 == (tmp_path / "reference" / f"seed{seed}" / "metrics.csv").read_bytes())
 
 
-@pytest.mark.parametrize("algo, er", [("sac", "memory"), ("tqc", "prioritised"), ("td3", "prioritised")])
+@pytest.mark.parametrize("algo, er", [("sac", "memory"), ("tqc", "prioritised"), ("crossq", "memory"),
+                                     ("td3", "prioritised")])
 def test_each_member_equals_its_solo_run(tmp_path, algo, er):
     """Every draw (minibatches, priorities, the losses' noise) comes from the member's own generator;
     the run's deterministic policy loads for evaluation."""

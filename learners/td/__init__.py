@@ -1,4 +1,4 @@
-"""TorchRL's off-policy learners (``loss: sac|tqc|td3``): bootstrapped TD targets, gradient steps
+"""TorchRL's off-policy learners (``loss: sac|tqc|crossq|td3``): bootstrapped TD targets, gradient steps
 paid per environment step, target networks, a replay memory.
 
 The family's torch-free half: its losses, option blocks (validated before torch loads) and
@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 from learners.options import ConfigError, at_least, choice, positive
 
-LOSSES = ("sac", "tqc", "td3")
-ENTROPY_LOSSES = ("sac", "tqc")  # a tanh-Gaussian actor and a learned entropy temperature (the sac: block)
-DESCRIPTION = "TorchRL's off-policy losses (loss sac, tqc or td3)"
+LOSSES = ("sac", "tqc", "crossq", "td3")
+ENTROPY_LOSSES = ("sac", "tqc", "crossq")  # a tanh-Gaussian actor and a learned entropy temperature (the sac: block)
+DESCRIPTION = "TorchRL's off-policy losses (loss sac, tqc, crossq or td3)"
 OFF_POLICY = True  # trains on a replay memory only: er=memory or er=prioritised
 KEYS = ()  # its schedule is in the td: block
 LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
@@ -22,17 +22,17 @@ LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
 
 @dataclass(frozen=True)
 class TDOptions:
-    """The off-policy schedule of ``loss: sac|tqc|td3`` (``conf/algo/sac.yaml`` explains each key)."""
+    """The off-policy schedule of ``loss: sac|tqc|crossq|td3`` (``conf/algo/sac.yaml`` explains each key)."""
 
     updates_per_step: float
     warmup_episodes: int
-    tau: float
+    tau: float | None  # None: no target networks (crossq)
     loss_function: str
 
     def __post_init__(self) -> None:
         positive("algo.td.updates_per_step", self.updates_per_step)
         at_least("algo.td.warmup_episodes", self.warmup_episodes, 0)
-        if not 0 < self.tau <= 1:
+        if self.tau is not None and not 0 < self.tau <= 1:
             raise ConfigError(f"algo.td.tau must be in (0, 1], got {self.tau}")
         choice("algo.td.loss_function", self.loss_function, LOSS_FUNCTIONS)
 
@@ -47,7 +47,8 @@ class TDOptions:
 
 @dataclass(frozen=True)
 class SACOptions:
-    """``algo.sac`` (TorchRL's ``SACLoss``; ``TQCLoss`` is one too, so ``loss: tqc`` has this block)."""
+    """``algo.sac``: TorchRL's ``SACLoss``'s temperature, and that of the losses built like it
+    (``TQCLoss``, ``CrossQLoss``)."""
 
     alpha_init: float
     target_entropy: float | None  # None: TorchRL's "auto", minus the action dimension
@@ -90,12 +91,32 @@ class TQCOptions:
                               f"got {self.drop_per_critic}: the target would keep no quantile")
 
 
+@dataclass(frozen=True)
+class CrossQOptions:
+    """``algo.crossq`` (TorchRL's ``CrossQLoss``, batch-normalised critics)."""
+
+    policy_delay: int  # one actor (and temperature) step every this-many critic steps
+    batch_norm_momentum: float  # running statistics <- (1 - m) * running + m * batch (evaluation mode)
+
+    def __post_init__(self) -> None:
+        at_least("algo.crossq.policy_delay", self.policy_delay, 1)
+        if not 0 < self.batch_norm_momentum <= 1:
+            raise ConfigError(f"algo.crossq.batch_norm_momentum must be in (0, 1], got {self.batch_norm_momentum}")
+
+
 BLOCKS = {"td": (LOSSES, TDOptions), "sac": (ENTROPY_LOSSES, SACOptions), "tqc": (("tqc",), TQCOptions),
-          "td3": (("td3",), TD3Options)}
+          "crossq": (("crossq",), CrossQOptions), "td3": (("td3",), TD3Options)}
 
 
 def check(algo) -> None:
-    """TQC's critic loss is TorchRL's quantile Huber loss (threshold 1): ``td.loss_function`` says so."""
+    """TQC's critic loss is TorchRL's quantile Huber loss (threshold 1): ``td.loss_function`` says
+    so; CrossQ has no target networks (``td.tau: null``), the others need their ``tau``."""
+    tau = (algo.td or {}).get("tau", 0.005)
+    if algo.loss == "crossq" and tau is not None:
+        raise ConfigError(f"algo {algo.name}: loss crossq has no target networks; set algo.td.tau: null (got {tau})")
+    if algo.loss != "crossq" and tau is None:
+        raise ConfigError(f"algo {algo.name}: loss {algo.loss} updates target networks by algo.td.tau; "
+                          "give a value in (0, 1]")
     given = (algo.td or {}).get("loss_function")
     if algo.loss == "tqc" and given is not None and given != "smooth_l1":
         raise ConfigError(f"algo {algo.name}: loss tqc trains its critics with the quantile Huber loss; set "

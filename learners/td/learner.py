@@ -32,11 +32,11 @@ from torchrl.objectives import SoftUpdate
 from collectors import ReplayMemory, sample_minibatch
 from learners.base import Learner, MetricTotals, Optimisers, diverged_members, freeze_member, prioritised_minibatch
 from learners.compiling import compile_step
-from learners.networks import BlockSampler, StackedCriticNet, StackedMLP, reset_parameters
+from learners.networks import BlockSampler, StackedBNCriticNet, StackedCriticNet, StackedMLP, reset_parameters
 from learners.optim import MemberAdam
 from learners.td import ENTROPY_LOSSES
-from losses.td import (ACTION_NOISE_KEY, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhNormal, MemberSACLoss, MemberTD3Loss,
-                       MemberTQCLoss, SmoothedActor, member_means)
+from losses.td import (ACTION_NOISE_KEY, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhNormal, MemberCrossQLoss, MemberSACLoss,
+                       MemberTD3Loss, MemberTQCLoss, SmoothedActor, member_means)
 
 TD_TRANSITION_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
                       ("next", "terminated"))
@@ -89,8 +89,12 @@ def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
     qvalue_nets = []
     critics, outputs = (algo.tqc.critics, algo.tqc.quantiles) if algo.loss == "tqc" else (2, 1)
     for _ in range(critics):
-        q = StackedCriticNet(members, obs_dim + action_dim, net.critic_hidden, net.activation,
-                             outputs=outputs).to(device)
+        if algo.loss == "crossq":  # batch-normalised
+            q = StackedBNCriticNet(members, obs_dim + action_dim, net.critic_hidden, net.activation,
+                                   momentum=algo.crossq.batch_norm_momentum).to(device)
+        else:
+            q = StackedCriticNet(members, obs_dim + action_dim, net.critic_hidden, net.activation,
+                                 outputs=outputs).to(device)
         reset_parameters(q, generators)
         qvalue_nets.append(q)
     qvalues = [TensorDictModule(q, ["observation", "action"], ["state_action_value"]) for q in qvalue_nets]
@@ -162,6 +166,9 @@ def make_loss(cfg, networks: Networks, generators: Sequence[torch.Generator]):
                       action_spec=spec, deactivate_vmap=not cfg.compile)
         if algo.loss == "sac":
             loss = MemberSACLoss(networks.actor, networks.qvalues, loss_function=td.loss_function, **common)
+        elif algo.loss == "crossq":
+            common["deactivate_vmap"] = True  # its batch norm updates running statistics in place
+            loss = MemberCrossQLoss(networks.actor, networks.qvalues, loss_function=td.loss_function, **common)
         else:  # its critic loss is the quantile Huber loss (td.loss_function smooth_l1, checked)
             loss = MemberTQCLoss(networks.actor, networks.qvalues,
                                  top_quantiles_to_drop_per_net=algo.tqc.drop_per_critic, **common)
@@ -180,7 +187,7 @@ def make_optimisers(cfg, loss) -> Optimisers:
     actor = list(loss.actor_network_params.values(True, True))
     if isinstance(getattr(loss, "log_alpha", None), nn.Parameter):
         actor.append(loss.log_alpha)
-    critic = list(loss.qvalue_network_params.values(True, True))
+    critic = [p for p in loss.qvalue_network_params.values(True, True) if p.requires_grad]  # not batch-norm statistics
     return Optimisers(
         actor=MemberAdam(actor, lr=algo.actor_lr, eps=algo.adam_eps),
         critic=MemberAdam(critic, lr=algo.critic_lr, eps=algo.adam_eps, member_dims=[1] * len(critic)))
@@ -197,9 +204,10 @@ class TDPhaseRunner:
         self.loss, self.optimisers, self.generators = loss, optimisers, list(generators)
         self.kind, self.td = cfg.algo.loss, cfg.algo.td
         self.steps = cfg.env.episode_steps
-        self.policy_delay = cfg.algo.td3.policy_delay if self.kind == "td3" else 1
+        self.policy_delay = {"td3": cfg.algo.td3, "crossq": cfg.algo.crossq}[self.kind].policy_delay \
+            if self.kind in ("td3", "crossq") else 1
         self.preact_penalty = cfg.algo.td3.preact_penalty if self.kind == "td3" else 0.0
-        self.updater = SoftUpdate(loss, tau=self.td.tau)
+        self.updater = SoftUpdate(loss, tau=self.td.tau) if self.td.tau is not None else None  # crossq: no targets
         self.sampler = memory.sampler if memory is not None else None  # prioritised replay, or None
         self.active = torch.ones(len(self.generators), device=optimisers.critic.params[0].device)
         self.critic_metrics = ("loss_qvalue",)
@@ -222,7 +230,12 @@ class TDPhaseRunner:
             else:
                 batch = sample_minibatch(data, minibatch_size, self.generators)
             self.loss.draw(batch)  # the loss's noise, from each member's generator
-            priority = self._sac_step(batch, totals) if self.entropy else self._td3_step(batch, step, totals)
+            if self.kind == "crossq":
+                priority = self._crossq_step(batch, step, totals)
+            elif self.entropy:
+                priority = self._sac_step(batch, totals)
+            else:
+                priority = self._td3_step(batch, step, totals)
             if self.sampler is not None:
                 self.sampler.update_priority(index.cpu(), priority.detach().cpu())
         return diverged_members(self.optimisers, totals, self.active)
@@ -269,6 +282,20 @@ class TDPhaseRunner:
             totals.add("actor", {"loss_actor": loss_actor})
         return priority
 
+    def _crossq_step(self, batch: TensorDictBase, step: int, totals: MetricTotals) -> torch.Tensor:
+        """A critic step (current and next state in one batch-normalised pass), then, every
+        ``policy_delay`` steps, an actor and temperature step against the updated critics."""
+        loss_qvalue, meta = self.loss.qvalue_loss(batch)
+        loss_qvalue = member_means(loss_qvalue)
+        self._minimise(loss_qvalue, self.optimisers.critic)
+        totals.add("critic", {"loss_qvalue": loss_qvalue})
+        if (step + 1) % self.policy_delay == 0:
+            loss_actor, actor_meta = self.loss.actor_loss(batch)
+            loss_actor, loss_alpha = member_means(loss_actor), member_means(self.loss.alpha_loss(actor_meta["log_prob"]))
+            self._minimise(loss_actor + loss_alpha, self.optimisers.actor)
+            totals.add("actor", {"loss_actor": loss_actor, "loss_alpha": loss_alpha, "alpha": self.loss.alpha})
+        return meta["td_error"]
+
     def _minimise(self, per_member: torch.Tensor, *optimisers: MemberAdam) -> None:
         for optimiser in optimisers:
             optimiser.zero_grad()
@@ -280,7 +307,9 @@ class TDPhaseRunner:
         """As ``PhaseRunner.freeze``, target networks included."""
         self.active[member] = 0.0
         targets = [(t, 0) for t in getattr(self.loss, "target_actor_network_params", {}).values(True, True)]
-        targets += [(t, 1) for t in self.loss.target_qvalue_network_params.values(True, True)]
+        targets += [(t, 1) for t in getattr(self.loss, "target_qvalue_network_params", {}).values(True, True)]
+        targets += [(t, 1) for t in self.loss.qvalue_network_params.values(True, True)  # batch-norm statistics
+                    if not t.requires_grad]
         freeze_member(self.optimisers, member, targets)
 
     def member_critic(self, member: int) -> dict[str, torch.Tensor]:
