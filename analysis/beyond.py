@@ -29,6 +29,37 @@ TITLES = {**COLUMN_TITLES, "sac": "SAC", "sac_sb3": "SAC at SB3's settings", "td
           "sb3_sac": "Stable-Baselines3 SAC", "sb3_ppo": "Stable-Baselines3 PPO"}
 
 
+# Implementations compared at equal settings: (ours, theirs), as (er, algo) cells.
+PARITY = ((("memory", "sac_sb3"), ("default", "sb3_sac")),)
+
+
+def parity_markdown(runs: list[Run]) -> str:
+    """Per pair of ``PARITY`` present: ours - theirs, the mean paired by track with a 95% bootstrap
+    interval over tracks; "within paired noise" when the interval holds 0. '' if no pair is present."""
+    lines = []
+    for ours, theirs in PARITY:
+        a, b = _finals(runs, *ours, None), _finals(runs, *theirs, None)
+        if not a or not b:
+            continue
+        value, low, high, tracks = paired_bootstrap(a, b, _mean_difference)
+        if tracks < 2 or math.isnan(low):
+            verdict = "too few shared tracks for an interval"
+        else:
+            verdict = "within paired noise" if low <= 0 <= high else "ours higher" if low > 0 else "ours lower"
+        shared = sorted(set(a) & set(b))
+        per_track = ", ".join(f"{t}: {a[t] - b[t]:+.1f}" for t in shared)
+        interval = f" [{low:+.1f}, {high:+.1f}]" if not math.isnan(low) else ""
+        lines.append(f"| {label(*ours)} | {label(*theirs)} | {tracks} | {value:+.1f}{interval} | {verdict} | "
+                     f"{per_track} |")
+    if not lines:
+        return ""
+    return "\n".join(["### At equal settings", "",
+                      "Final performance of two implementations configured alike, paired by track (ours - "
+                      "theirs; 95% bootstrap interval over tracks).", "",
+                      "| ours | theirs | tracks | mean difference | verdict | per track |",
+                      "|---|---|---:|---|---|---|", *lines, ""])
+
+
 def is_beyond(run: Run) -> bool:
     """A run of an algorithm or a replay mode the paper did not have (SAC, TD3, SB3's, prioritised)."""
     return run.algo is not None and (run.algo not in ALGO_COLUMNS or run.er == "prioritised")
@@ -125,7 +156,8 @@ def beyond_markdown(runs: list[Run]) -> str:
             parts.append(f"| {row['cell']} | {row['runs']} | {row['mean_se']} | {ci} | {_diff_text(row)} | "
                          f"{row['collapsed']} | {row['diverged']} | {wall} |")
         parts.append("")
-    return "\n".join(parts)
+    parity = parity_markdown(runs)
+    return "\n".join(parts + ([parity] if parity else []))
 
 
 def generalisation_rows(runs: list[Run], seeds: set[int] | None = None) -> list[dict]:

@@ -314,3 +314,24 @@ def test_the_frontier_curves_by_hand(tmp_path):
     assert [line[0] for line in everything][1] == "SAC, memory (n=1)"  # the rows of beyond.md, then SB3
     assert frontier_figure(runs, oracle, tmp_path / "f.png", smooth=2).stat().st_size > 0
     assert frontier_series([r for r in runs if r.algo == "spg"], oracle) == []
+
+
+def test_the_parity_table_pairs_ours_with_theirs_by_track(tmp_path):
+    """SAC at SB3's settings against SB3's SAC: the mean of the per-track differences with a
+    bootstrap interval; an interval holding 0 reads "within paired noise"; a constant gap is decided."""
+    from analysis.beyond import beyond_markdown
+    from analysis.report import PAPER_SEEDS
+
+    for seed, theirs, gap in zip(PAPER_SEEDS[:3], [140.0, 130.0, 150.0], [1.0, -1.0, 3.0]):
+        fake_run(tmp_path / "a", "sb3_sac", "default", seed, theirs)
+        fake_run(tmp_path / "a", "sac_sb3", "memory", seed, theirs + gap)
+        fake_run(tmp_path / "b", "sb3_sac", "default", seed, theirs)
+        fake_run(tmp_path / "b", "sac_sb3", "memory", seed, theirs - 5.0)
+    noisy = beyond_markdown(find_runs(tmp_path / "a"))
+    assert "### At equal settings" in noisy
+    (row,) = [line for line in noisy.splitlines() if line.startswith("| SAC at SB3's settings, memory |")
+              and "Stable-Baselines3 SAC" in line]
+    assert "| 3 | +1.0 [" in row and "within paired noise" in row and "+1.0, " in row and "-1.0, " in row
+    decided = beyond_markdown(find_runs(tmp_path / "b"))
+    assert "| 3 | -5.0 [-5.0, -5.0] | ours lower |" in decided
+    assert "At equal settings" not in beyond_markdown(find_runs(tmp_path / "a" / "sb3_sac"))
