@@ -145,3 +145,18 @@ def test_beyond_paper_wide_is_beyond_paper_on_the_wide_grids_tracks():
     for cell in ("memory-sac", "recent-ppo"):
         assert load("+experiment=beyond_paper_wide", f"+cell={cell}") == load(
             "+experiment=beyond_paper", f"+cell={cell}", f"seeds=[{','.join(map(str, wide))}]")
+
+
+@pytest.mark.parametrize("experiment, key, expected", [
+    ("paper_grid", "+cell", CELLS), ("wide_grid", "+cell", CELLS), ("full_grid", "algo", ALGOS),
+    ("full_grid", "er", ERS)])
+def test_the_paper_sweeps_expand_to_the_papers_cells_only(experiment, key, expected):
+    """The paper's grids choose their cells by glob over conf/: a new beyond-the-paper config must
+    not slip into Table 1 (the globs expanded here as Hydra's sweeper expands them)."""
+    import yaml
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    params = yaml.safe_load((CONF / "experiment" / f"{experiment}.yaml").read_text())["hydra"]["sweeper"]["params"]
+    glob = OverridesParser.create().parse_override(f"{key}={params[key]}").value()
+    group = {"+cell": "cell", "algo": "algo", "er": "er"}[key]
+    assert sorted(glob.filter([p.stem for p in (CONF / group).glob("*.yaml")])) == expected
