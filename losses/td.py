@@ -69,9 +69,12 @@ class DrawnTanhNormal(TanhNormal):
 class MemberTemperature:
     """SAC's entropy temperature, one per member (``log_alpha`` of shape ``[R]``), and the members'
     own noise (``draw``; the actor's distribution must be ``DrawnTanhNormal`` reading
-    ``ACTION_NOISE_KEY``), for TorchRL's ``SACLoss`` and its subclasses (``TQCLoss``)."""
+    ``ACTION_NOISE_KEY``), for TorchRL's ``SACLoss`` and the losses built like it (``TQCLoss``,
+    ``CrossQLoss``); their losses come back per transition (``reduction="none"``)."""
 
-    def _member_setup(self, members: int, generators: Sequence[torch.Generator] | None) -> None:
+    def __init__(self, *args, members: int, generators: Sequence[torch.Generator] | None = None, **kwargs):
+        # the TorchRL loss (next in the MRO) per transition: member_means averages per member
+        super().__init__(*args, reduction="none", scalar_output_mode="exclude", **kwargs)
         self.members = members
         self.generators = list(generators) if generators is not None else None
         log_alpha = torch.full((members,), math.log(float(self.alpha_init)), device=self.alpha_init.device)
@@ -121,10 +124,6 @@ class MemberSACLoss(MemberTemperature, SACLoss):
     """``torchrl.objectives.SACLoss`` with one entropy temperature per member and the members' own
     noise (``MemberTemperature``); everything else is TorchRL's."""
 
-    def __init__(self, *args, members: int, generators: Sequence[torch.Generator] | None = None, **kwargs):
-        super().__init__(*args, reduction="none", scalar_output_mode="exclude", **kwargs)
-        self._member_setup(members, generators)
-
     def _compute_target_v2(self, tensordict: TensorDictBase) -> torch.Tensor:
         return self._with_target_alpha(super()._compute_target_v2, tensordict)
 
@@ -133,10 +132,6 @@ class MemberTQCLoss(MemberTemperature, TQCLoss):
     """``torchrl.objectives.TQCLoss`` (truncated quantile critics: each Q-network outputs quantiles
     of the return; the target pools every target network's quantiles and drops the highest) with
     one entropy temperature per member and the members' own noise (``MemberTemperature``)."""
-
-    def __init__(self, *args, members: int, generators: Sequence[torch.Generator] | None = None, **kwargs):
-        super().__init__(*args, reduction="none", scalar_output_mode="exclude", **kwargs)
-        self._member_setup(members, generators)
 
     def compute_target(self, tensordict: TensorDictBase) -> torch.Tensor:
         return self._with_target_alpha(super().compute_target, tensordict)
@@ -148,10 +143,6 @@ class MemberCrossQLoss(MemberTemperature, CrossQLoss):
     next state's value comes from the online critics) for stacked members: one temperature and
     the noise per member (``MemberTemperature``), and the joint pass concatenates along the
     minibatch dimension (1; TorchRL's concatenates along 0, which holds the members here)."""
-
-    def __init__(self, *args, members: int, generators: Sequence[torch.Generator] | None = None, **kwargs):
-        super().__init__(*args, reduction="none", scalar_output_mode="exclude", **kwargs)
-        self._member_setup(members, generators)
 
     def qvalue_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """TorchRL's CrossQ critic loss per transition ``[R, B]``: each Q-network's distance to

@@ -53,15 +53,32 @@ def transitions(members, n, seed=0):
 
 
 # --------------------------------------------------------------------------- the losses
+def _plain_actor(t):
+    """The learner's actor network as TorchRL's own TanhNormal actor (drawing from torch's generator)."""
+    return ProbabilisticActor(TensorDictModule(t.networks.actor_net, ["observation"], ["loc", "scale"]),
+                              in_keys=["loc", "scale"], distribution_class=TanhNormal,
+                              distribution_kwargs={"low": -1.0, "high": 1.0})
+
+
+def _with_torchrl_draws(plain, loss, data):
+    """TorchRL's loss on ``data``, then ours given the N(0, I) draws TorchRL made, in its order: the
+    target's action, then the actor loss's; and those draws."""
+    torch.manual_seed(1)
+    theirs = plain(data.clone())
+    torch.manual_seed(1)
+    mine = data.clone()
+    mine.set(("next", ACTION_NOISE_KEY), _standard_normal((1, 64, 2), dtype=torch.float32, device="cpu"))
+    mine.set(ACTION_NOISE_KEY, _standard_normal((1, 64, 2), dtype=torch.float32, device="cpu"))
+    noise = mine.select(ACTION_NOISE_KEY, ("next", ACTION_NOISE_KEY)).clone()
+    return theirs, loss(mine), noise
+
+
 def test_sac_of_a_population_of_one_equals_torchrl_sac_loss():
     """MemberSACLoss (per-member temperature, per-transition terms averaged per member, noise drawn
     ahead) gives TorchRL's SACLoss (reduction="mean", one scalar temperature, TanhNormal drawing
     from the global generator) on the same networks and the same N(0, I) draws."""
     cfg, t = training("sac", seeds=(A,))
-    actor = ProbabilisticActor(TensorDictModule(t.networks.actor_net, ["observation"], ["loc", "scale"]),
-                               in_keys=["loc", "scale"], distribution_class=TanhNormal,
-                               distribution_kwargs={"low": -1.0, "high": 1.0})
-    plain = SACLoss(actor, t.networks.qvalues, num_qvalue_nets=2, loss_function="l2", alpha_init=1.0,
+    plain = SACLoss(_plain_actor(t), t.networks.qvalues, num_qvalue_nets=2, loss_function="l2", alpha_init=1.0,
                     target_entropy=-2.0, deactivate_vmap=True)
     plain.make_value_estimator(gamma=cfg.gamma)
     SoftUpdate(plain, tau=0.005)
@@ -69,17 +86,10 @@ def test_sac_of_a_population_of_one_equals_torchrl_sac_loss():
     plain.qvalue_network_params.data.copy_(t.loss.qvalue_network_params.data)
     plain.target_qvalue_network_params.data.copy_(t.loss.target_qvalue_network_params.data)
     data = transitions(1, 64)
-    torch.manual_seed(1)
-    theirs = plain(data.clone())
-    torch.manual_seed(1)  # TorchRL's draws, in its order: the target's action, then the actor loss's
-    mine = data.clone()
-    mine.set(("next", ACTION_NOISE_KEY), _standard_normal((1, 64, 2), dtype=torch.float32, device="cpu"))
-    mine.set(ACTION_NOISE_KEY, _standard_normal((1, 64, 2), dtype=torch.float32, device="cpu"))
-    ours = t.loss(mine)
+    theirs, ours, noise = _with_torchrl_draws(plain, t.loss, data)
     for key in ("loss_actor", "loss_qvalue", "loss_alpha"):
         torch.testing.assert_close(ours[key].mean(), theirs[key], rtol=1e-6, atol=1e-6)
-    assert not torch.equal(t.loss(data.clone().update(mine.select(ACTION_NOISE_KEY, ("next", ACTION_NOISE_KEY))
-                                                      .apply(torch.neg)))["loss_actor"], ours["loss_actor"])
+    assert not torch.equal(t.loss(data.clone().update(noise.apply(torch.neg)))["loss_actor"], ours["loss_actor"])
 
 
 def test_tqc_of_a_population_of_one_equals_torchrl_tqc_loss():
@@ -87,10 +97,7 @@ def test_tqc_of_a_population_of_one_equals_torchrl_tqc_loss():
     quantile critics and the same N(0, I) draws: the pooled target without its highest quantiles,
     the quantile Huber critic loss, the actor's mixture mean."""
     cfg, t = training("tqc", "algo.tqc.quantiles=5", "algo.tqc.drop_per_critic=1", seeds=(A,))
-    actor = ProbabilisticActor(TensorDictModule(t.networks.actor_net, ["observation"], ["loc", "scale"]),
-                               in_keys=["loc", "scale"], distribution_class=TanhNormal,
-                               distribution_kwargs={"low": -1.0, "high": 1.0})
-    plain = TQCLoss(actor, t.networks.qvalues, num_qvalue_nets=2, top_quantiles_to_drop_per_net=1,
+    plain = TQCLoss(_plain_actor(t), t.networks.qvalues, num_qvalue_nets=2, top_quantiles_to_drop_per_net=1,
                     alpha_init=1.0, target_entropy=-2.0, deactivate_vmap=True, reduction="mean")
     plain.make_value_estimator(gamma=cfg.gamma)
     SoftUpdate(plain, tau=0.005)
@@ -98,13 +105,7 @@ def test_tqc_of_a_population_of_one_equals_torchrl_tqc_loss():
     plain.target_qvalue_network_params.data.copy_(t.loss.target_qvalue_network_params.data)
     assert t.loss.qvalue_network_params.flatten_keys(".")["module.net.layers.2.weight"].shape[-2] == 5  # quantiles
     data = transitions(1, 64)
-    torch.manual_seed(1)
-    theirs = plain(data.clone())
-    torch.manual_seed(1)  # TorchRL's draws, in its order: the target's action, then the actor loss's
-    mine = data.clone()
-    mine.set(("next", ACTION_NOISE_KEY), _standard_normal((1, 64, 2), dtype=torch.float32, device="cpu"))
-    mine.set(ACTION_NOISE_KEY, _standard_normal((1, 64, 2), dtype=torch.float32, device="cpu"))
-    ours = t.loss(mine)
+    theirs, ours, _ = _with_torchrl_draws(plain, t.loss, data)
     for key in ("loss_actor", "loss_qvalue", "loss_alpha"):
         torch.testing.assert_close(ours[key].mean(), theirs[key], rtol=1e-6, atol=1e-6)
 
