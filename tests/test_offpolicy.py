@@ -206,7 +206,7 @@ def test_td3_preact_penalty_adds_the_mean_square_of_the_pre_tanh_action():
     """algo.td3.preact_penalty=c: each member's actor loss is TorchRL's plus c * mean(u^2), u the
     pre-tanh actions at the minibatch's states (u = atanh(mu), checked in float64), and the extra
     gradient reaches the actor's weights (the ones its optimiser steps)."""
-    _, plain = training("td3")
+    _, plain = training("td3", "algo.td3.preact_penalty=0")
     _, penalised = training("td3", "algo.td3.preact_penalty=0.5")
     data = transitions(2, 64)
     plain.loss.draw(data)
