@@ -23,10 +23,10 @@ from analysis.aggregate import iqm, stratified_bootstrap_ci
 from analysis.report import ALGO_COLUMNS, COLLAPSE_BELOW, COLUMN_TITLES, PAPER_SEEDS, Run, _mean_difference, paired_bootstrap
 
 REFERENCE = ("memory", "spg_p_multi")  # the paper's best cell (Table 1: 141.1)
-ROWS = (("memory", "sac"), ("memory", "sac_sb3"), ("memory", "tqc"), ("memory", "crossq"), ("prioritised", "sac"), ("memory", "td3"), ("prioritised", "td3"),
-        ("memory", "spg_p_multi"), ("prioritised", "spg_p_multi"), ("memory", "ppo_log"), ("recent", "ppo"))
-TITLES = {**COLUMN_TITLES, "sac": "SAC", "sac_sb3": "SAC at SB3's settings", "td3": "TD3", "tqc": "TQC", "crossq": "CrossQ",
-          "sb3_sac": "Stable-Baselines3 SAC", "sb3_ppo": "Stable-Baselines3 PPO"}
+ROWS = (("memory", "sac"), ("memory", "sac_sb3"), ("memory", "tqc"), ("memory", "crossq"), ("prioritised", "sac"),
+        ("memory", "td3"), ("prioritised", "td3"), ("memory", "spg_p_multi"), ("prioritised", "spg_p_multi"), ("memory", "ppo_log"), ("recent", "ppo"))
+TITLES = {**COLUMN_TITLES, "sac": "SAC", "sac_sb3": "SAC at SB3's settings", "td3": "TD3", "tqc": "TQC",
+          "crossq": "CrossQ", "sb3_sac": "Stable-Baselines3 SAC", "sb3_ppo": "Stable-Baselines3 PPO"}
 
 
 # Implementations compared at equal settings: (ours, theirs), as (er, algo) cells.
@@ -60,9 +60,14 @@ def parity_markdown(runs: list[Run]) -> str:
                       "|---|---|---:|---|---|---|", *lines, ""])
 
 
+def beyond_cell(er: str, algo: str) -> bool:
+    """A cell of an algorithm or a replay mode the paper did not have (SAC, TD3, SB3's, prioritised)."""
+    return algo not in ALGO_COLUMNS or er == "prioritised"
+
+
 def is_beyond(run: Run) -> bool:
-    """A run of an algorithm or a replay mode the paper did not have (SAC, TD3, SB3's, prioritised)."""
-    return run.algo is not None and (run.algo not in ALGO_COLUMNS or run.er == "prioritised")
+    """A run of a ``beyond_cell``."""
+    return run.algo is not None and beyond_cell(run.er, run.algo)
 
 
 def label(er: str, algo: str) -> str:

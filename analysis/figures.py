@@ -63,13 +63,12 @@ def frontier_series(runs: list[Run], oracle: dict[int, float], smooth: int = 10)
     oracle's mean over the cells' tracks (None unless it scored them all); [] if no run is beyond
     the paper. A cell's value at a step is the mean over tracks of the total reward per episode,
     averaged over the last ``smooth`` episodes up to that step."""
-    from analysis.beyond import REFERENCE, _cells_present, _track_sets, is_beyond, label
+    from analysis.beyond import REFERENCE, _cells_present, _track_sets, beyond_cell, is_beyond, label
 
     finished = [r for r in runs if r.status == "completed" and r.track_mode == "fixed" and r.rewards]
     if not any(is_beyond(r) for r in finished):
         return []
-    cells = [REFERENCE] + [c for c in _cells_present(finished)
-                           if c != REFERENCE and (c[1] not in ALGO_COLUMNS or c[0] == "prioritised")]
+    cells = [REFERENCE] + [c for c in _cells_present(finished) if c != REFERENCE and beyond_cell(*c)]
     panels = []
     for title, seeds in _track_sets({r.seed for r in finished}):
         lines, tracks = [], set()

@@ -39,7 +39,7 @@ class Run:
     evaluation: dict | None = None  # summary.json's "evaluation" (eval_seeds set), or None
     wall_time: float | None = None  # seconds per run: the population's wall time (all sessions) over its size
     numerics: str = "not recorded"  # the numerics mode and the kernels that ran (numerics_label)
-    episode_steps: int = 200  # environment steps per episode (env.options.max_steps; racing's default 200)
+    episode_steps: int = EPISODE_STEPS  # environment steps per episode (env.options.max_steps; racing's default 200)
 
     @property
     def version(self) -> str:
