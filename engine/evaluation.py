@@ -18,7 +18,7 @@ from racing.gym_env import RacingEnv
 class Policy:
     """A trained run's deterministic policy: ``observation (numpy) -> action in [-1, 1]``.
 
-    The paper's algorithms act with the Gaussian's mean (clipped); SAC and TQC with tanh of their
+    The paper's algorithms act with the Gaussian's mean (clipped); SAC, TQC and CrossQ with tanh of their
     Gaussian's mean; TD3 with its actor's output. Their actors are rebuilt as a
     population of one (``learners.td.learner``), the networks they were trained as."""
 

@@ -62,7 +62,7 @@ class _Tanh(nn.Module):
 
 def make_actor_net(loss: str, members: int, obs_dim: int, action_dim: int, hidden: Sequence[int],
                    activation: str) -> nn.Module:
-    """The members' stacked actor: SAC's and TQC's ``[R, ..., obs] -> (loc, scale)`` of a Gaussian
+    """The members' stacked actor: SAC's, TQC's and CrossQ's ``[R, ..., obs] -> (loc, scale)`` of a Gaussian
     (squashed by tanh when sampled), TD3's ``[R, ..., obs] -> tanh action``."""
     if loss in ENTROPY_LOSSES:
         body = StackedMLP(members, [obs_dim, *hidden, 2 * action_dim], activation, linear_output=True)
@@ -204,8 +204,7 @@ class TDPhaseRunner:
         self.loss, self.optimisers, self.generators = loss, optimisers, list(generators)
         self.kind, self.td = cfg.algo.loss, cfg.algo.td
         self.steps = cfg.env.episode_steps
-        self.policy_delay = {"td3": cfg.algo.td3, "crossq": cfg.algo.crossq}[self.kind].policy_delay \
-            if self.kind in ("td3", "crossq") else 1
+        self.policy_delay = getattr(cfg.algo, self.kind).policy_delay if self.kind in ("td3", "crossq") else 1
         self.preact_penalty = cfg.algo.td3.preact_penalty if self.kind == "td3" else 0.0
         self.updater = SoftUpdate(loss, tau=self.td.tau) if self.td.tau is not None else None  # crossq: no targets
         self.sampler = memory.sampler if memory is not None else None  # prioritised replay, or None
@@ -319,7 +318,7 @@ class TDPhaseRunner:
 
 
 def build(cfg, env, generators: Sequence[torch.Generator], memory: ReplayMemory) -> Learner:
-    """Networks, loss, optimisers and update phase of ``cfg.algo`` (loss sac, tqc or td3) for one
+    """Networks, loss, optimisers and update phase of ``cfg.algo`` (loss sac, tqc, crossq or td3) for one
     member per generator."""
     networks = make_networks(cfg, env, generators)
     loss = make_loss(cfg, networks, generators)
