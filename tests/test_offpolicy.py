@@ -23,7 +23,7 @@ from engine.config import ConfigError
 from engine.evaluation import load_policy, make_policy
 from engine.setup import make_env, make_generators, make_learner
 from learners.base import MetricTotals
-from losses.td import ACTION_NOISE_KEY, SMOOTHING_KEY, DrawnTanhNormal
+from losses.td import ACTION_NOISE_KEY, SMOOTHING_KEY, DrawnTanhNormal, quantile_huber_loss
 from engine.runner import train_population
 from tests.test_config import load
 from tests.test_resilience import interrupted_after
@@ -108,6 +108,39 @@ def test_tqc_of_a_population_of_one_equals_torchrl_tqc_loss():
     theirs, ours, _ = _with_torchrl_draws(plain, t.loss, data)
     for key in ("loss_actor", "loss_qvalue", "loss_alpha"):
         torch.testing.assert_close(ours[key].mean(), theirs[key], rtol=1e-6, atol=1e-6)
+
+
+def _torchrl_quantile_huber(quantiles, targets):
+    """TorchRL's TQCLoss.qvalue_v2_loss critic term per Q-network and transition, as it writes it."""
+    delta = targets.unsqueeze(0).unsqueeze(-2) - quantiles.unsqueeze(-1)
+    huber = torch.where(delta.abs() <= 1, 0.5 * delta.square(), delta.abs() - 0.5)
+    n = quantiles.shape[-1]
+    fractions = ((torch.arange(n, dtype=quantiles.dtype) + 0.5) / n).view(*([1] * (delta.ndim - 2)), n, 1)
+    return ((fractions - (delta.detach() < 0).to(quantiles.dtype)).abs() * huber).mean((-1, -2)), \
+        delta.detach().abs().mean((-1, -2))
+
+
+def test_quantile_huber_loss_equals_torchrl_expression_and_is_sliced_per_transition():
+    """The fused TQC critic loss: TorchRL's values and gradients (to float32 rounding), including
+    errors beyond the Huber threshold on both sides and exact ties (delta = 0); any slicing of the
+    minibatch gives the same bits, and a member's result does not depend on the others."""
+    g = torch.Generator().manual_seed(0)
+    quantiles = (torch.randn(2, 3, 40, 5, generator=g) * 2).requires_grad_()
+    targets = torch.randn(3, 40, 7, generator=g) * 2
+    targets[0, 0, :5] = quantiles[0, 0, 0].detach()  # ties
+    theirs, their_td = _torchrl_quantile_huber(quantiles, targets)
+    (their_grad,) = torch.autograd.grad(theirs.sum(), quantiles)
+    ours, our_td = quantile_huber_loss(quantiles, targets.unsqueeze(0))
+    (our_grad,) = torch.autograd.grad(ours.sum(), quantiles)
+    assert ours.shape == our_td.shape == (2, 3, 40)
+    torch.testing.assert_close(ours, theirs, rtol=1e-6, atol=1e-7)
+    torch.testing.assert_close(our_td, their_td, rtol=1e-6, atol=1e-7)
+    torch.testing.assert_close(our_grad, their_grad, rtol=1e-6, atol=1e-8)
+    for chunk in (1, 2 * 5 * 7 * 3, 10 ** 9):  # one transition per slice, a few, all at once
+        sliced, sliced_td = quantile_huber_loss(quantiles, targets.unsqueeze(0), chunk=chunk)
+        assert torch.equal(sliced, ours) and torch.equal(sliced_td, our_td)
+    alone, _ = quantile_huber_loss(quantiles[:, 1:2], targets[1:2].unsqueeze(0))
+    assert torch.equal(alone, ours[:, 1:2])
 
 
 class _Solo(torch.nn.Module):
