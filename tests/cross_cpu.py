@@ -35,7 +35,7 @@ SEEDS = "[2067791,5468063]"
 def run_here_or_emulated(cpu: str | None, cells: list[str], episodes: int, out: Path) -> dict[str, str]:
     """metrics.csv hash per run of ``cells`` in portable numerics, on ``cpu`` (None: this machine)."""
     overrides = [[f"algo={c.split('/')[0]}", f"er={c.split('/')[1]}"]
-                 + (["algo.td.warmup_episodes=1", "algo.td.updates_per_step=0.25"] if c.startswith(("sac", "td3"))
+                 + (["algo.td.warmup_episodes=1", "algo.td.updates_per_step=0.25"] if c.startswith(("sac", "tqc", "crossq", "td3"))
                     else []) for c in cells]
     code = ("import json, sys\nfrom pathlib import Path\nfrom engine import numerics\nnumerics.apply('portable')\n"
             "from engine.config import RunConfig\nfrom engine.runner import train_population\n"
