@@ -488,7 +488,7 @@ def test_a_population_evaluates_itself_and_evaluate_py_tables_a_sweep(tmp_path, 
 
 
 def test_the_generalisation_preset_shares_its_fixed_runs_with_beyond_paper_and_reports(tmp_path):
-    """+experiment=generalisation (4 cells x fixed/random tracks), then +experiment=beyond_paper in
+    """+experiment=generalisation (6 cells x fixed/random tracks), then +experiment=beyond_paper in
     the same folder skips the fixed-track runs already made; report.py writes both tables."""
     import report
 
@@ -496,11 +496,11 @@ def test_the_generalisation_preset_shares_its_fixed_runs_with_beyond_paper_and_r
     result = run_train("-m", "+experiment=generalisation", *tiny)
     assert result.returncode == 0, result.stderr[-3000:]
     made = sorted(p.parent.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("summary.json"))
-    assert len(made) == 8 and f"random/sac/memory/seed{A}" in made and f"fixed/td3/memory/seed{A}" in made
+    assert len(made) == 12 and f"random/sac/memory/seed{A}" in made and f"fixed/crossq/memory/seed{A}" in made
     result = run_train("-m", "+experiment=beyond_paper", *tiny)
     assert result.returncode == 0, result.stderr[-3000:]
-    assert result.stdout.count("skipped") + result.stderr.count("skipped") == 4
-    assert len(list(tmp_path.rglob("summary.json"))) == 8 + 4
+    assert result.stdout.count("skipped") + result.stderr.count("skipped") == 6
+    assert len(list(tmp_path.rglob("summary.json"))) == 12 + 4
     assert report.main([str(tmp_path), "--no-figures"]) == 0
     assert "| SAC, prioritised |" in (tmp_path / "report" / "beyond.md").read_text()
     assert "| TD3, memory | random | 1 |" in (tmp_path / "report" / "generalisation.md").read_text()
