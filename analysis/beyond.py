@@ -121,9 +121,12 @@ def beyond_rows(runs: list[Run], seeds: set[int] | None) -> list[dict]:
         if (er, algo) != REFERENCE and reference:
             value, lo, hi, tracks = paired_bootstrap(finals, reference, _mean_difference)
             row.update(diff=value, diff_low=lo, diff_high=hi, diff_tracks=tracks)
-        walls = [r.wall_time for r in runs if (r.er, r.algo) == (er, algo) and r.track_mode == "fixed"
-                 and r.wall_time is not None and (seeds is None or r.seed in seeds)]
-        row["wall_s"] = math.fsum(walls) / len(walls) if walls else None
+        timed = [r for r in runs if (r.er, r.algo) == (er, algo) and r.track_mode == "fixed"
+                 and (r.cpu_time, r.wall_time) != (None, None) and (seeds is None or r.seed in seeds)]
+        cpu = all(r.cpu_time is not None for r in timed)  # else wall time (runs made before CPU time was recorded)
+        spent = [r.cpu_time if cpu else r.wall_time for r in timed]
+        spent = [s for s in spent if s is not None]
+        row["compute_s"], row["compute_is_cpu"] = (math.fsum(spent) / len(spent) if spent else None), cpu
         rows.append(row)
     return rows
 
@@ -144,9 +147,9 @@ def beyond_markdown(runs: list[Run]) -> str:
     parts = ["Beyond the paper: final performance (mean total reward of the last 20 training episodes) per run, "
              f"on fixed tracks. IQM intervals resample runs (tracks); \"vs {label(*REFERENCE)}\" is the mean "
              "difference from the paper's best cell on the same tracks, with a 95% bootstrap interval over "
-             "tracks. Compute per run: the wall time of the process that trained it over the members it "
-             "trained (each process runs one thread, so these are CPU-minutes per run when processes had a "
-             "core each).", ""]
+             "tracks. Compute per run: the CPU time of the process that trained it over the members it trained "
+             "(every session of a resumed run); \"wall\" marks runs made before CPU time was recorded, for "
+             "which it is the process's wall time over its members (the same when each process had a core).", ""]
     all_seeds = {r.seed for r in runs if r.track_mode == "fixed" and r.seed is not None}
     for title, seeds in _track_sets(all_seeds):
         rows = beyond_rows(runs, seeds)
@@ -157,9 +160,10 @@ def beyond_markdown(runs: list[Run]) -> str:
         for row in rows:
             ci = (f"{row['iqm']:.1f} [{row['iqm_low']:.1f}, {row['iqm_high']:.1f}]" if row["iqm_low"] is not None
                   else f"{row['iqm']:.1f}")
-            wall = f"{row['wall_s'] / 60:.1f} min" if row["wall_s"] is not None else ""
+            spent = row["compute_s"]
+            compute = "" if spent is None else f"{spent / 60:.1f} min" + ("" if row["compute_is_cpu"] else " wall")
             parts.append(f"| {row['cell']} | {row['runs']} | {row['mean_se']} | {ci} | {_diff_text(row)} | "
-                         f"{row['collapsed']} | {row['diverged']} | {wall} |")
+                         f"{row['collapsed']} | {row['diverged']} | {compute} |")
         parts.append("")
     parity = parity_markdown(runs)
     return "\n".join(parts + ([parity] if parity else []))

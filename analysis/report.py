@@ -40,6 +40,7 @@ class Run:
     wall_time: float | None = None  # seconds per run: the population's wall time (all sessions) over its size
     numerics: str = "not recorded"  # the numerics mode and the kernels that ran (numerics_label)
     episode_steps: int = EPISODE_STEPS  # environment steps per episode (env.options.max_steps; racing's default 200)
+    cpu_time: float | None = None  # seconds per run: the CPU time of the process that trained it over its size
 
     @property
     def version(self) -> str:
@@ -137,7 +138,8 @@ def read_run(folder: Path) -> Run:
                    summary.get("final_mean"), rewards, summary.get("code"),
                    (settings.get("env") or {}).get("track", "fixed"), summary.get("evaluation"),
                    wall / size if wall is not None else None, numerics_label(summary),
-                   int(((settings.get("env") or {}).get("options") or {}).get("max_steps") or EPISODE_STEPS))
+                   int(((settings.get("env") or {}).get("options") or {}).get("max_steps") or EPISODE_STEPS),
+                   summary["cpu_time_s"] / size if summary.get("cpu_time_s") is not None else None)
     except (json.JSONDecodeError, KeyError, TypeError, ValueError):
         return Run(folder, "unreadable", rewards=rewards)
 

@@ -212,11 +212,14 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
 
     parts = learner.state_parts()
     first, timing = 0, {"rollout_s": 0.0, "train_s": 0.0}
+    cpu_start = time.process_time()  # this process's CPU time (every thread): the run's compute
     earlier_wall: float | None = 0.0  # wall time of the sessions before a resume (None: not recorded)
+    earlier_cpu: float | None = 0.0  # CPU time of the sessions before a resume (None: not recorded)
     code = dict(code_version())
     if payload is not None:
         first, timing = _restore(payload, parts, env, generators, phases, members)
         earlier_wall = timing.pop("wall_s", None)
+        earlier_cpu = timing.pop("cpu_s", None)
         earlier = payload.get("code") or {"source": None}
         if earlier.get("source") != code["source"]:  # this run mixes two versions of the code
             code["resumed_from"] = {k: v for k, v in earlier.items() if k != "resumed_from"}
@@ -262,7 +265,8 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             _show(progress, members)
             done = episode + 1
             if cfg.checkpoint_every and done % cfg.checkpoint_every == 0 and done < cfg.episodes:
-                so_far = {} if earlier_wall is None else {"wall_s": earlier_wall + time.perf_counter() - start}
+                so_far = {**({} if earlier_wall is None else {"wall_s": earlier_wall + time.perf_counter() - start}),
+                          **({} if earlier_cpu is None else {"cpu_s": earlier_cpu + time.process_time() - cpu_start})}
                 checkpoint.save(checkpoint_path, _payload(done, {**timing, **so_far, **compile_time()}, settings,
                                                           parts, env, code,
                                                           generators, phases, members, learner.sampler))
@@ -275,8 +279,10 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
 
     summaries = []
     session = round(time.perf_counter() - start, 3)
-    # wall_time_s covers every session of a resumed run (None if its checkpoint did not record them)
+    # wall_time_s and cpu_time_s cover every session of a resumed run (None if its checkpoint did not
+    # record them); both are the process's, for all the members it trained (population.size)
     wall = round(session + earlier_wall, 3) if earlier_wall is not None else None
+    cpu = round(time.process_time() - cpu_start + earlier_cpu, 3) if earlier_cpu is not None else None
     session_wall = {"wall_time_session_s": session} if first else {}
     for r, member in enumerate(members):
         if member.status == "running":
@@ -296,7 +302,7 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             "episodes": len(member.rewards), "episodes_planned": cfg.episodes,
             "final_mean": _mean(window) if window else None, "final_window": len(window),
             "status": member.status, "diverged": member.failure,
-            "wall_time_s": wall, **session_wall,
+            "wall_time_s": wall, **session_wall, "cpu_time_s": cpu,
             "resumed_at": first or None,
             **{f"time/{key}": round(value, 3) for key, value in {**timing, **compile_time()}.items()},
             "population": {"seeds": list(seeds), "size": len(seeds)},

@@ -116,20 +116,20 @@ def train(algo: str, seed: int, episodes: int, out: Path, final_window: int = 20
             self.total, self.crashes = 0.0, 0
             return len(rewards) < episodes
 
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), time.process_time()
     try:
         model.learn(total_timesteps=episodes * env.unwrapped.config.max_steps + 1, callback=Episodes())
     finally:
         metrics.close()
         env.close()
-    wall = time.perf_counter() - start
+    wall, cpu = time.perf_counter() - start, time.process_time() - cpu_start
     model.save(folder / "model.zip")
     window = rewards[-final_window:]
     summary = {
         "algo": f"sb3_{algo}", "er": "default", "seed": seed, "episodes": len(rewards),
         "episodes_planned": episodes, "final_mean": math.fsum(window) / len(window) if window else None,
         "final_window": len(window), "status": "completed" if len(rewards) == episodes else "incomplete",
-        "diverged": None, "wall_time_s": round(wall, 3), "resumed_at": None,
+        "diverged": None, "wall_time_s": round(wall, 3), "cpu_time_s": round(cpu, 3), "resumed_at": None,
         "population": {"seeds": [seed], "size": 1},
         "code": code_version(),
         "software": {**software_versions(), "stable_baselines3": stable_baselines3.__version__},

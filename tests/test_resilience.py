@@ -74,8 +74,10 @@ def test_resume_after_an_interruption_in_process(tmp_path, collector):
     assert len(read_rows(tmp_path / "run" / "metrics.csv")) == 6
     payload = checkpoint.load(tmp_path / "run" / checkpoint.CHECKPOINT_FILE)
     assert payload["episodes_done"] == 4 and payload["loss"]["temperature"] < 1.0
+    earlier_cpu = payload["timing"]["cpu_s"]  # the first session's CPU time up to its checkpoint
     summary = train(load(*run), tmp_path / "run")
     assert summary["resumed_at"] == 4 and summary["wall_time_s"] > summary["wall_time_session_s"] > 0
+    assert summary["cpu_time_s"] > earlier_cpu > 0  # both sessions' CPU time
     assert (tmp_path / "run" / "metrics.csv").read_bytes() == uninterrupted(tmp_path, f"env.collector={collector}")
 
 
