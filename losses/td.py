@@ -1,4 +1,4 @@
-"""TorchRL's off-policy losses (``SACLoss``, ``TQCLoss``, ``TD3Loss``) for a population of stacked members.
+"""TorchRL's off-policy losses (``SACLoss``, ``TQCLoss``, ``CrossQLoss``, ``TD3Loss``) for a population of stacked members.
 
 The losses are TorchRL's own; what a population needs on top is small:
 
@@ -129,7 +129,8 @@ class MemberSACLoss(MemberTemperature, SACLoss):
 
 
 class _QuantileHuber(torch.autograd.Function):
-    """TQC's critic loss per quantile set and its gradient in one pass over the pairwise errors."""
+    """TQC's critic loss per quantile set and its gradient, computed together (no autograd graph over the
+    pairwise errors: the backward pass multiplies the saved gradient)."""
 
     @staticmethod
     def forward(ctx, quantiles: torch.Tensor, targets: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
