@@ -1,4 +1,5 @@
-"""TorchRL's off-policy losses (``SACLoss``, ``TQCLoss``, ``CrossQLoss``, ``TD3Loss``) for a population of stacked members.
+"""TorchRL's off-policy losses (``SACLoss``, ``TQCLoss``, ``CrossQLoss``, ``TD3Loss``) for a population
+of stacked members.
 
 The losses are TorchRL's own; what a population needs on top is small:
 
