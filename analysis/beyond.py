@@ -111,18 +111,18 @@ def beyond_rows(runs: list[Run], seeds: set[int] | None) -> list[dict]:
         finals = _finals(runs, er, algo, seeds)
         if not finals:
             continue
+        cell_runs = [r for r in runs if (r.er, r.algo) == (er, algo) and r.track_mode == "fixed"
+                     and (seeds is None or r.seed in seeds)]
         scores = np.array(list(finals.values()))[:, None]
         point, low, high = stratified_bootstrap_ci(scores, iqm) if len(finals) > 1 else (iqm(scores), None, None)
         row = {"cell": label(er, algo), "er": er, "algo": algo, "runs": len(finals),
                "mean_se": _mean_se(list(finals.values())), "iqm": point, "iqm_low": low, "iqm_high": high,
                "collapsed": sum(v < COLLAPSE_BELOW for v in finals.values()),
-               "diverged": sum(r.status == "diverged" for r in runs if (r.er, r.algo) == (er, algo)
-                               and r.track_mode == "fixed" and (seeds is None or r.seed in seeds))}
+               "diverged": sum(r.status == "diverged" for r in cell_runs)}
         if (er, algo) != REFERENCE and reference:
             value, lo, hi, tracks = paired_bootstrap(finals, reference, _mean_difference)
             row.update(diff=value, diff_low=lo, diff_high=hi, diff_tracks=tracks)
-        timed = [r for r in runs if (r.er, r.algo) == (er, algo) and r.track_mode == "fixed"
-                 and (r.cpu_time, r.wall_time) != (None, None) and (seeds is None or r.seed in seeds)]
+        timed = [r for r in cell_runs if (r.cpu_time, r.wall_time) != (None, None)]
         cpu = all(r.cpu_time is not None for r in timed)  # else wall time (runs made before CPU time was recorded)
         spent = [r.cpu_time if cpu else r.wall_time for r in timed]
         spent = [s for s in spent if s is not None]
