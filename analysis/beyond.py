@@ -20,13 +20,11 @@ import math
 import numpy as np
 
 from analysis.aggregate import iqm, stratified_bootstrap_ci
-from analysis.report import ALGO_COLUMNS, COLLAPSE_BELOW, COLUMN_TITLES, PAPER_SEEDS, Run, _mean_difference, paired_bootstrap
+from analysis.report import ALGO_COLUMNS, ALGO_TITLES, COLLAPSE_BELOW, PAPER_SEEDS, Run, _mean_difference, paired_bootstrap
 
 REFERENCE = ("memory", "spg_p_multi")  # the paper's best cell (Table 1: 141.1)
 ROWS = (("memory", "sac"), ("memory", "sac_sb3"), ("memory", "tqc"), ("memory", "crossq"), ("prioritised", "sac"),
         ("memory", "td3"), ("prioritised", "td3"), ("memory", "spg_p_multi"), ("prioritised", "spg_p_multi"), ("memory", "ppo_log"), ("recent", "ppo"))
-TITLES = {**COLUMN_TITLES, "sac": "SAC", "sac_sb3": "SAC at SB3's settings", "td3": "TD3", "tqc": "TQC",
-          "crossq": "CrossQ", "sb3_sac": "Stable-Baselines3 SAC", "sb3_ppo": "Stable-Baselines3 PPO"}
 
 
 # Implementations compared at equal settings: (ours, theirs), as (er, algo) cells.
@@ -71,7 +69,7 @@ def is_beyond(run: Run) -> bool:
 
 
 def label(er: str, algo: str) -> str:
-    return f"{TITLES.get(algo, algo)}, {'both' if er == 'hybrid' else er}"
+    return f"{ALGO_TITLES.get(algo, algo)}, {'both' if er == 'hybrid' else er}"
 
 
 def _finals(runs: list[Run], er: str, algo: str, seeds: set[int] | None) -> dict[int, float]:

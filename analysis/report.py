@@ -23,6 +23,9 @@ ER_ROWS = ("recent", "memory", "hybrid")
 ALGO_COLUMNS = ("ppo", "ppo_log", "spg", "spg_multi", "spg_p", "spg_p_multi")
 COLUMN_TITLES = {"ppo": "PPO linear", "ppo_log": "PPO log", "spg": "SPG single", "spg_multi": "SPG multiple",
                  "spg_p": "SPG-p single", "spg_p_multi": "SPG-p multiple"}
+# every algorithm a run folder can name, for tables that list cells beyond the paper's
+ALGO_TITLES = {**COLUMN_TITLES, "sac": "SAC", "sac_sb3": "SAC at SB3's settings", "td3": "TD3", "tqc": "TQC",
+               "crossq": "CrossQ", "sb3_sac": "Stable-Baselines3 SAC", "sb3_ppo": "Stable-Baselines3 PPO"}
 
 
 @dataclass
@@ -437,7 +440,7 @@ def normalised_markdown(runs: list[Run], oracle: dict[int, float]) -> str:
         values = sorted(normalised(r, oracle) for r in scored if (r.er, r.algo) == (er, algo))
         mean = statistics.fmean(values)
         se = statistics.stdev(values) / math.sqrt(len(values)) if len(values) > 1 else float("nan")
-        lines.append(f"| {er} / {COLUMN_TITLES.get(algo, algo)} | {len(values)} | {mean:.3f} ± {se:.3f} | "
+        lines.append(f"| {er} / {ALGO_TITLES.get(algo, algo)} | {len(values)} | {mean:.3f} ± {se:.3f} | "
                      f"{statistics.median(values):.3f} | {values[0]:.3f} | {values[-1]:.3f} |")
     tracks = sorted({r.seed for r in scored})
     lines += ["", f"Oracle scores used ({len(tracks)} tracks): "

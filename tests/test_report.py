@@ -83,9 +83,11 @@ def test_oracle_normalised_scores_by_hand(tmp_path, monkeypatch, capsys):
     fake_run(sweep, "spg", "recent", 1, 80.0)
     fake_run(sweep, "spg", "recent", 2, 150.0)
     fake_run(sweep, "spg", "recent", 3, 99.0)  # no oracle score for track 3
+    fake_run(sweep, "sac", "memory", 2, 190.0)
     assert report.main([str(sweep), "--no-figures"]) == 0
     text = (sweep / "report" / "normalised.md").read_text()
     assert "| recent / SPG single | 2 | 0.625 ± 0.125 | 0.625 | 0.500 | 0.750 |" in text
+    assert "| memory / SAC | 1 | 0.950 ± nan | 0.950 | 0.950 | 0.950 |" in text
     assert "(2 tracks): 1: 160.0, 2: 200.0" in text
     runs_csv = (sweep / "report" / "runs.csv").read_text()
     assert ",160.0,0.5\n" in runs_csv and ",200.0,0.75\n" in runs_csv
