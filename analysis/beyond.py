@@ -117,7 +117,8 @@ def beyond_rows(runs: list[Run], seeds: set[int] | None) -> list[dict]:
                "mean_se": _mean_se(list(finals.values())), "iqm": point, "iqm_low": low, "iqm_high": high,
                "collapsed": sum(v < COLLAPSE_BELOW for v in finals.values()),
                "diverged": sum(r.status == "diverged" for r in cell_runs)}
-        if (er, algo) != REFERENCE and reference:
+        row["is_reference"] = (er, algo) == REFERENCE
+        if not row["is_reference"] and reference:
             value, lo, hi, tracks = paired_bootstrap(finals, reference, _mean_difference)
             row.update(diff=value, diff_low=lo, diff_high=hi, diff_tracks=tracks)
         timed = [r for r in cell_runs if (r.cpu_time, r.wall_time) != (None, None)]
@@ -130,8 +131,10 @@ def beyond_rows(runs: list[Run], seeds: set[int] | None) -> list[dict]:
 
 
 def _diff_text(row: dict) -> str:
-    if "diff" not in row:
+    if row["is_reference"]:
         return "(reference)"
+    if "diff" not in row:
+        return "(no reference runs)"
     if row["diff_tracks"] < 2 or math.isnan(row["diff_low"]):
         return f"{row['diff']:+.1f}"
     verdict = "higher" if row["diff_low"] > 0 else "lower" if row["diff_high"] < 0 else "undecided"

@@ -339,4 +339,6 @@ def test_the_parity_table_pairs_ours_with_theirs_by_track(tmp_path):
     assert "| 3 | +1.0 [" in row and "within paired noise" in row and "+1.0, " in row and "-1.0, " in row
     decided = beyond_markdown(find_runs(tmp_path / "b"))
     assert "| 3 | -5.0 [-5.0, -5.0] | ours lower |" in decided
+    # without the paper's best cell in the folder, no row is its reference
+    assert "(no reference runs)" in noisy and "(reference)" not in noisy
     assert "At equal settings" not in beyond_markdown(find_runs(tmp_path / "a" / "sb3_sac"))
