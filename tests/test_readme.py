@@ -110,3 +110,17 @@ def test_readme_report_and_evaluate_commands(tmp_path, capsys):
         args[args.index("--episodes") + 1] = "1"
         assert evaluate.main(args) == 0
     assert (sweep / "report" / "table.md").exists() and list(tmp_path.glob("*.gif"))
+
+
+def test_every_relative_link_in_the_docs_points_at_a_file():
+    """A page that moves (a results folder superseded, a doc renamed) leaves no dead link behind:
+    every relative Markdown link in README.md and docs/ (results pages included) resolves."""
+    dead = []
+    for page in [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]:
+        prose = re.sub(r"```.*?```|`[^`\n]*`", "", page.read_text(), flags=re.DOTALL)  # not code
+        for target in re.findall(r"\]\(([^)\s]+)\)", prose):
+            if re.match(r"[a-z]+:", target) or target.startswith("#"):
+                continue  # a URL or an anchor on the same page
+            if not (page.parent / target.split("#")[0]).exists():
+                dead.append(f"{page.relative_to(ROOT)}: {target}")
+    assert not dead, "dead links:\n" + "\n".join(dead)
