@@ -97,6 +97,16 @@ def _track_sets(seeds: set[int]) -> list[tuple[str, set[int] | None]]:
     return sets
 
 
+def in_section(cell_seeds: set[int], seeds: set[int] | None) -> bool:
+    """Whether a cell trained on ``cell_seeds`` has a row in the section of ``seeds`` (None: all
+    tracks, where only cells with runs beyond the paper's five tracks belong: a cell run on those
+    five alone is in their section, and its mean over five tracks would not compare with
+    means over all of them)."""
+    if seeds is None:
+        return bool(cell_seeds - set(PAPER_SEEDS))
+    return bool(cell_seeds & seeds)
+
+
 def _cells_present(runs: list[Run]) -> list[tuple[str, str]]:
     present = {(r.er, r.algo) for r in runs if r.track_mode == "fixed" and r.algo is not None}
     return [c for c in ROWS if c in present] + sorted(present - set(ROWS))
@@ -107,7 +117,7 @@ def beyond_rows(runs: list[Run], seeds: set[int] | None) -> list[dict]:
     rows = []
     for er, algo in _cells_present(runs):
         finals = _finals(runs, er, algo, seeds)
-        if not finals:
+        if not finals or not in_section(set(finals), seeds):
             continue
         cell_runs = [r for r in runs if (r.er, r.algo) == (er, algo) and r.track_mode == "fixed"
                      and (seeds is None or r.seed in seeds)]

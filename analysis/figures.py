@@ -59,11 +59,11 @@ def learning_curve_figures(runs: list[Run], out: Path) -> list[Path]:
 
 def frontier_series(runs: list[Run], oracle: dict[int, float], smooth: int = 10) -> list[tuple[str, list, float | None]]:
     """The data of ``frontier_figure``: per track set (the paper's five tracks, then all tracks when
-    the runs go beyond them), its title, one (label, environment steps, mean, SE) per cell and the
+    the runs go beyond them, with the cells that do), its title, one (label, environment steps, mean, SE) per cell and the
     oracle's mean over the cells' tracks (None unless it scored them all); [] if no run is beyond
     the paper. A cell's value at a step is the mean over tracks of the total reward per episode,
     averaged over the last ``smooth`` episodes up to that step."""
-    from analysis.beyond import REFERENCE, _cells_present, _track_sets, beyond_cell, is_beyond, label
+    from analysis.beyond import REFERENCE, _cells_present, _track_sets, beyond_cell, in_section, is_beyond, label
 
     finished = [r for r in runs if r.status == "completed" and r.track_mode == "fixed" and r.rewards]
     if not any(is_beyond(r) for r in finished):
@@ -74,7 +74,7 @@ def frontier_series(runs: list[Run], oracle: dict[int, float], smooth: int = 10)
         lines, tracks = [], set()
         for er, algo in cells:
             mine = [r for r in finished if (r.er, r.algo) == (er, algo) and (seeds is None or r.seed in seeds)]
-            if not mine:
+            if not mine or not in_section({r.seed for r in mine}, seeds):
                 continue
             tracks |= {r.seed for r in mine}
             length = min(len(r.rewards) for r in mine)

@@ -297,7 +297,7 @@ def test_the_frontier_curves_by_hand(tmp_path):
     """Every method against environment steps: the paper's best cell first, then the cells beyond
     the paper (SB3's too), smoothed over the last episodes; the oracle's line is its mean over the
     plotted tracks, and absent when it did not score them all; a track beyond the paper's adds a
-    panel; the paper's other cells stay out."""
+    panel, of the cells run there; the paper's other cells stay out."""
     pytest.importorskip("matplotlib", reason="the frontier figure needs the render extra")
     from analysis.figures import frontier_figure, frontier_series
     from analysis.report import PAPER_SEEDS
@@ -316,7 +316,8 @@ def test_the_frontier_curves_by_hand(tmp_path):
     assert list(steps) == [400, 600, 800]  # 200 steps an episode; the first point averages episodes 0 and 1
     assert list(mean) == pytest.approx([110.5, 111.5, 112.5]) and list(sem) == pytest.approx([1.0] * 3)
     assert ceiling == 155.0 and no_ceiling is None  # track 77: not scored by the oracle
-    assert [line[0] for line in everything][1] == "SAC, memory (n=1)"  # the rows of beyond.md, then SB3
+    # all tracks: only the cells run beyond the paper's five (their five-track means would not compare)
+    assert [line[0] for line in everything] == ["SAC, memory (n=1)"]
     assert frontier_figure(runs, oracle, tmp_path / "f.png", smooth=2).stat().st_size > 0
     assert frontier_series([r for r in runs if r.algo == "spg"], oracle) == []
 
@@ -342,3 +343,23 @@ def test_the_parity_table_pairs_ours_with_theirs_by_track(tmp_path):
     # without the paper's best cell in the folder, no row is its reference
     assert "(no reference runs)" in noisy and "(reference)" not in noisy
     assert "At equal settings" not in beyond_markdown(find_runs(tmp_path / "a" / "sb3_sac"))
+
+
+def test_the_all_tracks_section_lists_only_cells_run_beyond_the_paper_tracks(tmp_path):
+    """A cell run on the paper's five tracks alone has its row there, not under "all N tracks",
+    where its five-track mean would sit beside 25-track means; cells run on more tracks pair with
+    the reference on their common tracks."""
+    from analysis.beyond import beyond_markdown
+    from analysis.report import PAPER_SEEDS
+
+    for seed in PAPER_SEEDS:
+        fake_run(tmp_path, "spg_p_multi", "memory", seed, 100.0)
+        fake_run(tmp_path, "sac", "memory", seed, 110.0)
+        fake_run(tmp_path, "tqc", "memory", seed, 90.0)
+    for seed in (11, 12):
+        fake_run(tmp_path, "spg_p_multi", "memory", seed, 100.0)
+        fake_run(tmp_path, "sac", "memory", seed, 104.0)
+    paper, everything = beyond_markdown(find_runs(tmp_path)).split("### On all 7 tracks")
+    assert "| TQC, memory | 5 |" in paper and "TQC" not in everything
+    assert "| SAC, memory | 7 |" in everything and "| SPG-p multiple, memory | 7 |" in everything
+    assert "+8.3 [" in everything  # (5 x 10 + 2 x 4) / 7, paired on all seven tracks
