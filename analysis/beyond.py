@@ -148,7 +148,8 @@ def _diff_text(row: dict) -> str:
     if row["diff_tracks"] < 2 or math.isnan(row["diff_low"]):
         return f"{row['diff']:+.1f}"
     verdict = "higher" if row["diff_low"] > 0 else "lower" if row["diff_high"] < 0 else "undecided"
-    return f"{row['diff']:+.1f} [{row['diff_low']:+.1f}, {row['diff_high']:+.1f}] {verdict}"
+    fewer = f" (on {row['diff_tracks']} tracks)" if row["diff_tracks"] < row["runs"] else ""  # the reference's
+    return f"{row['diff']:+.1f} [{row['diff_low']:+.1f}, {row['diff_high']:+.1f}] {verdict}{fewer}"
 
 
 def beyond_markdown(runs: list[Run]) -> str:

@@ -362,4 +362,8 @@ def test_the_all_tracks_section_lists_only_cells_run_beyond_the_paper_tracks(tmp
     paper, everything = beyond_markdown(find_runs(tmp_path)).split("### On all 7 tracks")
     assert "| TQC, memory | 5 |" in paper and "TQC" not in everything
     assert "| SAC, memory | 7 |" in everything and "| SPG-p multiple, memory | 7 |" in everything
-    assert "+8.3 [" in everything  # (5 x 10 + 2 x 4) / 7, paired on all seven tracks
+    assert "+8.3 [" in everything and "(on " not in everything  # (5 x 10 + 2 x 4) / 7, on all seven tracks
+    fake_run(tmp_path, "sac", "memory", 13, 104.0)  # a track the reference was not run on
+    (row,) = [line for line in beyond_markdown(find_runs(tmp_path)).split("### On all 8 tracks")[1].splitlines()
+              if line.startswith("| SAC, memory |")]
+    assert "| 8 |" in row and "+8.3 [" in row and "(on 7 tracks)" in row
