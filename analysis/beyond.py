@@ -98,13 +98,10 @@ def _track_sets(seeds: set[int]) -> list[tuple[str, set[int] | None]]:
 
 
 def in_section(cell_seeds: set[int], seeds: set[int] | None) -> bool:
-    """Whether a cell trained on ``cell_seeds`` has a row in the section of ``seeds`` (None: all
-    tracks, where only cells with runs beyond the paper's five tracks belong: a cell run on those
-    five alone is in their section, and its mean over five tracks would not compare with
-    means over all of them)."""
-    if seeds is None:
-        return bool(cell_seeds - set(PAPER_SEEDS))
-    return bool(cell_seeds & seeds)
+    """Whether a cell with runs on ``cell_seeds`` (already those of the section) has a row in the
+    section of ``seeds``: every section but all tracks (None), where only cells with runs beyond
+    the paper's five tracks belong (a five-track mean would not compare with means over all)."""
+    return seeds is not None or bool(cell_seeds - set(PAPER_SEEDS))
 
 
 def _cells_present(runs: list[Run]) -> list[tuple[str, str]]:

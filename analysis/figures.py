@@ -61,8 +61,8 @@ def frontier_series(runs: list[Run], oracle: dict[int, float], smooth: int = 10)
     """The data of ``frontier_figure``: per track set (the paper's five tracks, then all tracks when
     the runs go beyond them, with the cells that do), its title, one (label, environment steps,
     mean, SE) per cell and the oracle's mean over the cells' tracks (None unless it scored them
-    all); [] if no run is beyond the paper. A cell's value at a step is the mean over tracks of the total reward per episode,
-    averaged over the last ``smooth`` episodes up to that step."""
+    all); [] if no run is beyond the paper. A cell's value at a step is the mean over tracks of
+    the total reward per episode, averaged over the last ``smooth`` episodes up to that step."""
     from analysis.beyond import REFERENCE, _cells_present, _track_sets, beyond_cell, in_section, is_beyond, label
 
     finished = [r for r in runs if r.status == "completed" and r.track_mode == "fixed" and r.rewards]
