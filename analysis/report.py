@@ -280,6 +280,13 @@ COLLAPSE_BELOW = 20.0  # a final performance below this: the car stands still or
 SPG_PAIRS = (("spg", "spg_p"), ("spg_multi", "spg_p_multi"))  # without and with prioritisation
 
 
+# The fewest tracks a paired verdict is drawn from. A percentile bootstrap over n tracks draws the
+# worst track n times with probability n**-n: for n <= 3 that is at least 1/27, above 2.5%, so the
+# interval's lower end is the smallest per-track difference itself and "above 0" says only that
+# every track was higher, which three tracks show by chance one time in eight.
+MIN_VERDICT_TRACKS = 4
+
+
 @dataclass
 class Effect:
     """A paired effect between cells over tracks, with its 95% bootstrap interval over tracks."""
@@ -293,7 +300,7 @@ class Effect:
 
     @property
     def verdict(self) -> str:
-        if self.tracks < 2:
+        if self.tracks < MIN_VERDICT_TRACKS:
             return "too few tracks"
         if self.low > 0:
             return "holds"
@@ -392,7 +399,8 @@ def conclusions_markdown(runs: list[Run]) -> str:
         return ""
     lines = ["Each effect is a mean (or SD) difference between two cells paired by track; the 95% "
              "interval is a percentile bootstrap over tracks (10,000 resamples). Verdict: holds if "
-             "the interval lies above 0, reversed if below, undecided otherwise. Tracks where a "
+             "the interval lies above 0, reversed if below, undecided otherwise; no verdict on fewer than "
+             f"{MIN_VERDICT_TRACKS} tracks (there the interval's ends are the extreme tracks). Tracks where a "
              "cell's run diverged are left out of that comparison.", ""]
     header = "| claim | effect | " + " | ".join(f"{name}: effect [95% CI] (n) | verdict" for name, _ in results) + " |"
     lines += [header, "|---|---|" + "---|---|" * len(results)]

@@ -2,6 +2,7 @@
 
 import json
 import math
+import shutil
 
 import pytest
 
@@ -328,7 +329,7 @@ def test_the_parity_table_pairs_ours_with_theirs_by_track(tmp_path):
     from analysis.beyond import beyond_markdown
     from analysis.report import PAPER_SEEDS
 
-    for seed, theirs, gap in zip(PAPER_SEEDS[:3], [140.0, 130.0, 150.0], [1.0, -1.0, 3.0]):
+    for seed, theirs, gap in zip(PAPER_SEEDS[:4], [140.0, 130.0, 150.0, 135.0], [1.0, -1.0, 3.0, 1.0]):
         fake_run(tmp_path / "a", "sb3_sac", "default", seed, theirs)
         fake_run(tmp_path / "a", "sac_sb3", "memory", seed, theirs + gap)
         fake_run(tmp_path / "b", "sb3_sac", "default", seed, theirs)
@@ -337,9 +338,12 @@ def test_the_parity_table_pairs_ours_with_theirs_by_track(tmp_path):
     assert "### At equal settings" in noisy
     (row,) = [line for line in noisy.splitlines() if line.startswith("| SAC at SB3's settings, memory |")
               and "Stable-Baselines3 SAC" in line]
-    assert "| 3 | +1.0 [" in row and "within paired noise" in row and "+1.0, " in row and "-1.0, " in row
+    assert "| 4 | +1.0 [" in row and "within paired noise" in row and "+1.0, " in row and "-1.0, " in row
     decided = beyond_markdown(find_runs(tmp_path / "b"))
-    assert "| 3 | -5.0 [-5.0, -5.0] | ours lower |" in decided
+    assert "| 4 | -5.0 [-5.0, -5.0] | ours lower |" in decided
+    # on three tracks the interval's ends are the extreme tracks: no verdict
+    shutil.rmtree(tmp_path / "b" / "sac_sb3" / "memory" / f"seed{PAPER_SEEDS[3]}")
+    assert "| 3 | -5.0 [-5.0, -5.0] | too few shared tracks to decide |" in beyond_markdown(find_runs(tmp_path / "b"))
     # without the paper's best cell in the folder, no row is its reference
     assert "(no reference runs)" in noisy and "(reference)" not in noisy
     assert "At equal settings" not in beyond_markdown(find_runs(tmp_path / "a" / "sb3_sac"))
@@ -367,3 +371,19 @@ def test_the_all_tracks_section_lists_only_cells_run_beyond_the_paper_tracks(tmp
     (row,) = [line for line in beyond_markdown(find_runs(tmp_path)).split("### On all 8 tracks")[1].splitlines()
               if line.startswith("| SAC, memory |")]
     assert "| 8 |" in row and "+8.3 [" in row and "(on 7 tracks)" in row
+
+
+def test_no_verdict_on_fewer_than_four_tracks(tmp_path):
+    """Three tracks, each 10 higher: the bootstrap interval is [+10, +10], but its lower end is just
+    the worst track (drawn three times in 1/27 of the resamples), so the table gives no verdict;
+    on four tracks it does."""
+    from analysis.beyond import beyond_markdown
+    from analysis.report import PAPER_SEEDS
+
+    for seed in PAPER_SEEDS:
+        fake_run(tmp_path, "spg_p_multi", "memory", seed, 100.0)
+    for seed in PAPER_SEEDS[:3]:
+        fake_run(tmp_path, "sac", "memory", seed, 110.0)
+    assert "| +10.0 [+10.0, +10.0] too few tracks to decide |" in beyond_markdown(find_runs(tmp_path))
+    fake_run(tmp_path, "sac", "memory", PAPER_SEEDS[3], 110.0)
+    assert "| +10.0 [+10.0, +10.0] higher |" in beyond_markdown(find_runs(tmp_path))
