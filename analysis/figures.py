@@ -88,6 +88,23 @@ def frontier_series(runs: list[Run], oracle: dict[int, float], smooth: int = 10)
     return panels
 
 
+def _cell_of(label: str) -> str:
+    """A frontier line's cell: its label without the run count ("SAC, memory (n=5)")."""
+    return label.rsplit(" (n=", 1)[0]
+
+
+def cell_colours(panels) -> dict[str, tuple]:
+    """One colour per cell across all panels (a cell keeps its colour from panel to panel), in
+    order of first appearance: tab20's ten dark colours (tab10's hues), then its ten light ones
+    (the default cycle would repeat a colour from the 11th line on)."""
+    from matplotlib import colormaps
+
+    cells = list(dict.fromkeys(_cell_of(label) for _, lines, _ in panels for label, *_ in lines))
+    palette = colormaps["tab20"].colors
+    order = [*range(0, 20, 2), *range(1, 20, 2)]
+    return {cell: palette[order[i % 20]] for i, cell in enumerate(cells)}
+
+
 def frontier_figure(runs: list[Run], oracle: dict[int, float], path: Path, smooth: int = 10) -> Path | None:
     """Every method against environment steps (``frontier_series``): the paper's best cell, the
     cells beyond the paper (SAC, TD3, prioritised replay, Stable-Baselines3) with ±1 SE bands over
@@ -96,11 +113,13 @@ def frontier_figure(runs: list[Run], oracle: dict[int, float], path: Path, smoot
     if not panels:
         return None
     plt = import_pyplot()
+    colours = cell_colours(panels)
     fig, axes = plt.subplots(1, len(panels), figsize=(7 * len(panels), 4.5), squeeze=False)
     for ax, (title, lines, ceiling) in zip(axes[0], panels):
         for label, steps, mean, sem in lines:
-            ax.plot(steps, mean, label=label, linewidth=1.2)
-            ax.fill_between(steps, mean - sem, mean + sem, alpha=0.2)
+            colour = colours[_cell_of(label)]
+            ax.plot(steps, mean, label=label, linewidth=1.2, color=colour)
+            ax.fill_between(steps, mean - sem, mean + sem, alpha=0.2, color=colour)
         if ceiling is not None:
             ax.axhline(ceiling, color="black", linestyle="--", linewidth=1, label=f"oracle ({ceiling:.1f})")
         ax.axhline(0, color="grey", linewidth=0.5)

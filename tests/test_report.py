@@ -323,6 +323,18 @@ def test_the_frontier_curves_by_hand(tmp_path):
     assert frontier_series([r for r in runs if r.algo == "spg"], oracle) == []
 
 
+def test_frontier_colours_are_one_per_cell_across_panels():
+    """A cell keeps its colour in every panel (whatever its run count there), and twenty cells get
+    twenty colours (matplotlib's default cycle repeats from the eleventh)."""
+    from analysis.figures import cell_colours
+
+    panels = [("five", [(f"cell {i} (n=5)",) for i in range(20)], None),
+              ("all", [("cell 3 (n=25)",), ("cell 0 (n=25)",)], None)]
+    colours = cell_colours(panels)
+    assert list(colours) == [f"cell {i}" for i in range(20)]
+    assert len(set(colours.values())) == 20
+
+
 def test_the_parity_table_pairs_ours_with_theirs_by_track(tmp_path):
     """SAC at SB3's settings against SB3's SAC: the mean of the per-track differences with a
     bootstrap interval; an interval holding 0 reads "within paired noise"; a constant gap is decided."""
