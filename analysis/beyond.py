@@ -4,8 +4,8 @@
 cell and its PPO cells, Stable-Baselines3's runs from ``baseline.py``, and any other cell in the sweep), on the paper's five tracks and on all
 tracks: runs, mean ± SE of the final performance, IQM with a 95% bootstrap interval over runs,
 the difference from the paper's best cell paired by track (95% bootstrap interval over tracks,
-with a verdict on at least ``MIN_VERDICT_TRACKS`` tracks), collapsed runs (final performance below 20), diverged runs, and wall time
-per run. Only runs trained on fixed tracks count here.
+with a verdict on at least ``MIN_VERDICT_TRACKS`` tracks), collapsed runs (final performance
+below 20), diverged runs, and wall time per run. Only runs trained on fixed tracks count here.
 
 ``generalisation_markdown``: per cell and training-track mode (``env.track`` fixed or random),
 the final deterministic policy's score on its own track and on the unseen evaluation tracks
@@ -21,7 +21,7 @@ import numpy as np
 
 from analysis.aggregate import iqm, stratified_bootstrap_ci
 from analysis.report import (ALGO_COLUMNS, ALGO_TITLES, COLLAPSE_BELOW, MIN_VERDICT_TRACKS, PAPER_SEEDS, Run,
-                             _mean_difference, paired_bootstrap)
+                             _mean_difference, paired_bootstrap, paired_sign)
 
 REFERENCE = ("memory", "spg_p_multi")  # the paper's best cell (Table 1: 141.1)
 ROWS = (("memory", "sac"), ("memory", "sac_sb3"), ("memory", "tqc"), ("memory", "crossq"), ("prioritised", "sac"),
@@ -42,10 +42,8 @@ def parity_markdown(runs: list[Run]) -> str:
         if not a or not b:
             continue
         value, low, high, tracks = paired_bootstrap(a, b, _mean_difference)
-        if tracks < MIN_VERDICT_TRACKS or math.isnan(low):
-            verdict = "too few shared tracks to decide"
-        else:
-            verdict = "within paired noise" if low <= 0 <= high else "ours higher" if low > 0 else "ours lower"
+        verdict = {None: "too few shared tracks to decide", 0: "within paired noise", 1: "ours higher",
+                   -1: "ours lower"}[paired_sign(low, high, tracks)]
         shared = sorted(set(a) & set(b))
         per_track = ", ".join(f"{t}: {a[t] - b[t]:+.1f}" for t in shared)
         interval = f" [{low:+.1f}, {high:+.1f}]" if not math.isnan(low) else ""
@@ -146,10 +144,8 @@ def _diff_text(row: dict) -> str:
         return "(no reference runs)"
     if row["diff_tracks"] < 2 or math.isnan(row["diff_low"]):
         return f"{row['diff']:+.1f}"
-    if row["diff_tracks"] < MIN_VERDICT_TRACKS:
-        verdict = "too few tracks to decide"
-    else:
-        verdict = "higher" if row["diff_low"] > 0 else "lower" if row["diff_high"] < 0 else "undecided"
+    verdict = {None: "too few tracks to decide", 1: "higher", -1: "lower", 0: "undecided"}[
+        paired_sign(row["diff_low"], row["diff_high"], row["diff_tracks"])]
     fewer = f" (on {row['diff_tracks']} tracks)" if row["diff_tracks"] < row["runs"] else ""  # the reference's
     return f"{row['diff']:+.1f} [{row['diff_low']:+.1f}, {row['diff_high']:+.1f}] {verdict}{fewer}"
 
@@ -161,8 +157,8 @@ def beyond_markdown(runs: list[Run]) -> str:
     parts = ["Beyond the paper: final performance (mean total reward of the last 20 training episodes) per run, "
              f"on fixed tracks. IQM intervals resample runs (tracks); \"vs {label(*REFERENCE)}\" is the mean "
              "difference from the paper's best cell on the same tracks, with a 95% bootstrap interval over "
-             f"tracks and a verdict from {MIN_VERDICT_TRACKS} tracks on. Compute per run: the CPU time of the process that trained it over the members it trained "
-             "(every session of a resumed run); \"wall\" marks runs made before CPU time was recorded, for "
+             f"tracks and a verdict from {MIN_VERDICT_TRACKS} tracks on. Compute per run: the CPU time of the "
+             "process that trained it over the members it trained (every session of a resumed run); \"wall\" marks runs made before CPU time was recorded, for "
              "which it is the process's wall time over its members (the same when each process had a core).", ""]
     all_seeds = {r.seed for r in runs if r.track_mode == "fixed" and r.seed is not None}
     for title, seeds in _track_sets(all_seeds):

@@ -287,6 +287,14 @@ SPG_PAIRS = (("spg", "spg_p"), ("spg_multi", "spg_p_multi"))  # without and with
 MIN_VERDICT_TRACKS = 4
 
 
+def paired_sign(low: float, high: float, tracks: int) -> int | None:
+    """The verdict of a paired interval over ``tracks`` tracks: +1 above 0, -1 below, 0 holding 0;
+    None on fewer than ``MIN_VERDICT_TRACKS`` tracks (or without an interval)."""
+    if tracks < MIN_VERDICT_TRACKS or math.isnan(low):
+        return None
+    return 1 if low > 0 else -1 if high < 0 else 0
+
+
 @dataclass
 class Effect:
     """A paired effect between cells over tracks, with its 95% bootstrap interval over tracks."""
@@ -300,13 +308,8 @@ class Effect:
 
     @property
     def verdict(self) -> str:
-        if self.tracks < MIN_VERDICT_TRACKS:
-            return "too few tracks"
-        if self.low > 0:
-            return "holds"
-        if self.high < 0:
-            return "reversed"
-        return "undecided"
+        return {None: "too few tracks", 1: "holds", -1: "reversed", 0: "undecided"}[
+            paired_sign(self.low, self.high, self.tracks)]
 
 
 def finals_by_track(runs: list[Run], er: str, algo: str, seeds: set[int] | None = None) -> dict[int, float]:
