@@ -6,8 +6,14 @@ matrix products and some element-wise math, picks code paths by CPU too. The pat
 differently, so the same run gives other numbers on another CPU, and training is chaotic
 enough that a last-bit difference grows into another learning curve.
 
-Two modes (``numerics=`` in ``conf/config.yaml``):
+Three modes (``numerics=`` in ``conf/config.yaml``):
 
+- ``fma`` (the default): ``portable``'s torch and MKL settings, and the stacked layers' matrix
+  products (forward, both gradients) computed by the project's own kernels
+  (``learners.kernels``), in which every output element is one fixed chain of fused
+  multiply-adds: the same bits on every CPU with FMA, at the speed of the CPU's widest vectors
+  (MKL's COMPATIBLE branch runs them with SSE2 code). The kernels are compiled on first use;
+  where no C++ compiler works, the mode runs ``portable`` instead, warns once and records why.
 - ``portable``: torch runs its AVX2 kernels (``ATEN_CPU_CAPABILITY=avx2``) and MKL its
   conditional-numerical-reproducibility code path for every x86-64 CPU, Intel or not
   (``MKL_CBWR=COMPATIBLE``). A run gives the same ``metrics.csv`` on any x86-64 CPU with AVX2
@@ -17,7 +23,8 @@ Two modes (``numerics=`` in ``conf/config.yaml``):
   fastest, reproducible on CPUs of the same kind only.
 
 Both variables are read when torch and MKL load, so ``apply`` must run before ``import torch``;
-after it, ``apply`` only checks that the process already runs the mode and says how to fix it
+after it, ``apply`` only checks that the process already runs the mode's torch settings (``fma``
+and ``portable`` share them, so a process can switch between those two) and says how to fix it
 if not. ``in_effect()`` reads what the process actually runs (torch's kernel set, MKL's branch)
 for ``summary.json``. This module imports nothing heavy.
 """
@@ -28,8 +35,8 @@ import os
 import sys
 import warnings
 
-MODES = ("portable", "native")
-DEFAULT = "portable"
+MODES = ("fma", "portable", "native")
+DEFAULT = "fma"
 PORTABLE_KERNELS = "AVX2"  # torch.backends.cpu.get_cpu_capability() under ATEN_CPU_CAPABILITY=avx2
 PORTABLE_ENV = {"ATEN_CPU_CAPABILITY": "avx2", "MKL_CBWR": "COMPATIBLE"}
 
@@ -45,26 +52,44 @@ class NumericsError(RuntimeError):
 
 def apply(mode: str) -> None:
     """Make this process run ``mode``: set its variables if torch has not loaded yet, or check
-    that the loaded torch already runs it (``NumericsError`` with the remedy if not)."""
+    that the loaded torch already runs it (``NumericsError`` with the remedy if not); then switch
+    the stacked layers' products to the project's kernels (``fma``) or to torch's."""
     if mode not in MODES:
         raise ValueError(f"numerics must be one of {MODES}, got {mode!r}")
     if "torch" not in sys.modules:
         for key, value in PORTABLE_ENV.items():
-            if mode == "portable":
+            if mode in ("fma", "portable"):
                 os.environ[key] = value
             else:
                 os.environ.pop(key, None)
         _warn_if_unportable(mode)
-        return
-    current = in_effect()
-    if current["mode"] != mode:
-        raise NumericsError(
-            f"numerics={mode} was asked for, but this process loaded torch with {current['mode']} numerics "
-            f"(kernels {current['kernels']}, MKL branch {current['mkl_branch']}); they are fixed when torch "
-            f"loads. Start a new process, or set "
-            + (" ".join(f"{k}={v}" for k, v in PORTABLE_ENV.items()) if mode == "portable"
-               else "no " + " or ".join(PORTABLE_ENV))
-            + " in its environment before torch is imported")
+    else:
+        current = _torch_mode()
+        if current != ("native" if mode == "native" else "portable"):
+            raise NumericsError(
+                f"numerics={mode} was asked for, but this process loaded torch with {current} numerics "
+                f"(kernels {_torch_kernels()}, MKL branch {mkl_branch()}); they are fixed when torch "
+                f"loads. Start a new process, or set "
+                + ("no " + " or ".join(PORTABLE_ENV) if mode == "native"
+                   else " ".join(f"{k}={v}" for k, v in PORTABLE_ENV.items()))
+                + " in its environment before torch is imported")
+    _use_products(mode)
+
+
+_FALLBACK: dict[str, str] = {}  # mode -> why the project's kernels could not run (warned once)
+
+
+def _use_products(mode: str) -> None:
+    from learners import kernels
+
+    reason = kernels.use(mode == "fma")
+    if reason is not None:
+        if mode not in _FALLBACK:
+            warnings.warn(f"numerics=fma: the project's matrix kernels cannot run here ({reason}); running "
+                          "numerics=portable instead (summary.json records it)", RuntimeWarning, stacklevel=3)
+        _FALLBACK[mode] = reason
+    else:
+        _FALLBACK.pop(mode, None)
 
 
 def _portable_kernels_available() -> bool:
@@ -82,8 +107,8 @@ def _portable_kernels_available() -> bool:
 
 
 def _warn_if_unportable(mode: str) -> None:
-    if mode == "portable" and not _portable_kernels_available():
-        warnings.warn("numerics=portable: this CPU cannot run the AVX2 kernels it relies on; results here are "
+    if mode in ("fma", "portable") and not _portable_kernels_available():
+        warnings.warn(f"numerics={mode}: this CPU cannot run the AVX2 kernels it relies on; results here are "
                       "this machine's own (summary.json records the kernels that ran)", RuntimeWarning,
                       stacklevel=3)
 
@@ -106,13 +131,33 @@ def mkl_branch() -> str | None:
     return name + (",STRICT" if code & 0x10000 else "")
 
 
-def in_effect() -> dict:
-    """What this process runs: ``{"mode", "kernels", "mkl_branch"}``; ``mode`` is ``portable``
-    when torch runs its AVX2 kernels and MKL the COMPATIBLE branch (or has no such switch), else ``native``."""
+def _torch_kernels() -> str:
     import torch
 
-    kernels = torch.backends.cpu.get_cpu_capability()
-    branch = mkl_branch()
+    return torch.backends.cpu.get_cpu_capability()
+
+
+def _torch_mode() -> str:
+    """``portable`` when torch runs its AVX2 kernels and MKL the COMPATIBLE branch (or has no
+    such switch), else ``native``."""
     portable = (os.environ.get("ATEN_CPU_CAPABILITY") == PORTABLE_ENV["ATEN_CPU_CAPABILITY"]
-                and branch in (PORTABLE_ENV["MKL_CBWR"], None))
-    return {"mode": "portable" if portable else "native", "kernels": kernels, "mkl_branch": branch}
+                and mkl_branch() in (PORTABLE_ENV["MKL_CBWR"], None))
+    return "portable" if portable else "native"
+
+
+def in_effect() -> dict:
+    """What this process runs: ``{"mode", "kernels", "mkl_branch", "products"}``. ``mode`` is
+    ``fma`` when torch runs portably and the stacked layers' products are the project's,
+    ``portable`` when they are MKL's COMPATIBLE ones, else ``native``; ``products`` names the
+    products' code (``fma-avx512``, ``fma-avx2``, ``fma-scalar``: the same bits; or ``torch``),
+    and ``fallback`` says why ``fma`` was asked for and not run, where that happened."""
+    from learners import kernels
+
+    mode = _torch_mode()
+    if mode == "portable" and kernels.active():
+        mode = "fma"
+    effect = {"mode": mode, "kernels": _torch_kernels(), "mkl_branch": mkl_branch(),
+              "products": f"fma-{kernels.best_isa()}" if kernels.active() else "torch"}
+    if "fma" in _FALLBACK:
+        effect["fallback"] = _FALLBACK["fma"]
+    return effect

@@ -37,6 +37,8 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from learners import kernels
+from learners.kernels import ops as kernel_ops
 from losses.functional import ALIGN, per_member
 
 
@@ -69,6 +71,10 @@ class StackedLinear(nn.Module):
             raise ValueError(f"input has {x.shape[0]} members on its first dimension, this layer {self.members}")
         flat = x.reshape(self.members, -1, x.shape[-1])
         weight, bias = self.weight, self.bias
+        if kernels.active() and flat.device.type == "cpu":
+            # numerics=fma: the project's products, each element one fixed chain of FMAs
+            out = kernel_ops.linear(flat, weight, bias)
+            return out.reshape(*x.shape[:-1], out.shape[-1])
         if weight.shape[1] == 1:
             # A one-unit layer computes as two units, the second all zeros, and drops it.
             # With a matrix dimension of 1 (this layer's forward and its weight gradient), the

@@ -1,9 +1,11 @@
-"""Portable numerics across real CPU models, on one machine: the same short runs here and under
-``qemu-x86_64 -cpu MODEL`` (QEMU's user-mode emulator, Debian package ``qemu-user``), which
-runs the same binaries on an emulated CPU whose identification (vendor, model, instruction
-sets) MKL, NumPy, glibc and torch read to choose their code paths:
+"""The exact numerics modes (``fma``, the default, and ``portable``) across real CPU models, on
+one machine: the same short runs here and under ``qemu-x86_64 -cpu MODEL`` (QEMU's user-mode
+emulator, Debian package ``qemu-user``), which runs the same binaries on an emulated CPU whose
+identification (vendor, model, instruction sets) MKL, NumPy, glibc, torch and the project's
+matrix kernels read to choose their code paths:
 
     python -m tests.cross_cpu [--cpus Haswell EPYC-Rome] [--cells spg_p_multi/hybrid ...] [--episodes 3]
+                              [--numerics fma]
 
 prints one row per run (metrics.csv's hash here and on each emulated CPU) and exits 1 if any
 differs. Haswell is an Intel AVX2 CPU, EPYC-Rome an AMD one (QEMU 7.2 emulates no AVX-512, so
@@ -32,16 +34,18 @@ CELLS = ["spg_p_multi/hybrid", "ppo_log/recent", "sac/memory"]
 SEEDS = "[2067791,5468063]"
 
 
-def run_here_or_emulated(cpu: str | None, cells: list[str], episodes: int, out: Path) -> dict[str, str]:
-    """metrics.csv hash per run of ``cells`` in portable numerics, on ``cpu`` (None: this machine)."""
+def run_here_or_emulated(cpu: str | None, cells: list[str], episodes: int, out: Path,
+                         mode: str = "fma") -> dict[str, str]:
+    """metrics.csv hash per run of ``cells`` in numerics ``mode``, on ``cpu`` (None: this machine)."""
     overrides = [[f"algo={c.split('/')[0]}", f"er={c.split('/')[1]}"]
                  + (["algo.td.warmup_episodes=1", "algo.td.updates_per_step=0.25"] if c.startswith(("sac", "tqc", "crossq", "td3"))
                     else []) for c in cells]
-    code = ("import json, sys\nfrom pathlib import Path\nfrom engine import numerics\nnumerics.apply('portable')\n"
+    code = ("import json, sys\nfrom pathlib import Path\nfrom engine import numerics\n"
+            f"numerics.apply('{mode}')\n"
             "from engine.config import RunConfig\nfrom engine.runner import train_population\n"
             "for i, overrides in enumerate(json.loads(sys.argv[1])):\n"
             f"    cfg = RunConfig.compose(*overrides, 'seeds={SEEDS}', 'episodes={episodes}', 'progress=false',\n"
-            "                            'logger=none', 'checkpoint_every=0', 'numerics=portable')\n"
+            f"                            'logger=none', 'checkpoint_every=0', 'numerics={mode}')\n"
             "    train_population(cfg, Path(sys.argv[2]) / str(i))\n")
     command = [sys.executable, "-c", code, json.dumps(overrides), str(out)]
     if cpu is not None:
@@ -62,6 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cpus", nargs="+", default=["Haswell", "EPYC-Rome"], help="qemu-x86_64 -cpu models")
     parser.add_argument("--cells", nargs="+", default=CELLS)
     parser.add_argument("--episodes", type=int, default=3)
+    parser.add_argument("--numerics", choices=["fma", "portable"], default="fma")
     args = parser.parse_args(argv)
     if shutil.which("qemu-x86_64") is None:
         print("cross_cpu: qemu-x86_64 not found (Debian/Ubuntu: apt install qemu-user)", file=sys.stderr)
@@ -72,9 +77,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"cross_cpu: this machine is {platform.machine()}, not x86-64", file=sys.stderr)
         return 2
     with tempfile.TemporaryDirectory() as tmp:
-        runs = {"here": run_here_or_emulated(None, args.cells, args.episodes, Path(tmp) / "here")}
+        runs = {"here": run_here_or_emulated(None, args.cells, args.episodes, Path(tmp) / "here", args.numerics)}
         for cpu in args.cpus:
-            runs[cpu] = run_here_or_emulated(cpu, args.cells, args.episodes, Path(tmp) / cpu)
+            runs[cpu] = run_here_or_emulated(cpu, args.cells, args.episodes, Path(tmp) / cpu, args.numerics)
     names = list(runs)
     print("| run | " + " | ".join(names) + " | same |")
     print("|" + "---|" * (len(names) + 2))
@@ -84,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
         same = len(set(values)) == 1
         differ += not same
         print(f"| {run} | " + " | ".join(values) + f" | {'yes' if same else 'NO'} |")
-    print(f"{len(runs['here']) - differ} of {len(runs['here'])} runs identical on "
+    print(f"numerics={args.numerics}: {len(runs['here']) - differ} of {len(runs['here'])} runs identical on "
           + ", ".join(["this machine", *args.cpus]))
     return 1 if differ else 0
 

@@ -1,9 +1,9 @@
 """Golden runs: short training runs whose metrics.csv is checked to the bit.
 
 A change meant to keep results unchanged (a refactor, a speed-up, a new code path) must leave
-these files identical. They were recorded in the portable numerics mode (``engine/numerics.py``)
-with the software in ``fingerprint.json``, so they are checked to the bit on every x86-64 CPU
-with AVX2. Under other software, or another mode or kernel set (native numerics on an AVX-512
+these files identical. They were recorded in the default numerics mode, ``fma``
+(``engine/numerics.py``), with the software in ``fingerprint.json``, so they are checked to the
+bit on every x86-64 CPU with AVX2. Under other software, or another mode or kernel set (native numerics on an AVX-512
 CPU, a CPU without AVX2, ARM), kernels round differently, and the values are compared to a
 relative tolerance instead. A change that is meant to change results regenerates them, and
 says so in its commit:
@@ -87,5 +87,5 @@ if __name__ == "__main__":
         raise SystemExit("usage: python -m tests.test_golden --update")
     from engine import numerics
 
-    numerics.apply("portable")  # before torch loads
+    numerics.apply(numerics.DEFAULT)  # before torch loads
     update()

@@ -1,12 +1,13 @@
 """Numerics modes (``engine.numerics``): what each one sets and records, and the promise of
-``portable``: the same metrics.csv whatever instruction sets the CPU offers.
+``fma`` and ``portable``: the same metrics.csv whatever instruction sets the CPU offers.
 
 A test cannot change the CPU it runs on, but it can take the wider instruction sets away from
 the libraries that choose kernels by CPU: MKL (``MKL_ENABLE_INSTRUCTIONS=AVX2``), NumPy
-(``NPY_DISABLE_CPU_FEATURES``) and torch (``ATEN_CPU_CAPABILITY=avx2``). On an AVX-512 machine
-that makes a second machine, an AVX2 one, whose portable runs must equal this machine's to the
-bit, and whose native runs differ (which shows that the test can fail). On an AVX2 machine the
-two coincide and only the first holds something.
+(``NPY_DISABLE_CPU_FEATURES``), torch (``ATEN_CPU_CAPABILITY=avx2``) and the project's matrix
+kernels (``RACING_KERNEL_ISA=avx2``). On an AVX-512 machine that makes a second machine, an AVX2
+one, whose fma and portable runs must equal this machine's to the bit, and whose native runs
+differ (which shows that the test can fail). On an AVX2 machine the two coincide and only the
+first holds something.
 """
 
 from __future__ import annotations
@@ -63,13 +64,14 @@ def numpy_wide_targets() -> list[str]:
 MACHINES = {
     "this CPU": {},
     "an AVX2 CPU": {"ATEN_CPU_CAPABILITY": "avx2", "MKL_ENABLE_INSTRUCTIONS": "AVX2",
-                    "NPY_DISABLE_CPU_FEATURES": " ".join(numpy_wide_targets())},
+                    "NPY_DISABLE_CPU_FEATURES": " ".join(numpy_wide_targets()), "RACING_KERNEL_ISA": "avx2"},
 }
 
 
 def child_env(**extra: str) -> dict:
     env = {k: v for k, v in os.environ.items()
-           if k not in (*numerics.PORTABLE_ENV, "MKL_ENABLE_INSTRUCTIONS", "NPY_DISABLE_CPU_FEATURES")}
+           if k not in (*numerics.PORTABLE_ENV, "MKL_ENABLE_INSTRUCTIONS", "NPY_DISABLE_CPU_FEATURES",
+                        "RACING_KERNEL_ISA")}
     return {**env, "RL_LOGGING_LEVEL": "WARNING", "PYTHONWARNINGS": "ignore", **extra}
 
 
@@ -96,12 +98,20 @@ def machines_runs(tmp_path_factory) -> dict:
     return runs
 
 
-def test_portable_runs_are_the_same_on_an_avx2_cpu(machines_runs):
-    (effect, here), (effect_avx2, there) = machines_runs["portable", "this CPU"], machines_runs["portable", "an AVX2 CPU"]
-    assert effect["mode"] == effect_avx2["mode"] == "portable"
+@pytest.mark.parametrize("mode", ["fma", "portable"])
+def test_exact_modes_give_the_same_runs_on_an_avx2_cpu(machines_runs, mode):
+    (effect, here), (effect_avx2, there) = machines_runs[mode, "this CPU"], machines_runs[mode, "an AVX2 CPU"]
+    assert effect["mode"] == effect_avx2["mode"] == mode
+    if mode == "fma":
+        assert effect_avx2["products"] in ("fma-avx2", "fma-scalar")
     assert len(here) == 3 * len(CELLS)  # two members per cell, and the solo runs
     for name in here:
-        assert here[name] == there[name], f"{name}: portable metrics.csv differs between the CPUs"
+        assert here[name] == there[name], f"{name}: {mode} metrics.csv differs between the CPUs"
+
+
+def test_fma_runs_differ_from_portable_ones_which_shows_the_products_are_the_projects(machines_runs):
+    (_, fma), (_, portable) = machines_runs["fma", "this CPU"], machines_runs["portable", "this CPU"]
+    assert [name for name in fma if fma[name] != portable[name]]
 
 
 def test_native_runs_differ_there_which_shows_the_test_can_fail(machines_runs):
@@ -114,7 +124,7 @@ def test_native_runs_differ_there_which_shows_the_test_can_fail(machines_runs):
 
 @pytest.mark.parametrize("mode", numerics.MODES)
 @pytest.mark.parametrize("machine", MACHINES)
-def test_members_equal_their_solo_runs_in_both_modes_on_both_cpus(machines_runs, mode, machine):
+def test_members_equal_their_solo_runs_in_every_mode_on_both_cpus(machines_runs, mode, machine):
     _, runs = machines_runs[mode, machine]
     solos = [name for name in runs if "-solo" in name]
     assert len(solos) == len(CELLS)
@@ -145,8 +155,14 @@ def test_native_takes_the_machine_kernels_even_under_the_portable_variables():
 
 
 def test_a_mode_torch_was_not_loaded_with_is_refused_with_the_remedy():
-    assert numerics.in_effect()["mode"] == numerics.DEFAULT == "portable"  # conftest applied it
-    numerics.apply("portable")  # the mode in effect: nothing to do
+    assert numerics.in_effect()["mode"] == numerics.DEFAULT == "fma"  # conftest applied it
+    numerics.apply("fma")  # the mode in effect: nothing to do
+    try:
+        numerics.apply("portable")  # the same torch settings: only the products change
+        assert numerics.in_effect()["mode"] == "portable" and numerics.in_effect()["products"] == "torch"
+    finally:
+        numerics.apply("fma")
+    assert numerics.in_effect()["products"].startswith("fma-")
     with pytest.raises(numerics.NumericsError, match="Start a new process"):
         numerics.apply("native")
     with pytest.raises(ValueError, match="numerics must be one of"):
