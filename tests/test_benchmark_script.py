@@ -51,8 +51,13 @@ def test_numerics_speed_benchmark_prints_its_table():
                             capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
-    assert len(rows) == 1 + 1 and "| ppo/recent | 2 |" in result.stdout
-    assert "portable: " in result.stdout and "MKL branch COMPATIBLE" in result.stdout
+    from benchmarks.numerics_speed import SHAPES
+
+    assert len(rows) == (1 + 3 * len(SHAPES)) + (1 + 1) and "| ppo/recent | 2 |" in result.stdout
+    assert "| fma | portable | native | fma / native | portable / fma |" in result.stdout
+    assert "portable: " in result.stdout and "MKL COMPATIBLE" in result.stdout
+    assert "FMA peak of one core (GFLOP/s, measured)" in result.stdout
+    assert "| hidden 100x100, minibatch 200 | 2 | weight grad |" in result.stdout
 
 
 def test_oracle_convergence_benchmark_prints_its_table():
