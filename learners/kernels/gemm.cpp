@@ -29,7 +29,7 @@ typedef int64_t i64;
 
 namespace {
 
-constexpr i64 KC = 384;  // K block: a block of packed B panels stays in L2, the chains continue in memory
+constexpr i64 KC = 1536;  // K block: a block of packed B panels stays in L2 (2 MB here), the chains continue in memory
 
 // Operand element (i, k) of A is a[i * sm + k * sk]; element (k, j) of B is b[k * sk + j * sn].
 struct View {
@@ -72,20 +72,21 @@ void pack_b(View b, i64 j0, i64 nr, i64 width, i64 k0, i64 kc, float* dst) {
         for (i64 k = 0; k < kc; ++k) std::memset(dst + k * width + nr, 0, size_t(width - nr) * sizeof(float));
 }
 
-// The register tile: acc (MR x width, row stride ld) continues (first == false) or starts (first
-// == true) the chains of MR rows by kc steps; A's element (i, k) at a[i * ai + k * ak] (packed by
-// pack_a: ai = 1, ak = MR; or read in place), B's row k at b + k * bk (packed by pack_b: bk =
-// width; or read in place).
-typedef void (*TileFn)(i64 kc, const float* a, i64 ai, i64 ak, const float* b, i64 bk, float* acc, i64 ld,
-                       bool first);
+// The register tile: continues the chains of MR rows x width columns by kc steps, from zero (in
+// == nullptr) or from the partial chains at in (row stride ldi), and stores them at out (row
+// stride ldo), after adding bias[j] once (if bias is given: the last block only). A's element (i,
+// k) at a[i * ai + k * ak] (packed by pack_a: ai = 1, ak = MR; or read in place), B's row k at b +
+// k * bk (packed by pack_b: bk = width; or read in place).
+typedef void (*TileFn)(i64 kc, const float* a, i64 ai, i64 ak, const float* b, i64 bk, const float* in, i64 ldi,
+                       float* out, i64 ldo, const float* bias);
 
-void tile_scalar(i64 mr, i64 width, i64 kc, const float* a, i64 ai, i64 ak, const float* b, i64 bk, float* acc,
-                 i64 ld, bool first) {
+void tile_scalar(i64 mr, i64 width, i64 kc, const float* a, i64 ai, i64 ak, const float* b, i64 bk,
+                 const float* in, i64 ldi, float* out, i64 ldo, const float* bias) {
     for (i64 i = 0; i < mr; ++i)
         for (i64 j = 0; j < width; ++j) {
-            float s = first ? 0.0f : acc[i * ld + j];
+            float s = in ? in[i * ldi + j] : 0.0f;
             for (i64 k = 0; k < kc; ++k) s = std::fmaf(a[i * ai + k * ak], b[k * bk + j], s);
-            acc[i * ld + j] = s;
+            out[i * ldo + j] = bias ? s + bias[j] : s;
         }
 }
 
@@ -98,14 +99,14 @@ void tile_scalar(i64 mr, i64 width, i64 kc, const float* a, i64 ai, i64 ak, cons
 // One register tile per vector type: MR rows x NV vectors of accumulators. The 256-bit tile is
 // compiled twice: for AVX2 CPUs, and for AVX-512 CPUs (32 registers), where it serves panels of
 // at most 8 columns.
-#define RACING_TILE(NAME, ATTR, V, W, ZERO, LOAD, STORE, SET1, FMA)                                 \
+#define RACING_TILE(NAME, ATTR, V, W, ZERO, LOAD, STORE, SET1, FMA, ADD)                            \
     template <int MR, int NV>                                                                     \
-    ATTR void NAME(i64 kc, const float* a, i64 ai, i64 ak, const float* b, i64 bk, float* acc,    \
-                   i64 ld, bool first) {                                                          \
+    ATTR void NAME(i64 kc, const float* a, i64 ai, i64 ak, const float* b, i64 bk, const float* in, \
+                   i64 ldi, float* out, i64 ldo, const float* bias) {                             \
         V c[MR][NV];                                                                              \
         _Pragma("GCC unroll 16") for (int i = 0; i < MR; ++i)                                     \
             _Pragma("GCC unroll 4") for (int v = 0; v < NV; ++v)                                  \
-                c[i][v] = first ? ZERO() : LOAD(acc + i * ld + W * v);                            \
+                c[i][v] = in ? LOAD(in + i * ldi + W * v) : ZERO();                               \
         for (i64 k = 0; k < kc; ++k) {                                                            \
             V bv[NV];                                                                             \
             _Pragma("GCC unroll 4") for (int v = 0; v < NV; ++v) bv[v] = LOAD(b + k * bk + W * v); \
@@ -114,16 +115,22 @@ void tile_scalar(i64 mr, i64 width, i64 kc, const float* a, i64 ai, i64 ak, cons
                 _Pragma("GCC unroll 4") for (int v = 0; v < NV; ++v) c[i][v] = FMA(av, bv[v], c[i][v]); \
             }                                                                                     \
         }                                                                                         \
+        if (bias) {                                                                               \
+            _Pragma("GCC unroll 4") for (int v = 0; v < NV; ++v) {                                \
+                const V bb = LOAD(bias + W * v);                                                  \
+                _Pragma("GCC unroll 16") for (int i = 0; i < MR; ++i) c[i][v] = ADD(c[i][v], bb); \
+            }                                                                                     \
+        }                                                                                         \
         _Pragma("GCC unroll 16") for (int i = 0; i < MR; ++i)                                     \
-            _Pragma("GCC unroll 4") for (int v = 0; v < NV; ++v) STORE(acc + i * ld + W * v, c[i][v]); \
+            _Pragma("GCC unroll 4") for (int v = 0; v < NV; ++v) STORE(out + i * ldo + W * v, c[i][v]); \
     }
 
 RACING_TILE(tile512, RACING_AVX512, __m512, 16, _mm512_setzero_ps, _mm512_loadu_ps, _mm512_storeu_ps,
-            _mm512_set1_ps, _mm512_fmadd_ps)
+            _mm512_set1_ps, _mm512_fmadd_ps, _mm512_add_ps)
 RACING_TILE(tile256vl, RACING_AVX512VL, __m256, 8, _mm256_setzero_ps, _mm256_loadu_ps, _mm256_storeu_ps,
-            _mm256_set1_ps, _mm256_fmadd_ps)
+            _mm256_set1_ps, _mm256_fmadd_ps, _mm256_add_ps)
 RACING_TILE(tile256, RACING_AVX2, __m256, 8, _mm256_setzero_ps, _mm256_loadu_ps, _mm256_storeu_ps,
-            _mm256_set1_ps, _mm256_fmadd_ps)
+            _mm256_set1_ps, _mm256_fmadd_ps, _mm256_add_ps)
 
 #define RACING_ROWS6(F, NV) F<1, NV>, F<2, NV>, F<3, NV>, F<4, NV>, F<5, NV>, F<6, NV>
 #define RACING_ROWS14(F, NV) \
@@ -199,15 +206,15 @@ i64 vectors(i64 n, const Isa& isa, i64 lanes) {
 }
 
 void run_tile(int isa, i64 mr, i64 width, i64 kc, const float* a, i64 ai, i64 ak, const float* b, i64 bk,
-              float* acc, i64 ld, bool first) {
+              const float* in, i64 ldi, float* out, i64 ldo, const float* bias) {
 #ifdef RACING_X86
     if (isa == 2) {
         const TileFn* t = width == 32 ? t512x2 : width == 16 ? t512x1 : t256vl;
-        return t[mr - 1](kc, a, ai, ak, b, bk, acc, ld, first);
+        return t[mr - 1](kc, a, ai, ak, b, bk, in, ldi, out, ldo, bias);
     }
-    if (isa == 1) return (width == 16 ? t256x2 : t256x1)[mr - 1](kc, a, ai, ak, b, bk, acc, ld, first);
+    if (isa == 1) return (width == 16 ? t256x2 : t256x1)[mr - 1](kc, a, ai, ak, b, bk, in, ldi, out, ldo, bias);
 #endif
-    tile_scalar(mr, width, kc, a, ai, ak, b, bk, acc, ld, first);
+    tile_scalar(mr, width, kc, a, ai, ak, b, bk, in, ldi, out, ldo, bias);
 }
 
 thread_local std::vector<float> ws_a, ws_b, ws_acc;
@@ -270,8 +277,11 @@ void gemm_one(int isa_id, i64 M, i64 N, i64 K, View a, View b, float* c, i64 cm,
             if (!(b_in_place && nr == width)) pack_b(b, j0, nr, width, k0, kc, ws_b.data() + j0 * kc);
             j0 += width;
         }
-        for (i64 i0 = 0; i0 < M; i0 += isa.mr) {
-            const i64 mr = std::min(isa.mr, M - i0);
+        // Row blocks of equal size (at most isa.mr rows): no short block of a few rows, whose
+        // tile would wait on the FMA latency.
+        const i64 blocks = (M + isa.mr - 1) / isa.mr, rows = (M + blocks - 1) / blocks;
+        for (i64 i0 = 0; i0 < M; i0 += rows) {
+            const i64 mr = std::min(rows, M - i0);
             // A's rows are read in place where they are contiguous, else packed.
             const bool in_place = a.s1 == 1;
             const float* ap = in_place ? a.p + i0 * a.s0 + k0 : ws_a.data();
@@ -279,13 +289,24 @@ void gemm_one(int isa_id, i64 M, i64 N, i64 K, View a, View b, float* c, i64 cm,
             if (!in_place) pack_a(a, i0, mr, k0, kc, ws_a.data());
             for (i64 j0 = 0; j0 < N;) {
                 const i64 width = panel_width(N - j0, isa), nr = std::min(width, N - j0);
-                float* acc = blocked ? ws_acc.data() + i0 * npad + j0 : ws_acc.data();
-                const i64 ld = blocked ? npad : width;
                 const bool in_place_b = b_in_place && nr == width;
                 const float* bp = in_place_b ? b.p + k0 * b.s0 + j0 : ws_b.data() + j0 * kc;
-                run_tile(isa_id, mr, width, kc, ap, ai, ak, bp, in_place_b ? b.s0 : width, acc, ld, first);
-                if (last) write_out(acc, ld, mr, nr, c + i0 * cm + j0 * cn, cm, cn,
-                                    bias ? bias + (bias_rows ? i0 : j0) * bs : nullptr, bs, bias_rows);
+                const i64 bk = in_place_b ? b.s0 : width;
+                // The chains continue from ws_acc (later K blocks) and end in C itself where a full
+                // panel meets contiguous rows of C (the bias added in registers), else in ws_acc,
+                // from where write_out copies them.
+                float* part = blocked ? ws_acc.data() + i0 * npad + j0 : ws_acc.data();
+                const i64 ldp = blocked ? npad : width;
+                const float* in = first ? nullptr : part;
+                const bool direct = last && nr == width && cn == 1 && !(bias && (bias_rows || bs != 1));
+                if (direct) {
+                    run_tile(isa_id, mr, width, kc, ap, ai, ak, bp, bk, in, ldp, c + i0 * cm + j0, cm,
+                             bias ? bias + j0 * bs : nullptr);
+                } else {
+                    run_tile(isa_id, mr, width, kc, ap, ai, ak, bp, bk, in, ldp, part, ldp, nullptr);
+                    if (last) write_out(part, ldp, mr, nr, c + i0 * cm + j0 * cn, cm, cn,
+                                        bias ? bias + (bias_rows ? i0 : j0) * bs : nullptr, bs, bias_rows);
+                }
                 j0 += width;
             }
         }
