@@ -1,0 +1,101 @@
+"""Two reports of the same grid, paired run by run: what a change of code or numerics moved.
+
+    python -m analysis.compare NEW/runs.csv OLD/runs.csv [--markdown OUT.md]
+
+Runs are paired by (replay mode, algorithm, track seed); each pair's difference is the new
+run's final performance minus the old one's. Printed: how many pairs, in how many the new run
+is lower, higher or equal, the median and mean difference with a 95% bootstrap interval over
+pairs, how many runs collapsed (final below ``--collapse``, 20) in each, and per cell the mean
+difference against the cell's combined standard error (how far each cell's mean moved, in the
+units a reader of Table 1 compares in). A change meant to keep results must show identical
+pairs; a change of rounding shows differences centred on zero (the task's chaos), and a real
+change, a shift.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+
+def read_runs(path: Path) -> dict[tuple[str, str, int], float]:
+    """{(er, algo, seed): final_mean} of the completed runs of a report's ``runs.csv``."""
+    try:
+        with open(path, newline="") as f:
+            rows = list(csv.DictReader(f))
+    except OSError as err:
+        raise SystemExit(f"compare: cannot read {path}: {err.strerror}") from None
+    needed = {"er", "algo", "seed", "status", "final_mean"}
+    if not rows or not needed <= set(rows[0]):
+        raise SystemExit(f"compare: {path} is not a report's runs.csv (columns {sorted(needed)} expected)")
+    return {(r["er"], r["algo"], int(r["seed"])): float(r["final_mean"]) for r in rows
+            if r["status"] == "completed" and r["final_mean"] not in ("", None)}
+
+
+def _interval(values: list[float], reps: int = 10000, seed: int = 0) -> tuple[float, float]:
+    import numpy as np
+
+    x = np.asarray(values)
+    if len(x) < 2:
+        return float("nan"), float("nan")
+    picks = np.random.default_rng(seed).integers(0, len(x), size=(reps, len(x)))
+    low, high = np.percentile(x[picks].mean(axis=1), [2.5, 97.5])
+    return float(low), float(high)
+
+
+def _sem(values: list[float]) -> float:
+    if len(values) < 2:
+        return float("nan")
+    mean = sum(values) / len(values)
+    return math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1) / len(values))
+
+
+def compare(new: dict, old: dict, collapse: float = 20.0) -> str:
+    keys = sorted(set(new) & set(old))
+    if not keys:
+        raise SystemExit("compare: the two reports have no run in common (cell and track)")
+    diffs = [new[k] - old[k] for k in keys]
+    ordered = sorted(diffs)
+    mid = len(ordered) // 2
+    median = ordered[mid] if len(ordered) % 2 else (ordered[mid - 1] + ordered[mid]) / 2
+    low, high = _interval(diffs)
+    lines = [f"{len(keys)} runs paired ({len(new)} new, {len(old)} old completed runs): the new run is lower in "
+             f"{sum(d < 0 for d in diffs)}, higher in {sum(d > 0 for d in diffs)}, equal in "
+             f"{sum(d == 0 for d in diffs)}; difference median {median:+.1f}, mean {sum(diffs) / len(diffs):+.1f} "
+             f"[{low:+.1f}, {high:+.1f}] (95% bootstrap over runs)",
+             f"Collapsed (final below {collapse:g}): {sum(new[k] < collapse for k in keys)} new, "
+             f"{sum(old[k] < collapse for k in keys)} old", "",
+             "| cell | runs | new mean | old mean | difference | in combined SE |", "|---|---:|---:|---:|---:|---:|"]
+    cells = defaultdict(list)
+    for k in keys:
+        cells[k[:2]].append(k)
+    for (er, algo), members in sorted(cells.items()):
+        a, b = [new[k] for k in members], [old[k] for k in members]
+        diff = sum(a) / len(a) - sum(b) / len(b)
+        combined = math.hypot(_sem(a), _sem(b))
+        ratio = f"{diff / combined:+.2f}" if combined > 0 else ""
+        lines.append(f"| {algo}/{er} | {len(members)} | {sum(a) / len(a):.1f} | {sum(b) / len(b):.1f} | "
+                     f"{diff:+.1f} | {ratio} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("new", type=Path, help="the new report's runs.csv")
+    parser.add_argument("old", type=Path, help="the old report's runs.csv")
+    parser.add_argument("--collapse", type=float, default=20.0)
+    parser.add_argument("--markdown", type=Path, help="also write the comparison to this file")
+    args = parser.parse_args(argv)
+    text = compare(read_runs(args.new), read_runs(args.old), args.collapse)
+    print(text, end="")
+    if args.markdown:
+        args.markdown.write_text(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
