@@ -10,8 +10,11 @@ last elements of a tensor (the tail of its vector loop) differently, so a member
 would depend on its position in the stacked tensor.
 
 Bit for bit: member r of a population equals a population of one made from the same seed
-(forward, gradients, Adam steps; ``tests/test_stacked.py``), in both numerics modes
-(``engine/numerics.py``). No matrix product has a dimension of one: a one-unit layer
+(forward, gradients, Adam steps; ``tests/test_stacked.py``), in every numerics mode
+(``engine/numerics.py``). In the default mode, ``fma``, the products (forward and both
+gradients) run in the project's kernels (``learners.kernels``), where this holds by
+construction; in the other two they are ``torch.baddbmm`` (MKL), and the rest of this paragraph
+applies. No matrix product has a dimension of one: a one-unit layer
 computes as two units (see ``StackedLinear.forward``), because MKL's batched products take
 matrix-vector paths there whose rounding depends on the number of members on AVX-512 CPUs.
 A member's saved weights load into the solo networks of ``learners.solo`` and compute the same function to float
@@ -71,7 +74,7 @@ class StackedLinear(nn.Module):
             raise ValueError(f"input has {x.shape[0]} members on its first dimension, this layer {self.members}")
         flat = x.reshape(self.members, -1, x.shape[-1])
         weight, bias = self.weight, self.bias
-        if kernels.active() and flat.device.type == "cpu":
+        if kernels.active() and flat.device.type == "cpu" and flat.dtype == weight.dtype == torch.float32:
             # numerics=fma: the project's products, each element one fixed chain of FMAs
             out = kernel_ops.linear(flat, weight, bias)
             return out.reshape(*x.shape[:-1], out.shape[-1])

@@ -31,7 +31,7 @@ namespace {
 
 constexpr i64 KC = 1536;  // K block: a block of packed B panels stays in L2 (2 MB here), the chains continue in memory
 
-// Operand element (i, k) of A is a[i * sm + k * sk]; element (k, j) of B is b[k * sk + j * sn].
+// A strided matrix: element (i, j) at p[i * s0 + j * s1].
 struct View {
     const float* p;
     i64 s0, s1;

@@ -33,7 +33,7 @@ def _product(a: torch.Tensor, sa: tuple, b: torch.Tensor, sb: tuple, n: int, bia
     """``bmm`` without checks, on A's and B's element strides (``sb`` may describe a transpose of
     ``b``'s storage, so no view is made): the layers' hot path."""
     R, M, K = a.shape
-    out = torch.empty(R, M, n)
+    out = torch.empty(R, M, n, dtype=torch.float32)
     if bias is None:
         bias_ptr, b0, b1 = None, 0, 0
     else:
@@ -58,7 +58,7 @@ def colsum(x: torch.Tensor) -> torch.Tensor:
     """``x [R, M, N]`` summed over M in row order from zero -> ``[R, N]`` (a bias gradient)."""
     _check("x", x, 3)
     R, M, N = x.shape
-    out = torch.empty(R, N)
+    out = torch.empty(R, N, dtype=torch.float32)
     s = x.stride()
     _lib().racing_colsum(R, M, N, x.data_ptr(), s[0], s[1], s[2], out.data_ptr(), N)
     return out
