@@ -36,7 +36,7 @@ from tensordict import TensorDictBase
 
 from collectors import add_monte_carlo_returns
 from engine import checkpoint, numerics, setup
-from engine.processes import exit_with_parent, spawn_context
+from engine.processes import exit_with_parent, keep_freed_memory, spawn_context
 from engine.config import ConfigError, RunConfig
 from engine.outputs import SUMMARY_FILE, MetricsWriter, metric_columns, read_summary, write_json_atomic
 from engine.progress import Progress
@@ -106,6 +106,7 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
     of the same settings, the population continues from it exactly as if it had never stopped.
     """
     numerics.apply(cfg.numerics)  # torch has loaded: a check that it runs the mode asked for
+    keep_freed_memory()  # reuse freed tensors' memory (speed only)
     cfg, compiled = _compile_mode(cfg)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -178,6 +179,7 @@ def _train_part(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_se
     variables, so torch loaded with the same kernels); it ends if the parent dies."""
     exit_with_parent()
     numerics.apply(cfg.numerics)
+    keep_freed_memory()
     torch.set_num_threads(cfg.threads)
     start = time.perf_counter()
     payload = checkpoint.load(path) if path.exists() else None

@@ -199,3 +199,25 @@ def test_a_population_trains_and_resumes_on_a_gpu(tmp_path):
                 == (tmp_path / "reference" / f"seed{seed}" / "metrics.csv").read_bytes())
         weights = torch.load(tmp_path / "run" / f"seed{seed}" / "actor.pt", weights_only=True)
         assert all(t.device.type == "cpu" for t in weights.values())
+
+
+def test_the_allocator_setting_changes_no_number(tmp_path):
+    """keep_freed_memory (engine/processes.py) only changes where memory comes from: a population
+    trained in a process that set it equals one trained in a fresh process without it."""
+    from engine import processes
+
+    code = ("import sys; from pathlib import Path; from engine import numerics; numerics.apply(numerics.DEFAULT)\n"
+            "import engine.processes as p; p.keep_freed_memory = lambda: False\n"
+            "from tests.test_config import load; from engine.runner import train_population\n"
+            f"train_population(load(*{common('spg_p', 'hybrid', 2)!r}, {seeds(A, B)!r}), Path(sys.argv[1]))")
+    result = subprocess.run([sys.executable, "-c", code, str(tmp_path / "without")], capture_output=True, text=True,
+                            cwd=ROOT, env=ENV, timeout=600)
+    assert result.returncode == 0, result.stderr[-2000:]
+    train_population(load(*common("spg_p", "hybrid", 2), seeds(A, B)), tmp_path / "with")
+    import platform
+
+    if platform.libc_ver()[0] == "glibc":
+        assert processes.keep_freed_memory() is True  # the setting is in effect in this process
+    for seed in (A, B):
+        assert ((tmp_path / "with" / f"seed{seed}" / "metrics.csv").read_bytes()
+                == (tmp_path / "without" / f"seed{seed}" / "metrics.csv").read_bytes())
