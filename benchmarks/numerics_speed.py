@@ -27,7 +27,6 @@ import os
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -60,18 +59,6 @@ def child(mode: str, cell: str, members: int, episodes: int) -> None:
                       "numerics": summary["numerics"]}))
 
 
-def _best(fn, seconds: float = 0.05) -> float:
-    """Fastest of several timed calls of ``fn`` (about ``seconds`` of calls, at least 5)."""
-    fn()
-    best, spent, calls = float("inf"), 0.0, 0
-    while spent < seconds or calls < 5:
-        start = time.perf_counter()
-        fn()
-        elapsed = time.perf_counter() - start
-        best, spent, calls = min(best, elapsed), spent + elapsed, calls + 1
-    return best
-
-
 def child_shapes(mode: str, members: list[int]) -> None:
     """Time the products at SHAPES under ``mode`` (MKL's under portable and native, the project's
     kernels on each path under fma); print {label: seconds} as JSON."""
@@ -82,6 +69,8 @@ def child_shapes(mode: str, members: list[int]) -> None:
 
     from learners import kernels
     from learners.kernels import ops
+
+    from benchmarks.train_speed import best_of
 
     torch.set_num_threads(1)
     paths = [p for p in ("avx2", "avx512") if p in kernels.isas()] if mode == "fma" else ["mkl"]
@@ -103,7 +92,8 @@ def child_shapes(mode: str, members: list[int]) -> None:
                            "input grad": lambda p=path: ops.bmm(dy, w, isa=p),
                            "weight grad": lambda p=path: ops.bmm(dy.transpose(1, 2), x, isa=p)}
                 for op, fn in fns.items():
-                    result[json.dumps([name, r, op, path])] = _best(fn)
+                    fn()  # warm-up (the kernels' workspace, the allocator)
+                    result[json.dumps([name, r, op, path])] = best_of(fn, 20)
     if mode == "fma":
         result["peak"] = {p: kernels.peak_gflops(p) for p in paths}
     print(json.dumps(result))

@@ -76,20 +76,18 @@ def apply(mode: str) -> None:
     _use_products(mode)
 
 
-_FALLBACK: dict[str, str] = {}  # mode -> why the project's kernels could not run (warned once)
+_fallback: str | None = None  # why numerics=fma, as last applied, runs portable instead (warned once)
 
 
 def _use_products(mode: str) -> None:
+    global _fallback
     from learners import kernels
 
     reason = kernels.use(mode == "fma")
-    if reason is not None:
-        if mode not in _FALLBACK:
-            warnings.warn(f"numerics=fma: the project's matrix kernels cannot run here ({reason}); running "
-                          "numerics=portable instead (summary.json records it)", RuntimeWarning, stacklevel=3)
-        _FALLBACK[mode] = reason
-    else:
-        _FALLBACK.pop(mode, None)
+    if reason is not None and reason != _fallback:
+        warnings.warn(f"numerics=fma: the project's matrix kernels cannot run here ({reason}); running "
+                      "numerics=portable instead (summary.json records it)", RuntimeWarning, stacklevel=3)
+    _fallback = reason
 
 
 def _portable_kernels_available() -> bool:
@@ -158,6 +156,6 @@ def in_effect() -> dict:
         mode = "fma"
     effect = {"mode": mode, "kernels": _torch_kernels(), "mkl_branch": mkl_branch(),
               "products": f"fma-{kernels.best_isa()}" if kernels.active() else "torch"}
-    if "fma" in _FALLBACK:
-        effect["fallback"] = _FALLBACK["fma"]
+    if _fallback is not None:
+        effect["fallback"] = _fallback
     return effect

@@ -126,10 +126,11 @@ def isas() -> list[str]:
     return [name for name, code in ISAS.items() if mask >> code & 1]
 
 
+@functools.lru_cache(maxsize=None)
 def best_isa() -> str:
     """The path ``bmm`` and ``linear`` use unless told otherwise: the widest this CPU runs, or
     at most ``$RACING_KERNEL_ISA`` (``scalar``, ``avx2`` or ``avx512``; tests use it to take the
-    wider instruction sets away, as an older CPU would)."""
+    wider instruction sets away, as an older CPU would). Read once per process."""
     available = isas()
     cap = os.environ.get("RACING_KERNEL_ISA")
     if cap:
@@ -169,15 +170,9 @@ def peak_gflops(isa: str | None = None, seconds: float = 0.2) -> float:
     return rounds * 24 * LANES[isa] * 2 / best / 1e9
 
 
-_ISA = None  # the code used by default, found on first use
-
-
 def _isa_code(isa: str | None) -> int:
-    global _ISA
     if isa is None:
-        if _ISA is None:
-            _ISA = ISAS[best_isa()]
-        return _ISA
+        return ISAS[best_isa()]
     if isa not in ISAS:
         raise ValueError(f"isa must be one of {sorted(ISAS)}, got {isa!r}")
     if isa not in isas():

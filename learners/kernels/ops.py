@@ -66,8 +66,7 @@ def colsum(x: torch.Tensor) -> torch.Tensor:
 
 def _forward(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
     """``x @ weight^T + bias``: B is weight's transpose, read through swapped strides."""
-    sw = weight.stride()
-    return _product(x, x.stride(), weight, (sw[0], sw[2], sw[1]), weight.shape[1], bias, _isa_code(None))
+    return _product(x, x.stride(), weight, _swapped(weight.stride()), weight.shape[1], bias, _isa_code(None))
 
 
 def _input_grad(grad: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
@@ -99,10 +98,16 @@ class _Linear(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
-        x, weight = ctx.saved_tensors
-        need_x, need_w, need_b = ctx.needs_input_grad
-        return (_input_grad(grad, weight) if need_x else None, _weight_grad(grad, x) if need_w else None,
-                colsum(grad) if need_b else None)
+        return _gradients(ctx, grad, _input_grad, _weight_grad, colsum)
+
+
+def _gradients(ctx, grad: torch.Tensor, input_grad, weight_grad, column_sum) -> tuple:
+    """The gradients the layer's inputs need, by the given products (the ctypes calls eagerly,
+    the ``racing::`` operators in compiled graphs)."""
+    x, weight = ctx.saved_tensors
+    need_x, need_w, need_b = ctx.needs_input_grad
+    return (input_grad(grad, weight) if need_x else None, weight_grad(grad, x) if need_w else None,
+            column_sum(grad) if need_b else None)
 
 
 def linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
@@ -176,17 +181,9 @@ for _op in (_linear_op, _input_grad_op, _weight_grad_op, _colsum_op):
     _op.register_vmap(_vmap_rule(_op))
 
 
-def _setup_linear(ctx, inputs, output) -> None:
-    x, weight, _ = inputs
-    ctx.save_for_backward(x, weight)
-
-
 def _linear_backward(ctx, grad):
-    x, weight = ctx.saved_tensors
-    need_x, need_w, need_b = ctx.needs_input_grad
-    return (torch.ops.racing.fma_input_grad(grad, weight) if need_x else None,
-            torch.ops.racing.fma_weight_grad(grad, x) if need_w else None,
-            torch.ops.racing.fma_colsum(grad) if need_b else None)
+    return _gradients(ctx, grad, torch.ops.racing.fma_input_grad, torch.ops.racing.fma_weight_grad,
+                      torch.ops.racing.fma_colsum)
 
 
-_linear_op.register_autograd(_linear_backward, setup_context=_setup_linear)
+_linear_op.register_autograd(_linear_backward, setup_context=_Linear.setup_context)
