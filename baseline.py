@@ -5,7 +5,8 @@
 
 Each run writes ``<out>/sb3_<algo>/default/seed<track>/`` (``metrics.csv``, ``summary.json``,
 ``model.zip``), which ``report.py`` reads like a ``train.py`` run; finished runs of the same
-settings are skipped. ``--jobs`` runs that many at once, one process each (one torch thread
+settings are skipped, a finished run of other settings or a damaged folder is refused (the folder
+rules of ``engine/rundir.py``). ``--jobs`` runs that many at once, one process each (one torch thread
 per run). Needs the ``baselines`` extra (``pip install -c constraints/cpu.txt -e '.[baselines]'``).
 What a run is, exactly: ``engine/sb3.py``.
 """
@@ -19,6 +20,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from engine import numerics
+from engine.outputs import RunFolderError
 from engine.processes import exit_with_parent, spawn_context
 from engine.sb3 import ALGOS, BaselineError, run_folder, settings_of, train
 
@@ -59,11 +61,15 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     work = [(algo, seed, args.episodes, args.out, args.final_window, args.numerics)
             for algo in args.algos for seed in args.tracks]
-    if args.jobs == 1:
-        summaries = [_train(item, worker=False) for item in work]
-    else:
-        with ProcessPoolExecutor(args.jobs, mp_context=spawn_context()) as pool:
-            summaries = list(pool.map(_train, work))
+    try:
+        if args.jobs == 1:
+            summaries = [_train(item, worker=False) for item in work]
+        else:
+            with ProcessPoolExecutor(args.jobs, mp_context=spawn_context()) as pool:
+                summaries = list(pool.map(_train, work))
+    except (BaselineError, RunFolderError) as err:  # a damaged or busy folder, a run of other settings
+        print(f"Refusing to run: {err}", file=sys.stderr)
+        return 2
     for (algo, seed, *_), summary in zip(work, summaries):
         print(f"{run_folder(args.out, algo, seed)}: {summary['status']}, final_mean {summary['final_mean']:.2f}, "
               f"{summary['wall_time_s'] / 60:.1f} min")

@@ -27,7 +27,7 @@ import sys
 from pathlib import Path
 
 from engine import numerics
-from engine.outputs import RunFolderError, read_summary
+from engine.outputs import RunFolderError
 
 
 def find_runs(paths: list[Path]) -> list[Path]:
@@ -45,8 +45,14 @@ def find_runs(paths: list[Path]) -> list[Path]:
 
 
 def runs_numerics(runs: list[Path]) -> str:
-    """The numerics mode the runs were trained in (runs from before the modes: native)."""
-    modes = {((read_summary(run) or {}).get("settings") or {}).get("numerics", "native") for run in runs}
+    """The numerics mode the finished runs were trained in (runs from before the modes: native;
+    damaged runs are skipped later, with their reason)."""
+    from engine import rundir
+
+    found = [rundir.state(run) for run in runs]
+    modes = {((f.summary.get("settings") or {}).get("numerics", "native")) for f in found if f.kind == "finished"}
+    if not modes:
+        return numerics.DEFAULT
     if len(modes) > 1:
         raise RunFolderError(f"the runs were trained under different numerics ({sorted(modes)}); "
                              "choose one with --numerics")
@@ -72,6 +78,16 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
+    bad = [t for t in args.tracks if not 0 <= t < 2**32]
+    if bad:
+        parser.error(f"--tracks must be track seeds in [0, 2**32), got {bad}")
+    if not 0 <= args.seed < 2**32:
+        parser.error(f"--seed must be in [0, 2**32) (the first start state's seed), got {args.seed}")
+    if args.video is not None and args.video.suffix.lower() not in (".gif", ".mp4"):
+        parser.error(f"--video must name a .gif or .mp4 file, got {str(args.video)!r}")
+    for option, path in (("--table", args.table), ("--video", args.video)):
+        if path is not None and path.is_dir():
+            parser.error(f"{option} {path} is a folder; give a file name (e.g. {path / ('evaluation.csv' if option == '--table' else 'agent.gif')})")
     if args.oracle:
         if args.paths or not args.tracks:
             parser.error("--oracle scores the oracle on --tracks (give track seeds, and no run folders)")

@@ -20,7 +20,8 @@ Writes into ``SWEEP_DIR/report/``:
   car that stands still and 1 for the oracle (``evaluate.py --oracle``) on the run's track;
 - ``curves_*.png``: learning curves, mean over tracks with a ±1 SE band, per algorithm and per
   replay mode; ``paper_tracks.png``; ``agent.png``, a frame of the best run's policy.
-Lists runs that are partial (killed or running), unreadable or diverged. The figures need the
+Lists runs that are partial (killed or running), damaged (with the file and the reason;
+``engine/rundir.py``) or diverged. The figures need the
 ``render`` extra; without it only the tables are written.
 
 Every report states the code version (commit and source hash, from each run's summary.json)
@@ -94,12 +95,14 @@ def main(argv: list[str] | None = None) -> int:
     (out / "conclusions.md").write_text(versions_markdown(versions) + "\n" + conclusions_markdown(runs))
     (out / "collapse.md").write_text(versions_markdown(versions) + "\n" + collapse_markdown(runs))
     print(markdown)
-    for status in ("diverged", "partial", "unreadable"):
-        listed = [r for r in runs if r.status == status]
+    for status in ("diverged", "partial", "damaged"):
+        listed = [r for r in every if r.status == status]
         if listed:
-            print(f"{len(listed)} {status} run(s):")
+            print(f"{len(listed)} {status} run(s), not in the tables:" if status != "diverged"
+                  else f"{len(listed)} diverged run(s):")
             for r in listed:
-                print(f"  {r.path} ({len(r.rewards)} episodes in metrics.csv)")
+                print(f"  {r.path} ({len(r.rewards)} episodes in metrics.csv)"
+                      + (f": {r.problem}" if r.problem else ""))
     extra = []
     for name, text in (("beyond.md", beyond_markdown(every)), ("generalisation.md", generalisation_markdown(every)),
                        ("normalised.md", normalised_markdown(runs, oracle))):

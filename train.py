@@ -3,8 +3,14 @@ run per seed in one process: ``python train.py algo=spg_p er=hybrid 'seeds=[3,4,
 
 A run writes into its folder (``outputs/runs/<algo>/<er>/seed<seed>`` by default, or the
 sweep's subfolder with ``-m``): ``metrics.csv``, ``summary.json``, ``actor.pt``, ``critic.pt``,
-TorchRL logs and Hydra's ``.hydra/``. With ``seeds``, each member writes that into
-``outputs/runs/<algo>/<er>/seed<seed>/``. See ``conf/config.yaml`` for every option.
+TorchRL logs and the resolved configuration in ``.hydra/`` (written once the run is sure to
+start: a refused command leaves the folder as it was). With ``seeds``, each member writes that
+into ``outputs/runs/<algo>/<er>/seed<seed>/``. See ``conf/config.yaml`` for every option and
+``engine/rundir.py`` for the rules of a run folder (finished, resumable, damaged; its lock).
+
+Exit status: 0 when every run finished (its last line says where and how well), 2 when the
+command was refused (one line saying why; nothing was written), 1 for a full disk, 130 or 143
+when stopped by SIGINT or SIGTERM (one line: where it was saved; the same command resumes).
 """
 
 from __future__ import annotations
@@ -15,47 +21,93 @@ from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from engine import numerics
-from engine.config import ConfigError, RunConfig, register_resolvers
+from engine.config import ConfigError, RunConfig, config_mapping, register_resolvers
+from engine.outputs import DiskFull, RunFolderError
 
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")  # torchrl's INFO lines (set before it loads)
 register_resolvers()  # the run folder's name (conf/config.yaml) uses one
 
 
+class RunRefused(Exception):
+    """A job of a sweep that did not run (or did not finish): Hydra records it as failed and the
+    sweep goes on (``hydra_plugins/racing_launcher/sweeper.py`` lists every such job at the end)."""
+
+
+def _end(message: str, status: int, prefix: str = "Refusing to run: ") -> None:
+    """Print the one line and end: the process's exit status, or a failed job in a sweep."""
+    print(f"{prefix}{message}", file=sys.stderr)
+    if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
+        raise RunRefused(message)
+    raise SystemExit(status)
+
+
+def save_hydra_record(cfg: DictConfig, out_dir: Path) -> None:
+    """Hydra's record of the run (``.hydra/config.yaml``, ``hydra.yaml``, ``overrides.yaml``), written
+    atomically once the run is sure to start (``hydra.output_subdir: null`` stops Hydra's own)."""
+    from engine.outputs import write_atomic
+
+    record = out_dir / ".hydra"
+    record.mkdir(parents=True, exist_ok=True)
+    hydra_cfg = HydraConfig.get()
+    for name, node in (("config.yaml", cfg), ("hydra.yaml", OmegaConf.create({"hydra": hydra_cfg})),
+                       ("overrides.yaml", hydra_cfg.overrides.task)):
+        write_atomic(record / name, OmegaConf.to_yaml(node).encode())
+
+
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> float | list | None:
-    settings = OmegaConf.to_container(cfg, resolve=True)
+    settings = config_mapping(cfg)
     try:
         run_cfg = RunConfig.from_mapping(settings)
     except ConfigError as err:
-        print(f"Invalid configuration: {err}", file=sys.stderr)
-        raise SystemExit(2) from None
+        _end(str(err), 2, prefix="Invalid configuration: ")
     try:
         numerics.apply(run_cfg.numerics)  # before torch loads: it reads the kernel settings then
     except numerics.NumericsError as err:
-        print(f"Refusing to run: {err}", file=sys.stderr)
-        raise SystemExit(2) from None
-    from engine.checkpoint import CheckpointError, in_folder
+        _end(str(err), 2)
+    from engine.checkpoint import CheckpointError
+    from engine.processes import RunStopped
     from engine.runner import train_population  # after validation: torch loads slowly
     from engine.version import describe
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
+    skipped: list[tuple[Path, dict]] = []
     try:
-        if run_cfg.overwrite:
-            for path in in_folder(out_dir):
-                path.unlink()
-        skipped: list[tuple[Path, dict]] = []
-        summaries = train_population(run_cfg, out_dir, settings, skipped=skipped)
-    except (ConfigError, CheckpointError, numerics.NumericsError) as err:
-        print(f"Refusing to run: {err}", file=sys.stderr)
-        raise SystemExit(2) from None
+        summaries = train_population(run_cfg, out_dir, settings, skipped=skipped,
+                                     on_start=lambda: save_hydra_record(cfg, out_dir))
+    except DiskFull as err:
+        _end(str(err), 1, prefix="Stopped: ")
+    except (ConfigError, CheckpointError, RunFolderError, numerics.NumericsError) as err:
+        _end(str(err), 2)
+    except RunStopped as stopped:
+        _end(str(stopped), 130 if "SIGINT" in str(stopped) else 143, prefix="")
+    except OSError as err:  # a file the run could not write, named by the system's error
+        _end(f"{err.strerror or err} ({err.filename or out_dir}); the folder keeps its last good files", 1,
+             prefix="Stopped: ")
     for folder, summary in skipped:
         print(f"{folder}: already {summary['status']} (final_mean {summary['final_mean']}, "
               f"{describe(summary.get('code'))}); skipped", file=sys.stderr)
+    for summary in summaries:
+        print(_finished_line(run_cfg, out_dir, summary))
     finals = [s["final_mean"] for s in summaries]
     return finals[0] if run_cfg.seeds is None else finals
+
+
+def _finished_line(cfg: RunConfig, out_dir: Path, summary: dict) -> str:
+    """One line per run at the end (also where the output is a file): status, performance, folder."""
+    folder = out_dir if cfg.seeds is None else out_dir / f"seed{summary['seed']}"
+    final = summary.get("final_mean")
+    score = (f"final performance {final:.1f} (mean total reward of the last {summary.get('final_window')} "
+             "episodes)") if isinstance(final, (int, float)) else "no final performance"
+    evaluated = summary.get("evaluation")
+    tail = f", evaluated {evaluated['mean']:.1f} on eval_seeds" if evaluated else ""
+    return (f"{summary['algo']}/{summary['er']} seed {summary['seed']}: {summary['status']} after "
+            f"{summary['episodes']} episodes, {score}{tail}; results in {folder}")
+
 
 if __name__ == "__main__":
     main()

@@ -1,8 +1,9 @@
 """Reading a sweep folder and laying its results out as the paper's Table 1.
 
-A run is a folder with ``metrics.csv`` and (once finished) ``summary.json``. Runs without a
-summary are *partial* (killed or still running), runs whose summary cannot be read are
-*unreadable*; both are listed, not counted.
+A run is a folder with ``metrics.csv`` and (once finished) ``summary.json``, judged by the one rule
+of ``engine.rundir``: runs without a summary are *partial* (killed or still running), runs whose
+summary is not one or whose files differ from what it records are *damaged*; both are listed with
+the reason, never counted.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ ALGO_TITLES = {**COLUMN_TITLES, "sac": "SAC", "sac_sb3": "SAC at SB3's settings"
 @dataclass
 class Run:
     path: Path
-    status: str  # completed, diverged, partial, unreadable
+    status: str  # completed, diverged, partial (killed or running), damaged (engine.rundir)
     algo: str | None = None
     er: str | None = None
     seed: int | None = None
@@ -44,6 +45,7 @@ class Run:
     numerics: str = "not recorded"  # the numerics mode and the kernels that ran (numerics_label)
     episode_steps: int = EPISODE_STEPS  # environment steps per episode (env.options.max_steps; racing's default 200)
     cpu_time: float | None = None  # seconds per run: the CPU time of the process that trained it over its size
+    problem: str | None = None  # a damaged run's: which file, and what is wrong with it
 
     @property
     def version(self) -> str:
@@ -124,12 +126,18 @@ def find_runs(sweep_dir: Path) -> list[Run]:
 
 
 def read_run(folder: Path) -> Run:
+    """The run in ``folder`` as ``engine.rundir`` judges it: finished (its summary), partial (no
+    summary yet: killed or running) or damaged (with the reason); never taken for another state."""
+    from engine import rundir
+
     rewards = _read_rewards(folder / METRICS_FILE)
-    summary_path = folder / SUMMARY_FILE
-    if not summary_path.exists():
+    found = rundir.state(folder)
+    if found.kind in ("empty", "resumable"):
         return Run(folder, "partial", rewards=rewards)
+    if found.kind == "damaged":
+        return Run(folder, "damaged", rewards=rewards, problem=found.problem)
+    summary = found.summary
     try:
-        summary = json.loads(summary_path.read_text())
         settings = summary.get("settings") or {}
         size = (summary.get("population") or {}).get("size") or 1
         wall = summary.get("wall_time_s")
@@ -143,8 +151,8 @@ def read_run(folder: Path) -> Run:
                    wall / size if wall is not None else None, numerics_label(summary),
                    int(((settings.get("env") or {}).get("options") or {}).get("max_steps") or EPISODE_STEPS),
                    summary["cpu_time_s"] / size if summary.get("cpu_time_s") is not None else None)
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError):
-        return Run(folder, "unreadable", rewards=rewards)
+    except (KeyError, TypeError, ValueError, AttributeError) as err:
+        return Run(folder, "damaged", rewards=rewards, problem=f"{folder / SUMMARY_FILE}: a field is malformed ({err!r})")
 
 
 def code_versions(runs: list[Run]) -> dict[str, list[Run]]:

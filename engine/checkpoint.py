@@ -7,19 +7,25 @@ module (stacked networks and, for SPG, the temperatures), both optimisers, the r
 simulator's state (cars, tracks, random streams), the episode counter, each member's learning
 curve and status (frozen members stay frozen), the run's settings and the code version.
 
-Written atomically (a temporary file, fsync, rename), so a crash mid-write leaves the previous
-checkpoint in place. Loaded with ``torch.load(weights_only=True)``: only tensors and plain
-containers, no code.
+Written atomically (``engine.outputs.write_atomic``: a temporary file, fsync, rename), so a crash
+mid-write leaves the previous checkpoint in place and a full disk is reported as such. Loaded with
+``torch.load(weights_only=True)``: only tensors and plain containers, no code; a file holding
+anything else is refused as possibly hostile, never loaded another way.
 """
 
 from __future__ import annotations
 
-import os
+import io
+import pickle
 import random
+import zipfile
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from engine.outputs import first_line, write_atomic
+from engine.rundir import checkpoints as in_folder  # noqa: F401 (part of this module's interface)
 
 CHECKPOINT_FILE = "checkpoint.pt"  # a population's; each part of a split one has checkpoint-<first seed>.pt
 VERSION = 3  # 2: the simulator's whole state; 3: populations (every member, their generators)
@@ -55,18 +61,33 @@ def arrays_from_tensors(state: dict) -> dict:
 
 def save(path: Path, payload: dict) -> None:
     """Atomically replace ``path`` with ``payload``."""
+    save_tensors(path, {"version": VERSION, **payload})
+
+
+def save_tensors(path: Path, obj) -> None:
+    """``torch.save`` ``obj`` to ``path`` atomically (weights, checkpoints)."""
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    write_atomic(Path(path), buffer.getvalue())
+
+
+def load_tensors(path: Path, what: str = "file"):
+    """``torch.load(path, weights_only=True)``; ``ValueError`` with one clear sentence if the file is
+    empty, truncated, not torch's, or holds more than tensors and plain containers."""
     path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        torch.save({"version": VERSION, **payload}, f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
-def in_folder(folder: Path) -> list[Path]:
-    """The checkpoints in a run folder: ``checkpoint.pt`` and those of a split population's parts."""
-    return sorted(p for p in Path(folder).glob("checkpoint*.pt") if p.is_file())
+    try:
+        if path.stat().st_size == 0:
+            raise ValueError(f"{path} is empty (0 bytes)")
+        return torch.load(path, weights_only=True, map_location="cpu")
+    except ValueError:
+        raise
+    except pickle.UnpicklingError as err:
+        if "weights_only" in str(err) or "Weights only" in str(err):
+            raise ValueError(f"{path} holds objects other than tensors and plain containers; it was refused "
+                             f"unread, as loading them could run code (not a {what} written here)") from None
+        raise ValueError(f"{path} is not a readable {what} ({first_line(err)})") from None
+    except (RuntimeError, EOFError, OSError, zipfile.BadZipFile, TypeError, AttributeError, KeyError) as err:
+        raise ValueError(f"{path} is not a readable {what} ({first_line(err)})") from None
 
 
 def load(path: Path) -> dict:
@@ -75,11 +96,10 @@ def load(path: Path) -> dict:
     if not path.exists():
         raise CheckpointError(f"no checkpoint at {path}")
     try:
-        payload = torch.load(path, weights_only=True, map_location="cpu")
-    except Exception as err:  # torch raises several types for truncated or foreign files
-        raise CheckpointError(f"{path} is not a readable checkpoint ({type(err).__name__}: "
-                              f"{str(err).splitlines()[0][:200]}); delete it to start the run afresh") from None
+        payload = load_tensors(path, "checkpoint")
+    except ValueError as err:
+        raise CheckpointError(f"{err}; move it away (or pass overwrite=true) to start the run afresh") from None
     if not isinstance(payload, dict) or payload.get("version") != VERSION:
         raise CheckpointError(f"{path} is not a version-{VERSION} checkpoint of train.py; "
-                              "delete it to start the run afresh")
+                              "move it away (or pass overwrite=true) to start the run afresh")
     return payload

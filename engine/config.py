@@ -39,6 +39,31 @@ def register_resolvers() -> None:
         OmegaConf.register_new_resolver("racing_seed_dir", seed_dir)
 
 
+_noted: set[str] = set()
+
+
+def _note(message: str) -> None:
+    """A one-line note on stderr, once per process (a value accepted, but not as one might expect)."""
+    if message not in _noted:
+        _noted.add(message)
+        import sys
+
+        print(f"Note: {message}", file=sys.stderr)
+
+
+def config_mapping(cfg) -> dict:
+    """A composed Hydra config as the plain mapping a run records and validates: resolved, and
+    ``env.options`` without the keys left null (conf/config.yaml lists every RacingConfig field
+    as null so that ``env.options={...}`` merges on the command line; null means its default)."""
+    from omegaconf import OmegaConf
+
+    mapping = OmegaConf.to_container(cfg, resolve=True)
+    env = mapping.get("env")
+    if isinstance(env, dict) and isinstance(env.get("options"), dict):
+        env["options"] = {k: v for k, v in env["options"].items() if v is not None}
+    return mapping
+
+
 def _check_device(device: str) -> None:
     """``cpu``, or ``cuda``/``cuda:N`` when that GPU is present (checked without importing torch for cpu)."""
     if device == "cpu":
@@ -237,8 +262,15 @@ class RunConfig:
         _check_device(self.device)
         _choice("numerics", self.numerics, NUMERIC_MODES)
         _at_least("eval_episodes", self.eval_episodes, 1)
-        if self.eval_seeds is not None and not self.eval_seeds:
-            raise ConfigError("eval_seeds must be null (no evaluation) or a non-empty list of track seeds")
+        if self.eval_seeds is not None:
+            if not self.eval_seeds:
+                raise ConfigError("eval_seeds must be null (no evaluation) or a non-empty list of track seeds")
+            bad = [s for s in self.eval_seeds if not 0 <= s < 2**32]
+            if bad:
+                raise ConfigError(f"eval_seeds must be track seeds in [0, 2**32), got {bad}")
+        if self.final_window > self.episodes:
+            _note(f"final_window={self.final_window} is larger than episodes={self.episodes}: the final performance "
+                  f"is the mean of all {self.episodes} episodes (summary.json's final_window says how many)")
         _choice("logger", self.logger, LOGGERS)
         if self.logger == "tensorboard":
             import importlib.util
@@ -277,21 +309,37 @@ class RunConfig:
     # Keys that change how a run reports or is scheduled, not what it computes (every member
     # computes what its solo run does, so splitting a population over processes changes nothing).
     PRESENTATION_KEYS = ("progress", "logger", "overwrite", "checkpoint_every", "processes")
+    # Keys that decide only the evaluation after training: a checkpoint of a run continues under other values.
+    EVALUATION_KEYS = ("eval_seeds", "eval_episodes")
+
+    @classmethod
+    def run_settings(cls, settings: dict) -> dict:
+        """The part of a config mapping that decides what a run computes (summary.json's ``settings``)."""
+        return {k: v for k, v in settings.items() if k not in cls.PRESENTATION_KEYS and k != "hydra"}
+
+    @classmethod
+    def training_settings(cls, settings: dict | None) -> dict | None:
+        """The part of a run's settings that decides its training (what a checkpoint must match)."""
+        return None if settings is None else {k: v for k, v in settings.items() if k not in cls.EVALUATION_KEYS}
 
     @classmethod
     def compose(cls, *overrides: str) -> "RunConfig":
         """Compose ``conf/config.yaml`` with Hydra overrides (as on the command line) and validate,
         without running Hydra's app (for tests, benchmarks and notebooks)."""
+        return cls.from_mapping(cls.compose_mapping(*overrides))
+
+    @staticmethod
+    def compose_mapping(*overrides: str) -> dict:
+        """The plain mapping train.py records for these overrides (``config_mapping``), unvalidated."""
         from pathlib import Path
 
         from hydra import compose, initialize_config_dir
-        from omegaconf import OmegaConf
 
         conf = Path(__file__).resolve().parent.parent / "conf"
         register_resolvers()
         with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
             cfg = compose("config", overrides=list(overrides))
-        return cls.from_mapping(OmegaConf.to_container(cfg, resolve=True))
+        return config_mapping(cfg)
 
     @classmethod
     def from_mapping(cls, cfg: Mapping[str, Any]) -> "RunConfig":

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -10,7 +9,7 @@ import numpy as np
 import torch
 
 from learners.solo import GaussianPolicyNet
-from engine.outputs import RunFolderError  # noqa: F401 (part of this module's interface)
+from engine.outputs import RunFolderError, first_line  # RunFolderError: part of this module's interface
 from racing.config import RacingConfig
 from racing.gym_env import RacingEnv
 
@@ -40,24 +39,35 @@ class Policy:
 
 
 def load_policy(run_dir: Path) -> tuple[Policy, dict]:
-    """The run's final policy and its settings (from summary.json)."""
+    """The run's final policy and its settings (from summary.json); ``RunFolderError`` saying why
+    if the folder does not hold a finished, intact run with an actor (``engine.rundir``)."""
+    from engine.checkpoint import load_tensors
+    from engine.rundir import state
+
     run_dir = Path(run_dir)
-    summary_path, actor_path = run_dir / "summary.json", run_dir / "actor.pt"
-    for path in (summary_path, actor_path):
-        if not path.exists():
-            raise RunFolderError(f"{run_dir} holds no {path.name}: give the folder of a finished train.py run "
-                                 "(e.g. outputs/runs/spg_p_multi/memory/seed2067791)")
+    found = state(run_dir)
+    if found.kind == "damaged":
+        raise RunFolderError(f"{run_dir} is damaged: {found.problem}")
+    if found.kind != "finished":
+        raise RunFolderError(f"{run_dir} holds no finished run (no summary.json): give the folder of a finished "
+                             "train.py run (e.g. outputs/runs/spg_p_multi/memory/seed2067791)")
+    actor_path = run_dir / "actor.pt"
+    if not actor_path.exists():
+        raise RunFolderError(f"{run_dir} holds no actor.pt (its run {found.summary['status']})")
+    settings = found.summary["settings"]
     try:
-        settings = json.loads(summary_path.read_text())["settings"]
         network, env, loss = settings["network"], settings["env"], settings["algo"]["loss"]
-    except (json.JSONDecodeError, KeyError, TypeError):
-        raise RunFolderError(f"{summary_path} is not a summary written by train.py") from None
+    except (KeyError, TypeError):
+        raise RunFolderError(f"{run_dir / 'summary.json'} is not a summary written by train.py "
+                             "(its settings lack the network, env or algo)") from None
     try:
-        policy = make_policy(loss, network, RacingConfig(**env.get("options", {})).obs_size,
-                             torch.load(actor_path, weights_only=True, map_location="cpu"))
-    except Exception as err:  # unpickling errors of several types, or mismatched shapes
-        raise RunFolderError(f"{actor_path} is not this run's actor ({type(err).__name__}: "
-                             f"{str(err).splitlines()[0][:200]})") from None
+        state_dict = load_tensors(actor_path, "actor")
+    except ValueError as err:
+        raise RunFolderError(str(err)) from None
+    try:
+        policy = make_policy(loss, network, RacingConfig(**env.get("options", {})).obs_size, state_dict)
+    except Exception as err:  # mismatched shapes or keys
+        raise RunFolderError(f"{actor_path} is not this run's actor ({first_line(err)})") from None
     if not all(torch.isfinite(p).all() for p in policy.parameters()):
         raise RunFolderError(f"{actor_path} holds non-finite weights (the run diverged)")
     return policy, settings

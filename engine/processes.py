@@ -12,6 +12,7 @@ gone, as if it had been killed, so its last checkpoint is where a rerun resumes.
 from __future__ import annotations
 
 import os
+import signal
 import threading
 import time
 
@@ -79,3 +80,36 @@ def keep_freed_memory() -> bool:
     m_trim_threshold, m_mmap_threshold = -1, -3  # malloc.h
     _kept = bool(mallopt(m_trim_threshold, _KEEP)) and bool(mallopt(m_mmap_threshold, _KEEP))
     return _kept
+
+
+class RunStopped(KeyboardInterrupt):
+    """A run stopped by SIGINT or SIGTERM; the message is the one line to show (where it was saved)."""
+
+
+class StopSignals:
+    """For the block: the first SIGINT or SIGTERM asks the run to stop at the end of its episode
+    (``requested`` names the signal); a second one stops it at once (``KeyboardInterrupt``).
+
+    Installed only in the main thread and only over Python's default handlers: a launcher that
+    handles the signals itself (submitit's requeue on SLURM) keeps its own."""
+
+    def __init__(self):
+        self.requested: str | None = None
+        self._previous: dict = {}
+
+    def _handle(self, number, frame) -> None:
+        if self.requested is not None:
+            raise KeyboardInterrupt
+        self.requested = signal.Signals(number).name
+
+    def __enter__(self) -> "StopSignals":
+        if threading.current_thread() is threading.main_thread():
+            defaults = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: signal.SIG_DFL}
+            for number, default in defaults.items():
+                if signal.getsignal(number) is default:
+                    self._previous[number] = signal.signal(number, self._handle)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for number, handler in self._previous.items():
+            signal.signal(number, handler)

@@ -36,9 +36,10 @@ from tensordict import TensorDictBase
 
 from collectors import add_monte_carlo_returns
 from engine import checkpoint, numerics, setup
-from engine.processes import exit_with_parent, keep_freed_memory, spawn_context
+from engine import rundir
+from engine.processes import RunStopped, StopSignals, exit_with_parent, keep_freed_memory, spawn_context
 from engine.config import ConfigError, RunConfig
-from engine.outputs import SUMMARY_FILE, MetricsWriter, metric_columns, read_summary, write_json_atomic
+from engine.outputs import SUMMARY_FILE, MetricsWriter, file_record, metric_columns, write_json_atomic
 from engine.progress import Progress
 from engine.version import code_version, software_versions
 from learners import compiling
@@ -46,8 +47,8 @@ from learners.base import MetricTotals
 
 
 def run_settings(settings: dict) -> dict:
-    """The part of a config mapping that decides what a run computes."""
-    return {k: v for k, v in settings.items() if k not in RunConfig.PRESENTATION_KEYS and k != "hydra"}
+    """The part of a config mapping that decides what a run computes (``RunConfig.run_settings``)."""
+    return RunConfig.run_settings(settings)
 
 
 def member_folder(cfg: RunConfig, out_dir: Path, seed: int) -> Path:
@@ -55,21 +56,32 @@ def member_folder(cfg: RunConfig, out_dir: Path, seed: int) -> Path:
     return Path(out_dir) if cfg.seeds is None else Path(out_dir) / f"seed{seed}"
 
 
-def finished_run(out_dir: Path, settings: dict | None, overwrite: bool = False) -> dict | None:
-    """The summary of a finished run of these settings in ``out_dir``, if there is one.
+def finished_run(folder: Path, settings: dict | None, overwrite: bool = False, solo: bool = True) -> dict | None:
+    """The summary of a finished run of these settings in ``folder``, if there is one; otherwise
+    the folder is made ready for a new run (``engine.rundir``'s rule).
 
-    A finished run of other settings raises ``ConfigError`` (its results would be lost)
-    unless ``overwrite``. An unfinished run (no summary) is started again.
-    """
-    summary = read_summary(Path(out_dir))
-    if summary is None or summary.get("status") not in ("completed", "diverged"):
+    A finished run of other settings, a damaged folder, or (for a population's member,
+    ``solo=False``) a solo run's checkpoint raises ``ConfigError`` (their results would be lost),
+    unless ``overwrite``: then the folder is cleared, its summary first. An empty folder is
+    started afresh."""
+    found = rundir.state(folder)
+    if found.kind == "finished":
+        if found.summary.get("settings") == settings:
+            return found.summary
+        if not overwrite:
+            raise ConfigError(f"{folder} holds a finished run of a different configuration; choose another "
+                              "folder (hydra.run.dir=...) or pass overwrite=true to replace it")
+    elif found.kind == "damaged":
+        if not overwrite:
+            raise ConfigError(found.refusal())
+    elif found.kind == "resumable" and not solo:
+        if not overwrite:
+            raise ConfigError(f"{folder} holds the checkpoint of a solo run of its seed; resume it with that run's "
+                              "command, or pass overwrite=true to start this population afresh")
+    else:
         return None
-    if summary.get("settings") == (run_settings(settings) if settings is not None else None):
-        return summary
-    if overwrite:
-        return None
-    raise ConfigError(f"{out_dir} holds a finished run of a different configuration; choose another "
-                      "folder (hydra.run.dir=...) or pass overwrite=true to replace it")
+    rundir.clear(folder)
+    return None
 
 
 @dataclass
@@ -96,7 +108,7 @@ def train(cfg: RunConfig, out_dir: Path, settings: dict | None = None) -> dict:
 
 
 def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None,
-                     skipped: list | None = None) -> list[dict]:
+                     skipped: list | None = None, on_start=None) -> list[dict]:
     """Train one run per seed of ``cfg.members`` together; returns their summaries (in that order).
 
     ``settings`` (the config as a plain mapping) is stored in each summary.json (as the
@@ -104,38 +116,57 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
     holds a finished run of the same settings are not trained again (their summaries are
     returned, and (folder, summary) appended to ``skipped`` if given). If ``out_dir`` holds a checkpoint
     of the same settings, the population continues from it exactly as if it had never stopped.
+
+    The run holds its folders' locks (``engine.rundir.lock``) throughout; every refusal (another
+    process on the folder, a damaged folder, a finished run or checkpoint of other settings) comes
+    before anything is written, and ``on_start()`` (if given) is called once the run is sure to
+    train. SIGINT or SIGTERM stops it at the end of the episode with a checkpoint (``RunStopped``).
     """
     numerics.apply(cfg.numerics)  # torch has loaded: a check that it runs the mode asked for
     keep_freed_memory()  # reuse freed tensors' memory (speed only)
     cfg, compiled = _compile_mode(cfg)
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    folders = [out_dir, *(member_folder(cfg, out_dir, s) for s in cfg.members)]
+    with rundir.lock(folders), StopSignals() as stop:  # refused at once if another process has a folder
+        return _train_locked(cfg, out_dir, settings, skipped, on_start, compiled, stop)
+
+
+def _train_locked(cfg: RunConfig, out_dir: Path, settings: dict | None, skipped: list | None, on_start,
+                  compiled: dict, stop: StopSignals) -> list[dict]:
     start = time.perf_counter()
     torch.set_num_threads(cfg.threads)
     settings = run_settings(settings) if settings is not None else None
     member_settings = {s: cfg.member_settings(settings, s) if settings is not None else None for s in cfg.members}
 
+    if cfg.overwrite:  # start afresh: no checkpoint is continued
+        for path in checkpoint.in_folder(out_dir):
+            path.unlink()
+    for folder in {out_dir, *(member_folder(cfg, out_dir, s) for s in cfg.members)}:
+        rundir.remove_temporaries(folder)  # a killed writer's; never a finished file
     parts = _resumed_parts(out_dir, settings)  # each continues as the population it was
     resumed = {seed for _, seeds, _ in parts for seed in seeds}
     done: dict[int, dict] = {}
     for seed in cfg.members:
         if seed in resumed:
             continue
-        summary = finished_run(member_folder(cfg, out_dir, seed), member_settings[seed], cfg.overwrite)
+        folder = member_folder(cfg, out_dir, seed)
+        summary = finished_run(folder, member_settings[seed], cfg.overwrite, solo=folder == out_dir)
         if summary is not None:
             done[seed] = summary
             if skipped is not None:
-                skipped.append((member_folder(cfg, out_dir, seed), summary))
+                skipped.append((folder, summary))
     fresh = tuple(s for s in cfg.members if s not in done and s not in resumed)
     chunks = split_members(fresh, max(1, cfg.processes - len(parts)), at_least=2 if compiled["enabled"] else 1)
     for chunk in chunks:
         name = checkpoint.CHECKPOINT_FILE if not parts and len(chunks) == 1 else f"checkpoint-{chunk[0]}.pt"
         parts.append((out_dir / name, chunk, None))
+    if parts and on_start is not None:
+        on_start()
     if not parts:  # every member had finished
         summaries = []
     elif len(parts) == 1:
         path, seeds, payload = parts[0]
-        summaries = _train(cfg, out_dir, seeds, member_settings, settings, payload, path, start, compiled)
+        summaries = _train(cfg, out_dir, seeds, member_settings, settings, payload, path, start, compiled, stop)
     else:  # one process per part, ``cfg.processes`` at a time
         # spawn: torch does not survive fork with threads running
         with ProcessPoolExecutor(min(cfg.processes, len(parts)), mp_context=spawn_context()) as pool:
@@ -166,7 +197,7 @@ def _resumed_parts(out_dir: Path, settings: dict | None) -> list[tuple[Path, tup
     parts = []
     for path in checkpoint.in_folder(out_dir):
         payload = checkpoint.load(path)
-        if payload.get("settings") != settings:
+        if RunConfig.training_settings(payload.get("settings")) != RunConfig.training_settings(settings):
             raise ConfigError(f"the run folder holds a checkpoint of a different configuration ({path.name}); "
                               "choose another folder (hydra.run.dir=...) or pass overwrite=true to start afresh")
         parts.append((path, tuple(payload["members"]), payload))
@@ -183,7 +214,8 @@ def _train_part(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_se
     torch.set_num_threads(cfg.threads)
     start = time.perf_counter()
     payload = checkpoint.load(path) if path.exists() else None
-    return _train(cfg, out_dir, seeds, member_settings, settings, payload, path, start, compiled)
+    with StopSignals() as stop:
+        return _train(cfg, out_dir, seeds, member_settings, settings, payload, path, start, compiled, stop)
 
 
 def _compile_mode(cfg: RunConfig) -> tuple[RunConfig, dict]:
@@ -201,7 +233,8 @@ def _compile_mode(cfg: RunConfig) -> tuple[RunConfig, dict]:
 
 
 def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_settings: dict, settings: dict | None,
-           payload: dict | None, checkpoint_path: Path, start: float, compiled: dict) -> list[dict]:
+           payload: dict | None, checkpoint_path: Path, start: float, compiled: dict,
+           stop: StopSignals) -> list[dict]:
     if compiled["enabled"]:
         compiling.configure(cfg.numerics)  # from a clean slate, so a run compiles the same in any process
     compile_start = compiling.seconds_spent() if compiled["enabled"] else 0.0
@@ -241,6 +274,7 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
 
     progress = _progress(cfg, seeds, initial=first)
     episodes = iter(collector)
+    saved = first if payload is not None else None  # the episode the last checkpoint holds
     try:
         for episode in range(first, cfg.episodes):
             if not any(m.status == "running" for m in members):
@@ -266,12 +300,22 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
                     member.rewards.append(row["total_reward"])
             _show(progress, members)
             done = episode + 1
-            if cfg.checkpoint_every and done % cfg.checkpoint_every == 0 and done < cfg.episodes:
+            stopping = stop.requested is not None and done < cfg.episodes
+            if cfg.checkpoint_every and done < cfg.episodes and (done % cfg.checkpoint_every == 0 or stopping):
+                for member in members:
+                    member.metrics.sync()  # the rows the checkpoint counts are on the disk before it
                 so_far = {**({} if earlier_wall is None else {"wall_s": earlier_wall + time.perf_counter() - start}),
                           **({} if earlier_cpu is None else {"cpu_s": earlier_cpu + time.process_time() - cpu_start})}
                 checkpoint.save(checkpoint_path, _payload(done, {**timing, **so_far, **compile_time()}, settings,
                                                           parts, env, code,
                                                           generators, phases, members, learner.sampler))
+                saved = done
+            if stopping:
+                raise RunStopped(_stopped(stop.requested, done, cfg.episodes, saved, checkpoint_path))
+    except KeyboardInterrupt as err:  # a second signal (or Ctrl-C outside StopSignals): at once
+        if isinstance(err, RunStopped):
+            raise
+        raise RunStopped(_stopped(stop.requested or "SIGINT", None, cfg.episodes, saved, checkpoint_path)) from None
     finally:
         progress.close()
         for member in members:
@@ -293,7 +337,7 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
         for name in ("actor", "critic"):
             path = member.folder / f"{name}.pt"
             if member.status == "completed":  # the paper's: in the solo networks' layout (learners.solo)
-                torch.save(weights[name], path)
+                checkpoint.save_tensors(path, weights[name])
             else:  # non-finite weights are of no use; no stale file from an earlier run either
                 path.unlink(missing_ok=True)
         window = member.rewards[-cfg.final_window:]
@@ -311,6 +355,7 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             **({"evaluation": evaluation} if evaluation is not None else {}),
             "code": code, "software": software_versions(), "numerics": numerics.in_effect(),
             "compile": compiled, "settings": member.settings,
+            "files": file_record(member.folder, rundir.RECORDED_FILES),  # what this summary stands for
         }
         write_json_atomic(member.folder / SUMMARY_FILE, summary)
         summaries.append(summary)
@@ -382,6 +427,16 @@ def _episode_results(episode: int, batch: TensorDictBase, member: int) -> dict:
         "final_checkpoint": int(batch["next", "checkpoint"][member, -1].sum()) if ("next", "checkpoint") in keys
         else None,
     }
+
+
+def _stopped(signal_name: str, done: int | None, planned: int, saved: int | None, path: Path) -> str:
+    """The one line a stopped run ends with."""
+    where = f"after episode {done} of {planned}" if done is not None else f"during an episode (of {planned})"
+    if saved is None:
+        return (f"Stopped by {signal_name} {where}; no checkpoint was saved (checkpoint_every=0 or none yet): "
+                "the same command starts the run afresh")
+    return (f"Stopped by {signal_name} {where}; saved at episode {saved} ({path}): the same command resumes "
+            "from there")
 
 
 def _mean(values: list[float]) -> float:

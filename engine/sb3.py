@@ -19,11 +19,13 @@ skipped; there is no checkpoint, so a killed run starts again.
 
 from __future__ import annotations
 
+import io
 import math
 import time
 from pathlib import Path
 
-from engine.outputs import EPISODE_COLUMNS, MetricsWriter, read_summary, write_json_atomic
+from engine import rundir
+from engine.outputs import EPISODE_COLUMNS, MetricsWriter, file_record, write_atomic, write_json_atomic
 
 ALGOS = ("sac", "ppo")
 # The hyperparameters recorded in summary.json, as the SB3 model holds them after construction.
@@ -68,26 +70,39 @@ def _hyperparameters(model) -> dict:
 def train(algo: str, seed: int, episodes: int, out: Path, final_window: int = 20,
           numerics_mode: str = "portable") -> dict:
     """Train one SB3 run into its folder (``run_folder``); returns its summary (an earlier
-    finished run of the same settings is returned without training). In a fresh process this sets
+    finished run of the same settings is returned without training; a finished run of other
+    settings or a damaged folder is refused, ``BaselineError``). In a fresh process this sets
     the numerics before anything loads torch; in one that has, it checks them."""
     from engine import numerics
 
     numerics.apply(numerics_mode)
+    settings = settings_of(algo, seed, episodes, final_window, numerics_mode)
+    folder = run_folder(out, algo, seed)
+    with rundir.lock([folder]):  # the folder's rules are train.py's (engine.rundir)
+        found = rundir.state(folder)
+        if found.kind == "damaged":
+            raise BaselineError(found.refusal().replace(", or pass overwrite=true to clear the folder and start "
+                                                        "afresh", ""))
+        if found.kind == "finished":
+            if {k: v for k, v in (found.summary.get("settings") or {}).items() if k != "sb3"} == settings:
+                return found.summary
+            raise BaselineError(f"{folder} holds a finished run of other settings; choose another --out or move "
+                                "it away")
+        rundir.clear(folder)  # an unfinished run's rows: SB3 runs restart from the beginning
+        return _train(algo, seed, episodes, folder, final_window, numerics_mode, settings)
+
+
+def _train(algo: str, seed: int, episodes: int, folder: Path, final_window: int, numerics_mode: str,
+           settings: dict) -> dict:
     import gymnasium as gym
     import stable_baselines3
     import torch
     from stable_baselines3.common.callbacks import BaseCallback
 
     import racing
+    from engine import numerics
     from engine.version import code_version, software_versions
 
-    settings = settings_of(algo, seed, episodes, final_window, numerics_mode)
-    folder = run_folder(out, algo, seed)
-    earlier = read_summary(folder)
-    if earlier is not None and earlier.get("status") == "completed" and \
-            {k: v for k, v in (earlier.get("settings") or {}).items() if k != "sb3"} == settings:
-        return earlier
-    folder.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(1)
 
     env = gym.make(racing.ENV_ID, track_seed=seed)
@@ -123,7 +138,9 @@ def train(algo: str, seed: int, episodes: int, out: Path, final_window: int = 20
         metrics.close()
         env.close()
     wall, cpu = time.perf_counter() - start, time.process_time() - cpu_start
-    model.save(folder / "model.zip")
+    buffer = io.BytesIO()
+    model.save(buffer)
+    write_atomic(folder / "model.zip", buffer.getvalue())
     window = rewards[-final_window:]
     summary = {
         "algo": f"sb3_{algo}", "er": "default", "seed": seed, "episodes": len(rewards),
@@ -134,7 +151,7 @@ def train(algo: str, seed: int, episodes: int, out: Path, final_window: int = 20
         "code": code_version(),
         "software": {**software_versions(), "stable_baselines3": stable_baselines3.__version__},
         "numerics": numerics.in_effect(), "compile": {"requested": False, "enabled": False, "reason": None},
-        "settings": settings,
+        "settings": settings, "files": file_record(folder, ("metrics.csv", "model.zip")),
     }
     write_json_atomic(folder / "summary.json", summary)
     return summary

@@ -35,7 +35,11 @@ class RacingConfig:
     max_steps: int = 200  # time limit (truncation)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "ray_angles_deg", tuple(float(a) for a in self.ray_angles_deg))
+        try:
+            object.__setattr__(self, "ray_angles_deg", tuple(float(a) for a in self.ray_angles_deg))
+        except (TypeError, ValueError):
+            raise ValueError(f"Invalid RacingConfig: ray_angles_deg must be a sequence of angles in degrees, "
+                             f"got {self.ray_angles_deg!r}") from None
         problems = []
         for f in fields(self):
             value = getattr(self, f.name)

@@ -1,4 +1,4 @@
-"""report.py: Table 1 from a sweep folder, tolerant of partial, unreadable and diverged runs."""
+"""report.py: Table 1 from a sweep folder, tolerant of partial, damaged and diverged runs."""
 
 import json
 import math
@@ -25,7 +25,10 @@ def fake_run(root, algo, er, seed, final=None, status="completed", summary=True,
             {"algo": algo, "er": er, "seed": seed, "final_mean": final, "status": status, "episodes": episodes,
              "code": code, **({"numerics": numerics} if numerics else {"software": {"cpu": "AVX2"}}),
              **({"compile": {"requested": compiled, "enabled": compiled, "reason": None}} if compiled is not None
-                else {})}))
+                else {}), "settings": {}}))
+        if status == "completed":  # a finished run's weights (engine.rundir checks they are there)
+            for name in ("model.zip",) if algo.startswith("sb3_") else ("actor.pt", "critic.pt"):
+                (folder / name).write_bytes(b"weights")
     elif summary:
         (folder / "summary.json").write_text(summary)
     return folder
@@ -48,15 +51,18 @@ def test_cell_statistics_by_hand(tmp_path):
     assert cell.z == pytest.approx((120.0 - 141.1) / math.hypot(sem, 5.7))
 
 
-def test_report_lists_partial_unreadable_and_diverged_runs(tmp_path, capsys):
+def test_report_lists_partial_damaged_and_diverged_runs(tmp_path, capsys):
     fake_run(tmp_path, "spg", "recent", 1, 90.0)
     fake_run(tmp_path, "spg", "recent", 2, 100.0)
     fake_run(tmp_path, "ppo_log", "hybrid", 1, None, status="diverged")
     fake_run(tmp_path, "spg", "recent", 3, summary=False)
     fake_run(tmp_path, "spg", "recent", 4, summary="{not json")
+    fake_run(tmp_path, "spg", "recent", 5, summary="[1, 2]")  # JSON, but not a summary
+    (fake_run(tmp_path, "spg", "recent", 6, 120.0) / "actor.pt").write_bytes(b"")  # a finished run's file emptied
     assert report.main([str(tmp_path)]) == 0
     out = capsys.readouterr().out
-    assert "1 diverged run(s)" in out and "1 partial run(s)" in out and "1 unreadable run(s)" in out
+    assert "1 diverged run(s)" in out and "1 partial run(s)" in out and "3 damaged run(s)" in out
+    assert "summary.json is not JSON" in out and "holds a JSON list" in out and "actor.pt is empty" in out
     assert "no completed run with a loadable policy" in out or "matplotlib" in out
     table = (tmp_path / "report" / "table.md").read_text()
     assert "95.0 ± 5.0 (n=2)" in table and "paper 94.4 ± 3.8" in table

@@ -1,0 +1,189 @@
+"""A run folder's state, its lock, and how it is cleared: the one rule that train.py, evaluate.py,
+report.py, the baselines and the sweeper apply (torch-free).
+
+A run folder (a solo run's, or one member's of a population) is in one of four states:
+
+- ``finished``: ``summary.json`` is a summary written by train.py (a JSON object with its keys)
+  whose status is final, and the files it records (``metrics.csv``, ``actor.pt``, ``critic.pt``:
+  size and SHA-256) are there unchanged (summaries from before the record: those files exist and
+  are not empty);
+- ``resumable``: no summary, and a checkpoint (``checkpoint*.pt``) to continue from; whether it
+  loads and belongs to this configuration is ``engine.checkpoint``'s check;
+- ``empty``: nothing but what a run writes before its first checkpoint (``metrics.csv`` rows,
+  TorchRL logs, Hydra's record): starting afresh loses nothing that could be resumed;
+- ``damaged``: anything else (a ``summary.json`` that is not one, files that differ from what the
+  summary records, weights without a summary). Never taken for empty: a run refuses it, naming the
+  file and the reason, unless ``overwrite=true`` clears it.
+
+A process holds ``lock(folders)`` for the whole life of a run: an exclusive ``flock`` on each
+folder's ``.lock`` file (the holder's pid written in it), taken without waiting, so a second
+process on the same folder is refused at once; the kernel releases it when the holder ends,
+however it ends.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import socket
+from dataclasses import dataclass
+from pathlib import Path
+
+from engine.outputs import (FINAL_STATUSES, METRICS_FILE, SUMMARY_FILE, RunFolderError, file_record, first_line,
+                            read_summary)
+
+WEIGHT_FILES = ("actor.pt", "critic.pt")
+RECORDED_FILES = (METRICS_FILE, *WEIGHT_FILES)  # what a summary's "files" record covers
+LOCK_FILE = ".lock"
+LOGS_DIR = "logs"  # TorchRL's logger (engine.outputs.make_torchrl_logger)
+
+
+class RunFolderBusy(RunFolderError):
+    """Another process holds the folder's lock."""
+
+
+@dataclass(frozen=True)
+class FolderState:
+    kind: str  # "empty", "finished", "resumable" or "damaged"
+    folder: Path
+    summary: dict | None = None  # a finished run's
+    problem: str | None = None  # a damaged folder's: the file and what is wrong with it
+
+    def refusal(self) -> str:
+        """Why a run will not start in this damaged folder, and what to do."""
+        return (f"{self.folder} is damaged: {self.problem}. Its files are left as they are; move them away, or "
+                "pass overwrite=true to clear the folder and start afresh")
+
+
+def checkpoints(folder: Path) -> list[Path]:
+    """The checkpoints in a folder: ``checkpoint.pt`` and those of a split population's parts."""
+    return sorted(p for p in Path(folder).glob("checkpoint*.pt") if p.is_file())
+
+
+def state(folder: Path) -> FolderState:
+    """The folder's state (see the module's docstring); reads only small files, never torch."""
+    folder = Path(folder)
+    try:
+        summary = read_summary(folder)
+    except RunFolderError as err:
+        return FolderState("damaged", folder, problem=str(err))
+    if summary is not None:
+        if summary["status"] not in FINAL_STATUSES:
+            return FolderState("damaged", folder, problem=f"{folder / SUMMARY_FILE} records status "
+                               f"{summary['status']!r}, not a finished run")
+        problem = _mismatch(folder, summary)
+        if problem is not None:
+            return FolderState("damaged", folder, summary, problem)
+        return FolderState("finished", folder, summary)
+    if checkpoints(folder):
+        return FolderState("resumable", folder)
+    weights = [name for name in WEIGHT_FILES if (folder / name).exists()]
+    if weights:
+        return FolderState("damaged", folder, problem=f"it holds {' and '.join(weights)} but no {SUMMARY_FILE} "
+                           "and no checkpoint (a finished run whose summary is lost?)")
+    return FolderState("empty", folder)
+
+
+def _mismatch(folder: Path, summary: dict) -> str | None:
+    """What differs between the folder's files and those its summary stands for (None: nothing)."""
+    recorded = summary.get("files")
+    if isinstance(recorded, dict):
+        present = file_record(folder, tuple(recorded))
+        for name, expected in recorded.items():
+            found = present.get(name)
+            if found is None:
+                return f"{folder / name} is missing (its summary records it)"
+            if found != expected:
+                if found["bytes"] != expected.get("bytes"):
+                    return (f"{folder / name} is not the file its summary records ({found['bytes']} bytes where "
+                            f"{expected.get('bytes')} were written)")
+                return f"{folder / name} differs from the file its summary records (its SHA-256)"
+        return None
+    weights = ("model.zip",) if str(summary["algo"]).startswith("sb3_") else WEIGHT_FILES  # baseline.py's
+    needed = (METRICS_FILE, *(weights if summary["status"] == "completed" else ()))
+    for name in needed:  # summaries from before the record
+        path = folder / name
+        if not path.is_file() or path.stat().st_size == 0:
+            return f"{path} is {'missing' if not path.exists() else 'empty'}"
+    return None
+
+
+def clear(folder: Path) -> None:
+    """Remove a run's files from ``folder``, the summary first (so the folder never shows an old
+    summary beside a new run's files); other files are left alone."""
+    folder = Path(folder)
+    (folder / SUMMARY_FILE).unlink(missing_ok=True)
+    for path in [folder / name for name in (METRICS_FILE, *WEIGHT_FILES)] + checkpoints(folder):
+        path.unlink(missing_ok=True)
+    shutil.rmtree(folder / LOGS_DIR, ignore_errors=True)
+    remove_temporaries(folder)
+
+
+def remove_temporaries(folder: Path) -> None:
+    """Temporary files a killed writer left behind (``engine.outputs.write_atomic``'s ``*.tmp``)."""
+    for path in Path(folder).glob("*.tmp"):
+        if path.is_file():
+            path.unlink(missing_ok=True)
+
+
+_held: dict[Path, list] = {}  # folder -> [file descriptor, depth]: a process may nest its own locks
+
+
+@contextlib.contextmanager
+def lock(folders) -> None:
+    """Hold the lock of every folder (created if missing) for the block; ``RunFolderBusy`` at once
+    if another process holds one of them. Re-entrant within a process."""
+    taken: list[Path] = []
+    try:
+        for folder in dict.fromkeys(Path(f).resolve() for f in folders):
+            _acquire(folder)
+            taken.append(folder)
+        yield
+    finally:
+        for folder in reversed(taken):
+            _release(folder)
+
+
+def _acquire(folder: Path) -> None:
+    if folder in _held:
+        _held[folder][1] += 1
+        return
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock (the docs say so)
+        _held[folder] = [None, 1]
+        return
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / LOCK_FILE
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = _holder(fd)
+        os.close(fd)
+        raise RunFolderBusy(f"{folder} is in use by another process ({holder}); wait for it to end, or stop it "
+                            "(its run resumes from its checkpoint)") from None
+    except OSError as err:
+        os.close(fd)
+        raise RunFolderError(f"cannot lock {path} ({first_line(err)})") from None
+    os.ftruncate(fd, 0)
+    os.write(fd, f"pid {os.getpid()} on {socket.gethostname()}\n".encode())
+    _held[folder] = [fd, 1]
+
+
+def _holder(fd: int) -> str:
+    try:
+        text = os.pread(fd, 200, 0).decode(errors="replace").strip()
+    except OSError:
+        text = ""
+    return text or "pid unknown"
+
+
+def _release(folder: Path) -> None:
+    entry = _held[folder]
+    entry[1] -= 1
+    if entry[1] == 0:
+        del _held[folder]
+        if entry[0] is not None:
+            os.close(entry[0])  # closing the descriptor releases the flock

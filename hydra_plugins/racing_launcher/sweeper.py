@@ -1,0 +1,145 @@
+"""The sweeper of ``-m`` (``hydra/sweeper=checked``, the default in conf/config.yaml): Hydra's
+basic sweeper (the same jobs, in the same order, through any launcher) that checks the whole sweep
+before its first job starts and accounts for every job when it ends.
+
+Before any job starts, every job's configuration is composed and validated as train.py would
+(``engine.config.RunConfig``), and every job's run folder is checked (``engine.rundir``): two jobs
+writing one folder, a folder holding a finished run of another configuration or a damaged one
+(unless ``overwrite=true``), a folder another process is training in. All problems are listed at
+once, one line per job, and nothing runs (exit status 2). A checkpoint's configuration is not
+checked here (that needs torch); its job refuses it alone.
+
+When the jobs have run, those that failed (refused, stopped, or raised) are listed one line each
+with their message, after the others have finished; the command then exits with status 1. (The
+SLURM launcher reports its failures itself, the same way.)
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.core.utils import JobStatus, filter_overrides
+from omegaconf import OmegaConf, open_dict
+
+
+class SweepRefused(SystemExit):
+    """The sweep did not start: some jobs' configurations or folders are bad (listed)."""
+
+
+class SweepJobsFailed(SystemExit):
+    """Some jobs of the sweep failed (listed); the others' results are in their folders."""
+
+
+class CheckedSweeper(BasicSweeper):
+    def sweep(self, arguments: list[str]) -> Any:
+        assert self.config is not None and self.launcher is not None and self.hydra_context is not None
+        parser = OverridesParser.create(config_loader=self.hydra_context.config_loader)
+        self.overrides = self.split_arguments(parser.parse_overrides([*self._parse_config(), *arguments]),
+                                              self.max_batch_size)
+        jobs = [list(job) for batch in self.overrides for job in batch]
+        problems = check_jobs(self.hydra_context.config_loader, self.config, jobs)
+        if problems:
+            print(f"The sweep was not started: {len(problems)} of its {len(jobs)} jobs cannot run as given "
+                  "(nothing was written):", file=sys.stderr)
+            print("\n".join(f"  {line}" for line in problems), file=sys.stderr)
+            raise SweepRefused(2)
+        sweep_dir = Path(str(self.config.hydra.sweep.dir))
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        OmegaConf.save(self.config, sweep_dir / "multirun.yaml")
+        returns, failed, first = [], [], 0
+        while not self.is_done():
+            batch = self.get_job_batch()
+            results = self.launcher.launch(batch, initial_job_idx=first)
+            for index, (job, result) in enumerate(zip(batch, results), start=first):
+                if result.status == JobStatus.FAILED:
+                    failed.append(f"job #{index} ({' '.join(filter_overrides(job))}): "
+                                  f"{_message(result._return_value)}")
+            first += len(batch)
+            returns.append(results)
+        if failed:
+            print(f"{len(failed)} of {len(jobs)} jobs did not finish; the others' results are in their folders "
+                  "(the same command skips those and retries these):", file=sys.stderr)
+            print("\n".join(f"  {line}" for line in failed), file=sys.stderr)
+            raise SweepJobsFailed(1)
+        return returns
+
+    def validate_batch_is_legal(self, batch) -> None:
+        """Done for the whole sweep at once, before it starts (``check_jobs``)."""
+
+
+def _message(error: Any) -> str:
+    lines = [line for line in str(error).splitlines() if line.strip()]
+    return (lines[-1] if lines else type(error).__name__)[:300]
+
+
+def check_jobs(loader, master, jobs: list[list[str]]) -> list[str]:
+    """One line per problem of the sweep's jobs (see the module's docstring); none if all can run."""
+    from engine import rundir
+    from engine.config import ConfigError, RunConfig, config_mapping, register_resolvers
+    from engine.outputs import RunFolderError
+
+    register_resolvers()
+    sweep_dir = Path(str(master.hydra.sweep.dir))
+    problems: list[str] = []
+    owners: dict[Path, str] = {}
+    for index, job in enumerate(jobs):
+        label = f"job #{index} ({' '.join(filter_overrides(job))})"
+        try:
+            cfg = loader.load_sweep_config(master, job)
+        except Exception as err:  # Hydra's composition errors (unknown keys, groups, syntax)
+            problems.append(f"{label}: {_message(err)}")
+            continue
+        try:
+            subdir = str(OmegaConf.select(cfg, "hydra.sweep.subdir"))
+        except Exception:  # a folder name that needs the launcher's values (e.g. hydra.job.num)
+            subdir = None
+        with open_dict(cfg):
+            del cfg["hydra"]
+        try:
+            settings = config_mapping(cfg)
+            run_cfg = RunConfig.from_mapping(settings)
+        except (ConfigError, ValueError, TypeError) as err:
+            problems.append(f"{label}: invalid configuration: {err}")
+            continue
+        if subdir is None:
+            continue
+        folder = sweep_dir / subdir
+        members = {seed: folder if run_cfg.seeds is None else folder / f"seed{seed}" for seed in run_cfg.members}
+        for path in dict.fromkeys([folder, *members.values()]):
+            if path in owners:
+                problems.append(f"{label}: writes {path}, as {owners[path]} does; give the jobs different folders "
+                                "(hydra.sweep.subdir) or remove the repeated value")
+                break
+            owners[path] = label
+        else:
+            problem = _folder_problem(rundir, RunConfig, run_cfg, settings, folder, members)
+            if problem:
+                problems.append(f"{label}: {problem}")
+    return problems
+
+
+def _folder_problem(rundir, RunConfig, run_cfg, settings: dict, folder: Path, members: dict) -> str | None:
+    """Why a job's folders would refuse it (None if they would not)."""
+    from engine.outputs import RunFolderError
+
+    training = RunConfig.run_settings(settings)
+    for seed, path in members.items():
+        found = rundir.state(path)
+        if run_cfg.overwrite:
+            break
+        if found.kind == "damaged":
+            return found.refusal()
+        if found.kind == "finished" and found.summary.get("settings") != run_cfg.member_settings(training, seed):
+            return (f"{path} holds a finished run of a different configuration; choose another sweep folder "
+                    "(hydra.sweep.dir=...) or pass overwrite=true to replace it")
+    if folder.exists() or any(p.exists() for p in members.values()):
+        try:
+            with rundir.lock([p for p in [folder, *members.values()] if p.exists()]):
+                pass
+        except RunFolderError as err:
+            return str(err)
+    return None
