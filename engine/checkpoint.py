@@ -82,12 +82,21 @@ def load_tensors(path: Path, what: str = "file"):
     except ValueError:
         raise
     except pickle.UnpicklingError as err:
-        if "weights_only" in str(err) or "Weights only" in str(err):
-            raise ValueError(f"{path} holds objects other than tensors and plain containers; it was refused "
-                             f"unread, as loading them could run code (not a {what} written here)") from None
-        raise ValueError(f"{path} is not a readable {what} ({first_line(err)})") from None
+        reason = _unpickler_reason(str(err))
+        if reason.startswith("Unsupported global"):
+            raise ValueError(f"{path} holds objects other than tensors and plain containers "
+                             f"({reason.split(' was not')[0][:120]}); it "
+                             f"was refused unread, as loading them could run code (not a {what} written here)") from None
+        raise ValueError(f"{path} is not a readable {what} (UnpicklingError: {reason[:200]})") from None
     except (RuntimeError, EOFError, OSError, zipfile.BadZipFile, TypeError, AttributeError, KeyError) as err:
         raise ValueError(f"{path} is not a readable {what} ({first_line(err)})") from None
+
+
+def _unpickler_reason(message: str) -> str:
+    """The reason inside torch's weights-only refusal (its advice to load the file another way left out)."""
+    tail = message.split("WeightsUnpickler error:", 1)[-1]
+    lines = [line.strip() for line in tail.splitlines() if line.strip()]
+    return lines[0] if lines else "not a file of tensors"
 
 
 def load(path: Path) -> dict:

@@ -5,7 +5,7 @@ identification (vendor, model, instruction sets) MKL, NumPy, glibc, torch and th
 matrix kernels read to choose their code paths:
 
     python -m tests.cross_cpu [--cpus Haswell EPYC-Rome] [--cells spg_p_multi/hybrid ...] [--episodes 3]
-                              [--numerics fma]
+                              [--numerics fma] [--max-steps 200]
 
 prints one row per run (metrics.csv's hash here and on each emulated CPU) and exits 1 if any
 differs. Haswell is an Intel AVX2 CPU, EPYC-Rome an AMD one (QEMU 7.2 emulates no AVX-512, so
@@ -35,11 +35,11 @@ SEEDS = "[2067791,5468063]"
 
 
 def run_here_or_emulated(cpu: str | None, cells: list[str], episodes: int, out: Path,
-                         mode: str = "fma") -> dict[str, str]:
+                         mode: str = "fma", max_steps: int = 200) -> dict[str, str]:
     """metrics.csv hash per run of ``cells`` in numerics ``mode``, on ``cpu`` (None: this machine)."""
-    overrides = [[f"algo={c.split('/')[0]}", f"er={c.split('/')[1]}"]
+    overrides = [[f"algo={c.split('/')[0]}", f"er={c.split('/')[1]}", f"env.options.max_steps={max_steps}"]
                  + (["algo.td.warmup_episodes=1", "algo.td.updates_per_step=0.25"] if c.startswith(("sac", "tqc", "crossq", "td3"))
-                    else []) for c in cells]
+                    else [f"algo.minibatch_size={max_steps}"] if max_steps < 200 else []) for c in cells]
     code = ("import json, sys\nfrom pathlib import Path\nfrom engine import numerics\n"
             f"numerics.apply('{mode}')\n"
             "from engine.config import RunConfig\nfrom engine.runner import train_population\n"
@@ -67,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cells", nargs="+", default=CELLS)
     parser.add_argument("--episodes", type=int, default=3)
     parser.add_argument("--numerics", choices=["fma", "portable"], default="fma")
+    parser.add_argument("--max-steps", type=int, default=200, help="steps per episode (shorter: quicker)")
     args = parser.parse_args(argv)
     if shutil.which("qemu-x86_64") is None:
         print("cross_cpu: qemu-x86_64 not found (Debian/Ubuntu: apt install qemu-user)", file=sys.stderr)
@@ -77,9 +78,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"cross_cpu: this machine is {platform.machine()}, not x86-64", file=sys.stderr)
         return 2
     with tempfile.TemporaryDirectory() as tmp:
-        runs = {"here": run_here_or_emulated(None, args.cells, args.episodes, Path(tmp) / "here", args.numerics)}
+        runs = {"here": run_here_or_emulated(None, args.cells, args.episodes, Path(tmp) / "here", args.numerics,
+                                             args.max_steps)}
         for cpu in args.cpus:
-            runs[cpu] = run_here_or_emulated(cpu, args.cells, args.episodes, Path(tmp) / cpu, args.numerics)
+            runs[cpu] = run_here_or_emulated(cpu, args.cells, args.episodes, Path(tmp) / cpu, args.numerics,
+                                             args.max_steps)
     names = list(runs)
     print("| run | " + " | ".join(names) + " | same |")
     print("|" + "---|" * (len(names) + 2))

@@ -110,11 +110,24 @@ def test_requeued_and_cancelled_jobs_resume_exactly_and_finished_runs_are_skippe
 
 
 def test_a_refused_job_is_reported_last_in_one_line(cluster, tmp_path):
-    result = slurm_sweep(cluster, "algo=spg", "er=recent", "seed=11,-1", "episodes=2", "logger=none",
+    """A bad value is refused before anything is submitted (the sweeper checks every job); a job
+    that refuses its folder at run time (a checkpoint of another run) is reported at the end."""
+    import torch
+
+    from engine import checkpoint
+
+    bad = slurm_sweep(cluster, "algo=spg", "er=recent", "seed=11,-1", "episodes=2", "logger=none",
+                      f"hydra.sweep.dir={tmp_path}")
+    assert bad.returncode == 2 and "The sweep was not started: 1 of its 2 jobs" in bad.stderr
+    assert "Submitted job array" not in bad.stdout + bad.stderr
+    (tmp_path / "spg" / "recent" / "seed12").mkdir(parents=True)
+    torch.save({"version": checkpoint.VERSION, "settings": {"seed": 12}, "members": [12]},
+               tmp_path / "spg" / "recent" / "seed12" / checkpoint.CHECKPOINT_FILE)
+    result = slurm_sweep(cluster, "algo=spg", "er=recent", "seed=11,12", "episodes=2", "logger=none",
                          f"hydra.sweep.dir={tmp_path}")
     assert result.returncode == 1
     last = result.stderr.strip().splitlines()[-2:]
     assert last[0].startswith("1 of 2 jobs did not finish")
-    assert "seed=-1" in last[1] and "Invalid configuration: seed must be in [0, 2**32)" in last[1]
+    assert "seed=12" in last[1] and "Refusing to run: the run folder holds a checkpoint of a different" in last[1]
     assert "Traceback" not in result.stderr
     assert json.loads((tmp_path / "spg" / "recent" / "seed11" / "summary.json").read_text())["status"] == "completed"
