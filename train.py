@@ -41,7 +41,7 @@ def _end(message: str, status: int, prefix: str = "Refusing to run: ") -> None:
     """Print the one line and end: the process's exit status, or a failed job in a sweep."""
     print(f"{prefix}{message}", file=sys.stderr)
     if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
-        raise RunRefused(message)
+        raise RunRefused(f"{prefix}{message}")
     raise SystemExit(status)
 
 

@@ -154,9 +154,12 @@ def _acquire(folder: Path) -> None:
     except ImportError:  # not POSIX: no lock (the docs say so)
         _held[folder] = [None, 1]
         return
-    folder.mkdir(parents=True, exist_ok=True)
     path = folder / LOCK_FILE
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as err:  # a path that cannot be a run folder: checked before anything runs
+        raise RunFolderError(f"cannot use {folder} as a run folder ({first_line(err)})") from None
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:

@@ -230,6 +230,10 @@ def test_a_second_process_on_a_run_folder_is_refused_at_once(tmp_path):
     with rundir.lock([folder]):  # released by the kernel with the killed holder
         with rundir.lock([folder]):  # and re-entrant within one process
             pass
+    (tmp_path / "a file").write_text("")
+    with pytest.raises(rundir.RunFolderError, match="cannot use .* as a run folder"):  # a path checked first
+        with rundir.lock([tmp_path / "a file" / "run"]):
+            pass
 
 
 def test_empty_and_hostile_files_get_one_clear_sentence(tmp_path):
