@@ -356,7 +356,8 @@ def test_a_sweep_is_checked_whole_before_its_first_job_and_failures_are_listed_a
 
 
 def test_ctrl_c_ends_a_run_with_one_line_and_the_same_command_resumes(tmp_path):
-    """Point 9: SIGINT stops the run at the end of its episode with a checkpoint and one line."""
+    """Point 9: SIGINT stops the run at the end of its episode with a checkpoint and one line;
+    point 4: the same command started again while it runs is refused, naming its pid."""
     folder = tmp_path / "run"
     cmd = [sys.executable, str(ROOT / "train.py"), *TINY, "episodes=400", "checkpoint_every=50",
            f"hydra.run.dir={folder}"]
@@ -364,7 +365,9 @@ def test_ctrl_c_ends_a_run_with_one_line_and_the_same_command_resumes(tmp_path):
     deadline = time.time() + 120
     while time.time() < deadline and not (folder / "metrics.csv").exists():
         time.sleep(0.05)
-    time.sleep(0.5)
+    second = run_train(*TINY, "episodes=400", "checkpoint_every=50", f"hydra.run.dir={folder}")  # point 4
+    assert second.returncode == 2 and f"is in use by another process (pid {proc.pid} on " in second.stderr
+    assert proc.poll() is None  # the first goes on
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err[-2000:]
