@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     except (RunFolderError, numerics.NumericsError) as err:
         print(f"evaluate: {err}", file=sys.stderr)
         return 2
-    from engine.evaluation import evaluate, film, load_policy
+    from engine.evaluation import evaluate, film, load_policy, own_track
 
     rows, skipped, first = [], [], None
     for run in runs:
@@ -112,12 +112,12 @@ def main(argv: list[str] | None = None) -> int:
                 return 2
             skipped.append(f"{run}: {err}")  # e.g. a diverged run of a sweep: no actor to evaluate
             continue
-        own = settings["seed"]
+        own = own_track(settings)
         tracks = [own, *[t for t in args.tracks if t != own]]
         results = evaluate(policy, settings, tracks, args.episodes, args.seed)
         for track, mean in results.items():
             rows.append({"run": str(run), "algo": settings["algo"]["name"], "er": settings["er"]["name"],
-                         "train_seed": own, "train_tracks": settings["env"]["track"], "track": track,
+                         "train_seed": settings["seed"], "train_tracks": settings["env"]["track"], "track": track,
                          "own_track": track == own, "episodes": args.episodes, "mean_reward": round(mean, 6)})
         if first is None:
             first = (policy, settings, tracks)

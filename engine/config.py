@@ -19,7 +19,7 @@ from learners.options import build as _build
 from learners.options import choice as _choice
 from learners.options import positive as _positive
 
-TRACK_SOURCES = ("fixed", "random")
+TRACK_SOURCES = ("fixed", "random", "file")
 COLLECTORS = ("direct", "torchrl")
 LOGGERS = ("csv", "tensorboard", "none")
 ACTIVATIONS = ("tanh", "relu", "elu")
@@ -61,7 +61,23 @@ def config_mapping(cfg) -> dict:
     env = mapping.get("env")
     if isinstance(env, dict) and isinstance(env.get("options"), dict):
         env["options"] = {k: v for k, v in env["options"].items() if v is not None}
+    if isinstance(env, dict) and "track_file" in env:  # recorded only when set, with its content's hash
+        if env["track_file"] is None:
+            del env["track_file"]
+        elif "track_file_sha256" not in env:
+            env["track_file_sha256"] = _sha256(env["track_file"])
     return mapping
+
+
+def _sha256(path) -> str | None:
+    """The SHA-256 of a file's bytes (None if it cannot be read: validation then says why)."""
+    import hashlib
+
+    try:
+        with open(path, "rb") as f:
+            return hashlib.sha256(f.read()).hexdigest()
+    except (OSError, TypeError):
+        return None
 
 
 def _check_device(device: str) -> None:
@@ -183,6 +199,8 @@ class EnvConfig:
     collector: str
     nearest_ray: bool
     options: dict
+    track_file: str | None = None  # env.track=file: the CSV file (racing/track_file.py)
+    track_file_sha256: str | None = None  # its content, recorded (config_mapping): a changed file is another run
 
     def __post_init__(self) -> None:
         _choice("env.track", self.track, TRACK_SOURCES)
@@ -193,6 +211,21 @@ class EnvConfig:
             RacingConfig.from_keywords("env.options", **self.options)
         except (TypeError, ValueError) as err:
             raise ConfigError(str(err)) from None
+        if (self.track == "file") != (self.track_file is not None):
+            raise ConfigError("env.track=file needs env.track_file=PATH (a track file), and env.track_file needs "
+                              f"env.track=file; got env.track={self.track}, env.track_file={self.track_file}")
+        if self.track_file is not None:
+            from racing.track_file import TrackFileError, file_track
+
+            if "num_segments" in self.options:
+                raise ConfigError("env.options.num_segments comes from the track file; remove it")
+            try:
+                file_track(self.track_file, dict(self.options), "env.options")
+            except (TrackFileError, TypeError, ValueError) as err:
+                raise ConfigError(f"env.track_file: {err}") from None
+            if self.track_file_sha256 != _sha256(self.track_file):
+                raise ConfigError(f"env.track_file {self.track_file} is not the file its run recorded "
+                                  "(env.track_file_sha256 differs)")
 
     @property
     def episode_steps(self) -> int:

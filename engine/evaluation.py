@@ -97,10 +97,17 @@ def deterministic_action(policy: Policy, observation: np.ndarray) -> np.ndarray:
     return policy(observation)
 
 
-def make_env(settings: dict, track_seed: int, render_mode: str | None = None) -> RacingEnv:
-    """A Gymnasium env with the run's environment settings, on ``track_seed``."""
+def own_track(settings: dict) -> int | str:
+    """The track a run trained on: its seed, or its track file (``env.track=file``)."""
+    env = settings.get("env") or {}
+    return env["track_file"] if env.get("track") == "file" else settings["seed"]
+
+
+def make_env(settings: dict, track: int | str, render_mode: str | None = None) -> RacingEnv:
+    """A Gymnasium env with the run's environment settings, on a track: a seed or a track file."""
     env = settings["env"]
-    return RacingEnv(track_seed=track_seed, render_mode=render_mode, nearest_ray=env.get("nearest_ray", False),
+    where = {"track_file": track} if isinstance(track, str) else {"track_seed": track}
+    return RacingEnv(render_mode=render_mode, nearest_ray=env.get("nearest_ray", False), **where,
                      **env.get("options", {}))
 
 
@@ -122,9 +129,10 @@ def run_episode(net: Policy, env: RacingEnv, seed: int, frames: list | None = No
     return total
 
 
-def evaluate(net: Policy, settings: dict, track_seeds: list[int], episodes: int,
-             seed: int = 0) -> dict[int, float]:
-    """Mean total reward of ``episodes`` episodes on each track (start states from ``seed``)."""
+def evaluate(net: Policy, settings: dict, track_seeds: list[int | str], episodes: int,
+             seed: int = 0) -> dict[int | str, float]:
+    """Mean total reward of ``episodes`` episodes on each track, a seed or a track file (start
+    states from ``seed``)."""
     results = {}
     for track in track_seeds:
         env = make_env(settings, track)

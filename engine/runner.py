@@ -371,7 +371,9 @@ def _evaluate(cfg: RunConfig, seed: int, actor: dict) -> dict:
     network = {"actor_hidden": list(cfg.network.actor_hidden), "activation": cfg.network.activation}
     policy = make_policy(cfg.algo.loss, network, RacingConfig(**cfg.env.options).obs_size, actor)
     settings = {"env": {"options": dict(cfg.env.options), "nearest_ray": cfg.env.nearest_ray}}
-    own = evaluate(policy, settings, [seed], cfg.eval_episodes)[seed]
+    track = cfg.env.track_file if cfg.env.track == "file" else seed
+    settings["env"]["track"] = cfg.env.track
+    own = evaluate(policy, settings, [track], cfg.eval_episodes)[track]
     others = evaluate(policy, settings, list(cfg.eval_seeds), cfg.eval_episodes)
     return {"episodes": cfg.eval_episodes, "own_track": own, "tracks": {str(k): v for k, v in others.items()},
             "mean": _mean(list(others.values()))}

@@ -63,11 +63,16 @@ def make_generators(seeds: tuple[int, ...], device: str = "cpu") -> list[torch.G
 
 # ---------------------------------------------------------------------------- environment
 def make_env(cfg: RunConfig, seeds: tuple[int, ...]) -> RacingTorchEnv:
-    """One car per member: on the member's track (``env.track=fixed``) or on a new random track
-    per episode; car r's random stream is seeded with ``seeds[r]``."""
-    track_seeds = list(seeds) if cfg.env.track == "fixed" else [None] * len(seeds)
-    env = RacingTorchEnv(len(seeds), track_seeds=track_seeds, device=cfg.device, nearest_ray=cfg.env.nearest_ray,
-                         **cfg.env.options)
+    """One car per member: on the member's track (``env.track=fixed``), on a new random track
+    per episode (``random``) or on the file's track (``file``); car r's random stream is seeded
+    with ``seeds[r]``."""
+    if cfg.env.track == "file":
+        env = RacingTorchEnv(len(seeds), track_file=cfg.env.track_file, device=cfg.device,
+                             nearest_ray=cfg.env.nearest_ray, **cfg.env.options)
+    else:
+        track_seeds = list(seeds) if cfg.env.track == "fixed" else [None] * len(seeds)
+        env = RacingTorchEnv(len(seeds), track_seeds=track_seeds, device=cfg.device,
+                             nearest_ray=cfg.env.nearest_ray, **cfg.env.options)
     env.sim.seed(list(seeds))
     return env
 

@@ -29,7 +29,8 @@ def draw_track(ax, track: Track, trail: np.ndarray | None = None) -> None:
     for wall in (track.left_wall, track.right_wall):
         ax.plot(*wall.T, color="black", linewidth=0.8)
     ax.plot(*np.stack([track.left_wall[0], track.right_wall[0]]).T, color="tab:green", linewidth=2)
-    ax.plot(*np.stack([track.left_wall[-1], track.right_wall[-1]]).T, color="tab:red", linewidth=2)
+    if not track.closed:  # a circuit's finish is its start line
+        ax.plot(*np.stack([track.left_wall[-1], track.right_wall[-1]]).T, color="tab:red", linewidth=2)
     if trail is not None and len(trail):
         ax.plot(*np.asarray(trail).T, color="tab:blue", linewidth=1)
     ax.set_aspect("equal")
@@ -49,6 +50,23 @@ def tracks_figure(path: str | Path, seeds: Sequence[int] = PAPER_TRACK_SEEDS,
     for ax, track, seed in zip(axes[0], tracks, seeds):
         draw_track(ax, track)
         ax.set_title(str(seed), fontsize=9)
+    return _save(plt, fig, path)
+
+
+def track_file_figure(track: Track, path: str | Path, title: str | None = None) -> Path:
+    """One track (e.g. a file's) with every tenth checkpoint numbered and the start line marked."""
+    plt = import_pyplot()
+    low, high = track.bounds()
+    span = np.maximum(high - low, 1.0)
+    fig, ax = plt.subplots(figsize=(min(max(6.0 * span[0] / span[1], 3.0), 12.0), 6.0))
+    draw_track(ax, track)
+    for i in range(0, track.num_checkpoints, 10):
+        ax.annotate(str(i), track.centres[i], fontsize=7, ha="center", va="center", color="white")
+    ax.set_title(title or track.name or "track", fontsize=9)
+    return _save(plt, fig, path)
+
+
+def _save(plt, fig, path: str | Path) -> Path:
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

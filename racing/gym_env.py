@@ -8,7 +8,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from racing.config import RacingConfig
+from racing.track_file import env_track
 from racing.sim import RacingSim, check_seed
 
 ACTION_HELP = "an action is [throttle, steering], two finite real numbers in [-1, 1]"
@@ -85,7 +85,9 @@ class RacingEnv(gym.Env):
     * Termination: the car leaves the last checkpoint through the finish line
       (``info["finished"]``). Leaving the track anywhere else is not an episode end: the car
       loses one checkpoint and restarts, at rest, from the centre of the checkpoint it is
-      put back in, facing along the track.
+      put back in, facing along the track. A closed track (a circuit from a file) has no
+      finish: the car goes round, each entry into checkpoint 0 from the last completing a lap,
+      until ``max_steps``.
 
     ## Arguments
 
@@ -103,6 +105,10 @@ class RacingEnv(gym.Env):
       racing-rl[render]``).
     * ``nearest_ray``: read the nearest wall crossing instead of the reference's first in
       scan order (they differ only where a track crosses itself within sensor range).
+    * ``track_file``: a track from a CSV file (``racing.track_file``: the TUM racetrack-database's
+      columns; ``racing.track_file.example("oval")`` names a shipped one) instead of seeds;
+      ``track_scale`` (pixels per file unit) and ``track_closed`` override the file's own
+      settings. The file decides ``num_segments``.
     * any field of ``racing.RacingConfig`` (e.g. ``num_segments=10``, ``max_steps=500``).
 
     ``reset(seed=k)`` re-seeds the car's ``numpy.random.RandomState(k)`` stream; a seeded
@@ -114,8 +120,10 @@ class RacingEnv(gym.Env):
 
     ``info`` holds the car state (``x``, ``y``, ``theta``, ``speed``, ``checkpoint``), the
     ``step``, the ``track_seed`` (``None`` for an unnamed random track), ``progress``
-    (checkpoints passed / ``num_segments``, 1.0 when finished), ``crashed`` (this step
-    left the track) and ``finished``.
+    (checkpoints passed / ``num_segments``, 1.0 when finished; on a circuit, of the current
+    lap), ``crashes`` (steps that left the track so far this episode), ``crashed`` (this step
+    left the track) and ``finished``; on a circuit also ``laps`` (completed),
+    ``lap_times`` (each lap's steps) and ``lap_seconds`` (at 30 steps a second).
 
     ## Version History
 
@@ -125,17 +133,18 @@ class RacingEnv(gym.Env):
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 30}
 
     def __init__(self, track_seed: int | None = None, render_mode: str | None = None,
-                 nearest_ray: bool = False, **config: Any):
+                 nearest_ray: bool = False, track_file: str | None = None, track_scale: float | None = None,
+                 track_closed: bool | None = None, **config: Any):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, "
                              f"got {render_mode!r}")
         if track_seed is not None:
             track_seed = check_seed(track_seed, "track_seed")
-        self.config = RacingConfig.from_keywords("RacingEnv (besides track_seed, render_mode, nearest_ray)",
-                                                 **config)
+        owner = "RacingEnv (besides track_seed, render_mode, nearest_ray, track_file, track_scale, track_closed)"
+        track, self.config = env_track(owner, track_seed is not None, track_file, track_scale, track_closed, config)
         self.track_seed = track_seed
         self.render_mode = render_mode
-        self.sim = RacingSim(1, track_seed, self.config, nearest_ray=nearest_ray)
+        self.sim = RacingSim(1, track_seed, self.config, nearest_ray=nearest_ray, track=track)
         self.action_space = spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
         self.observation_space = spaces.Box(0.0, 1.0, shape=(self.config.obs_size,), dtype=np.float32)
         self._renderer = None

@@ -57,13 +57,15 @@ def build_tables(track: Track, config: RacingConfig) -> TrackTables:
                       np.maximum(p1[..., 0], p2[..., 0]), p1[..., 0], p1[..., 1], dx,
                       np.where(dy == 0.0, 1.0, dy)], axis=-1)  # a flat edge never toggles
     neutral = np.broadcast_to(np.array(_NEUTRAL_EDGE), (1, 4, 7))
-    edges = np.stack([edges, np.concatenate([edges[1:], neutral])], axis=1)  # (N, 2, 4, 7)
+    after_last = edges[:1] if track.closed else neutral  # a circuit's checkpoint 0 follows its last
+    edges = np.stack([edges, np.concatenate([edges[1:], after_last])], axis=1)  # (N, 2, 4, 7)
 
     back = np.maximum(np.arange(n) - 1, 0)  # leaving the track costs one checkpoint
     centres = track.centres
     respawn = np.stack([back, centres[back, 0], centres[back, 1],
                         np.array([track.respawn_heading(b) for b in back.tolist()])])
-    finish = np.concatenate([track.left_wall[-1], track.right_wall[-1]])
+    # A circuit has no finish: a segment of NaN is never crossed (its laps are counted as checkpoint 0 follows the last)
+    finish = np.full(4, np.nan) if track.closed else np.concatenate([track.left_wall[-1], track.right_wall[-1]])
     return TrackTables(np.ascontiguousarray(edges.transpose(3, 1, 2, 0)),
                        respawn, finish, _ray_table(track, quads, config))
 
@@ -82,12 +84,15 @@ def _ray_table(track: Track, quads: np.ndarray, config: RacingConfig) -> np.ndar
     radius[0] = max(radius[0], np.linalg.norm(start_box - centres[0], axis=-1).max())
     reach = radius + config.ray_length * (1 + 1e-9) + 1e-6
     distance = _point_segment_distance(centres[:, None], p1[None], p2[None])  # (N, 2N)
-    scan_from = np.arange(2 * n)[None] >= 2 * np.arange(n)[:, None]  # walls of c, c+1, ... only
-    reachable = (distance <= reach[:, None]) & scan_from
+    # Scan order from checkpoint c: the walls of c, c + 1, ...; on a circuit on past the last to c - 1.
+    order = (2 * np.arange(n)[:, None] + np.arange(2 * n)[None]) % (2 * n)  # (N, 2N) segment indices
+    if not track.closed:
+        order = np.where(order >= 2 * np.arange(n)[:, None], order, -1)  # walls of c, c+1, ... only
+    reachable = (order >= 0) & (np.take_along_axis(distance, np.maximum(order, 0), axis=1) <= reach[:, None])
     width = max(int(reachable.sum(axis=1).max()), 1)
     table = np.full((4, width, n), np.nan)  # NaN pads never cross a ray
     for c in range(n):
-        segments = np.flatnonzero(reachable[c])
+        segments = order[c][reachable[c]]
         table[:2, : len(segments), c] = p1[segments].T
         table[2:, : len(segments), c] = (p2[segments] - p1[segments]).T
     return table

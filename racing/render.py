@@ -134,8 +134,13 @@ class Renderer:
         canvas.track(sim.tracks[car])
         readings = sim.observe()[car]
         canvas.car(x, y, theta, readings, self.config)
-        canvas.text([f"speed {sim.speed[car]:5.1f}   checkpoint {sim.checkpoint[car]}/{self.config.num_segments}",
-                     f"step {sim.t[car]}"])
+        lines = [f"speed {sim.speed[car]:5.1f}   checkpoint {sim.checkpoint[car]}/{self.config.num_segments}",
+                 f"step {sim.t[car]}   crashes {sim.crashes[car]}"]
+        if sim.tracks[car].closed:
+            times = sim.lap_times[car]
+            lines.append(f"lap {sim.laps[car] + 1}" + (f"   last {times[-1] * sim.STEP_SECONDS:.2f} s   best "
+                                                       f"{min(times) * sim.STEP_SECONDS:.2f} s" if times else ""))
+        canvas.text(lines)
         if not self.human:
             return canvas.rgb()
         pg = self.pg

@@ -132,12 +132,16 @@ class RacingSim:
         config: constants of the task.
         nearest_ray: take the nearest ray crossing instead of the reference's first in
             scan order (they differ only where a track crosses itself within sensor range).
+        track: one track for every car instead of seeds (a file's: ``racing.track_file``);
+            ``config.num_segments`` must be its number of checkpoints. Its resets draw only
+            the start state. On a closed track (a circuit) a car that enters checkpoint 0
+            from the last completes a lap; ``laps`` and ``lap_times`` (steps) count them.
     """
 
     CHUNK = 1024  # cars per block of the ray computation (see observe)
 
     def __init__(self, num_cars: int = 1, track_seeds: int | None | Sequence[int | None] = None,
-                 config: RacingConfig = RacingConfig(), nearest_ray: bool = False):
+                 config: RacingConfig = RacingConfig(), nearest_ray: bool = False, track: Track | None = None):
         if isinstance(num_cars, bool) or not isinstance(num_cars, (int, np.integer)) or num_cars < 1:
             raise ValueError(f"num_cars must be a positive integer, got {num_cars!r}")
         if not isinstance(config, RacingConfig):
@@ -151,6 +155,13 @@ class RacingSim:
         if len(track_seeds) != n:
             raise ValueError(f"got {len(track_seeds)} track seeds for {n} cars")
         self.track_seeds = [None if s is None else check_seed(s, "track seed") for s in track_seeds]
+        if track is not None:
+            if any(s is not None for s in self.track_seeds):
+                raise ValueError("give a track or track seeds, not both")
+            if track.num_checkpoints != config.num_segments:
+                raise ValueError(f"the track has {track.num_checkpoints} checkpoints but config.num_segments is "
+                                 f"{config.num_segments} (racing.track_file.track_config sets it)")
+        self.file_track = track
         self.bank = TrackBank(config)
         self.tracks: list[Track | None] = [None] * n
         self.slot = np.zeros(n, dtype=np.int64)
@@ -161,6 +172,10 @@ class RacingSim:
         self.checkpoint = np.zeros(n, dtype=np.int64)
         self.t = np.zeros(n, dtype=np.int64)
         self.finished = np.zeros(n, dtype=bool)
+        self.laps = np.zeros(n, dtype=np.int64)  # laps completed this episode (closed tracks)
+        self.lap_start = np.zeros(n, dtype=np.int64)  # the step the current lap began at
+        self.crashes = np.zeros(n, dtype=np.int64)  # steps that left the track this episode
+        self.lap_times: list[list[int]] = [[] for _ in range(n)]  # steps of each lap completed this episode
         self._streams: list[np.random.RandomState | None] = [None] * n
         self._fresh = [True] * n
         self._reset_once = np.zeros(n, dtype=bool)  # step() needs every car reset at least once
@@ -168,6 +183,8 @@ class RacingSim:
         for car, seed in enumerate(self.track_seeds):  # a fixed track is known before any reset
             if seed is not None:
                 self._use_track(car, cached_track(seed, config))
+            elif track is not None:
+                self._use_track(car, track)
 
     # ----------------------------------------------------------------------------- seeding
     def seed(self, seeds: int | Sequence[int], cars: Sequence[int] | None = None) -> None:
@@ -183,7 +200,9 @@ class RacingSim:
             self._streams[car] = np.random.RandomState(s)
             self._fresh[car] = True
 
-    CAR_STATE = ("x", "y", "theta", "speed", "checkpoint", "t", "finished", "_reset_once")
+    CAR_STATE = ("x", "y", "theta", "speed", "checkpoint", "t", "finished", "_reset_once", "laps", "lap_start",
+                 "crashes")
+    STEP_SECONDS = 1 / 30  # a step is one frame of the game, shown at 30 frames per second (lap times in seconds)
 
     def state_dict(self) -> dict:
         """Everything that decides what the cars do next, as plain NumPy arrays.
@@ -205,8 +224,12 @@ class RacingSim:
             if track is not None:
                 walls[car] = track.left_wall, track.right_wall
                 track_seed[car] = -1 if track.seed is None else track.seed
+        laps = max([len(times) for times in self.lap_times] + [1])
+        lap_times = np.full((n, laps), -1, dtype=np.int64)
+        for car, times in enumerate(self.lap_times):
+            lap_times[car, : len(times)] = times
         return {"seeded": seeded, "keys": keys, "pos": pos, "has_gauss": has_gauss, "gauss": gauss,
-                "fresh": np.array(self._fresh), "track_seed": track_seed, "walls": walls,
+                "fresh": np.array(self._fresh), "track_seed": track_seed, "walls": walls, "lap_times": lap_times,
                 **{name: getattr(self, name).copy() for name in self.CAR_STATE}}
 
     def load_state_dict(self, state: dict) -> None:
@@ -227,12 +250,21 @@ class RacingSim:
             walls, seed = np.asarray(state["walls"][car]), int(state["track_seed"][car])
             if seed >= 0:
                 self._use_track(car, cached_track(seed, self.config))
+            elif self.file_track is not None:
+                if not (np.array_equal(walls[0], self.file_track.left_wall)
+                        and np.array_equal(walls[1], self.file_track.right_wall)):
+                    raise ValueError("the simulator state was taken on another track than this simulator's")
             elif not np.isnan(walls).all():
                 self._use_track(car, Track(walls[0], walls[1]))
         self._fresh = [bool(f) for f in state["fresh"]]
         for name in self.CAR_STATE:
             current = getattr(self, name)
+            if name not in state:  # a state from before laps and crashes were counted
+                setattr(self, name, np.zeros_like(current))
+                continue
             setattr(self, name, np.asarray(state[name], dtype=current.dtype).reshape(current.shape).copy())
+        lap_times = np.asarray(state.get("lap_times", np.full((n, 1), -1)))
+        self.lap_times = [[int(v) for v in row if v >= 0] for row in lap_times]
         self._ready = bool(self._reset_once.all())
 
     def _stream(self, car: int) -> np.random.RandomState:
@@ -254,13 +286,18 @@ class RacingSim:
         """
         cfg = self.config
         cars = range(self.num_cars) if cars is None else np.asarray(cars, dtype=np.int64).ravel()
+        if track_seed is not None and self.file_track is not None:
+            raise ValueError("a simulator on a given track (a file's) takes no track_seed at reset")
         override = None if track_seed is None else cached_track(check_seed(track_seed, "track_seed"), cfg)
         for car in cars:
             car = int(car)
             stream = self._stream(car)
             fixed = self.track_seeds[car]
             track = None
-            if self._fresh[car] or fixed is None:
+            if self.file_track is not None:  # no layout draws: only the start state
+                self._fresh[car] = False
+                track = self.file_track
+            elif self._fresh[car] or fixed is None:
                 if fixed is None and override is None:
                     track = layout_track(stream, cfg)
                 else:  # the stream lays out a track that is not used: draw and drop it
@@ -276,6 +313,11 @@ class RacingSim:
         self.checkpoint[cars] = 0
         self.t[cars] = 0
         self.finished[cars] = False
+        self.laps[cars] = 0
+        self.lap_start[cars] = 0
+        self.crashes[cars] = 0
+        for car in cars:
+            self.lap_times[int(car)] = []
         if not self._ready:
             self._reset_once[cars] = True
             self._ready = bool(self._reset_once.all())
@@ -332,7 +374,19 @@ class RacingSim:
         self.x, self.y, self.theta, self.speed = x, y, theta, speed
         self.t += 1
         self.finished = finished
+        self.crashes += off_track
+        lapped = self.checkpoint == cfg.num_segments  # only on a circuit: checkpoint 0 follows the last
+        if lapped.any():
+            for car in np.flatnonzero(lapped).tolist():
+                self._lap(car)
         return reward, finished, self.t >= cfg.max_steps, off_track
+
+    def _lap(self, car: int) -> None:
+        """Car ``car`` has just entered checkpoint 0 from the last one of a circuit."""
+        self.checkpoint[car] = 0
+        self.laps[car] += 1
+        self.lap_times[car].append(int(self.t[car] - self.lap_start[car]))
+        self.lap_start[car] = self.t[car]
 
     def step_car(self, throttle: float, steer: float) -> tuple[float, bool, bool, bool]:
         """``step`` of a one-car simulator with Python scalars in and out (``physics.step_car``:
@@ -349,6 +403,9 @@ class RacingSim:
         self.x[0], self.y[0], self.theta[0], self.speed[0], self.checkpoint[0] = x, y, theta, speed, checkpoint
         self.t[0] += 1
         self.finished[0] = finished
+        self.crashes[0] += crashed
+        if checkpoint == cfg.num_segments:  # only on a circuit
+            self._lap(0)
         return reward, finished, bool(self.t[0] >= cfg.max_steps), crashed
 
     # ---------------------------------------------------------------------------- observe
@@ -380,9 +437,15 @@ class RacingSim:
         """The state of one car as plain Python values."""
         track = self.tracks[car]
         n = self.config.num_segments
-        return {
+        state = {
             "x": float(self.x[car]), "y": float(self.y[car]), "theta": float(self.theta[car]),
             "speed": float(self.speed[car]), "checkpoint": int(self.checkpoint[car]),
             "step": int(self.t[car]), "track_seed": None if track is None else track.seed,
             "progress": (int(self.checkpoint[car]) + bool(self.finished[car])) / n,
+            "crashes": int(self.crashes[car]),
         }
+        if track is not None and track.closed:  # progress: the fraction of the current lap
+            state["laps"] = int(self.laps[car])
+            state["lap_times"] = list(self.lap_times[car])  # steps
+            state["lap_seconds"] = [round(steps * self.STEP_SECONDS, 6) for steps in self.lap_times[car]]
+        return state

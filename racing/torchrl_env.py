@@ -11,9 +11,9 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from racing.config import RacingConfig
 from racing.gym_env import ACTION_HELP
 from racing.sim import RacingSim
+from racing.track_file import env_track
 
 
 class RacingTorchEnv(EnvBase):
@@ -29,6 +29,8 @@ class RacingTorchEnv(EnvBase):
             car at every reset) or one entry per car.
         device: where the returned tensors live (the simulation itself runs on the CPU).
         nearest_ray: see ``racing.RacingEnv``.
+        track_file: every car on the track of this file (``racing.track_file``; with
+            ``track_scale``, ``track_closed``), as for ``racing.RacingEnv``.
         **config: fields of ``racing.RacingConfig``.
 
     Keys: ``observation`` (N, 6) float32 in [0, 1]; ``action`` (N, 2) float32 in [-1, 1]
@@ -38,10 +40,12 @@ class RacingTorchEnv(EnvBase):
     """
 
     def __init__(self, num_envs: int = 1, track_seeds: int | None | Sequence[int | None] = None,
-                 device: Any = "cpu", nearest_ray: bool = False, **config: Any):
-        cfg = RacingConfig.from_keywords("RacingTorchEnv (besides num_envs, track_seeds, device, nearest_ray)",
-                                         **config)
-        self.sim = RacingSim(num_envs, track_seeds, cfg, nearest_ray=nearest_ray)
+                 device: Any = "cpu", nearest_ray: bool = False, track_file: str | None = None,
+                 track_scale: float | None = None, track_closed: bool | None = None, **config: Any):
+        owner = "RacingTorchEnv (besides num_envs, track_seeds, device, nearest_ray, track_file, ...)"
+        seeded = track_seeds is not None and any(s is not None for s in np.atleast_1d(np.asarray(track_seeds, object)))
+        track, cfg = env_track(owner, seeded, track_file, track_scale, track_closed, config)
+        self.sim = RacingSim(num_envs, track_seeds, cfg, nearest_ray=nearest_ray, track=track)
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
         self.config = cfg
         self._on_cpu = self.device == torch.device("cpu")

@@ -20,12 +20,17 @@ class Track:
     """The walls of one track and the geometry derived from them.
 
     Checkpoint ``i`` (``0 <= i < num_segments``) is the quadrilateral
-    ``[left_wall[i], left_wall[i + 1], right_wall[i + 1], right_wall[i]]``.
+    ``[left_wall[i], left_wall[i + 1], right_wall[i + 1], right_wall[i]]``. On an open track
+    (every generated one) the last checkpoint ends at the finish line; on a closed one (a
+    circuit, from a file: ``racing.track_file``) checkpoint 0 follows the last, and the walls'
+    last points repeat their first.
     """
 
     left_wall: np.ndarray  # (num_segments + 1, 2) float64
     right_wall: np.ndarray  # (num_segments + 1, 2) float64
     seed: int | None = None
+    closed: bool = False  # a circuit: the walls' last points are their first, checkpoint 0 follows the last
+    name: str | None = None  # a file track's (its file's stem)
     centres: np.ndarray = field(init=False, repr=False)  # (num_segments, 2)
 
     def __post_init__(self) -> None:
@@ -38,6 +43,8 @@ class Track:
             )
         if not (np.isfinite(left).all() and np.isfinite(right).all()):
             raise ValueError("track walls must be finite")
+        if self.closed and not (np.array_equal(left[0], left[-1]) and np.array_equal(right[0], right[-1])):
+            raise ValueError("a closed track's walls must end at their first points")
         left.flags.writeable = False
         right.flags.writeable = False
         centres = (left[:-1] + left[1:] + right[1:] + right[:-1]) / 4.0

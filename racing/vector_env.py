@@ -18,9 +18,9 @@ from gymnasium import spaces
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from racing.config import RacingConfig
 from racing.gym_env import validate_action
 from racing.sim import RacingSim, check_seed
+from racing.track_file import env_track
 
 STATE_KEYS = ("x", "y", "theta", "speed", "checkpoint", "step", "progress")
 
@@ -35,20 +35,23 @@ class RacingVectorEnv(VectorEnv):
       reward 0 and no flags), ``SAME_STEP`` (the last step returns the next episode's first
       observation; ``info["final_obs"]`` and ``info["final_info"]`` hold the last episode's)
       or ``DISABLED`` (``reset(options={"reset_mask": mask})`` resets the cars in ``mask``).
-    * ``nearest_ray`` and any field of ``racing.RacingConfig``, as for ``RacingEnv``.
+    * ``nearest_ray``, ``track_file`` (every car on that file's track; ``track_scale``,
+      ``track_closed``) and any field of ``racing.RacingConfig``, as for ``RacingEnv``.
 
     ``reset(seed=k)`` seeds car i's stream with ``k + i`` (as ``SyncVectorEnv`` seeds its envs);
     a list seeds each car. Actions: an array of shape ``(num_envs, 2)``, [throttle, steering]
     per car (values outside [-1, 1] are clipped; NaN, inf or another shape are refused).
-    ``info`` holds each car's ``x, y, theta, speed, checkpoint, step, progress, crashed,
-    finished`` as arrays (with Gymnasium's ``_key`` masks, all true).
+    ``info`` holds each car's ``x, y, theta, speed, checkpoint, step, progress, crashes, crashed,
+    finished`` (and on a circuit ``laps``, ``lap_times``) as arrays (with Gymnasium's ``_key``
+    masks, all true).
     """
 
     metadata = {"render_modes": [], "autoreset_mode": AutoresetMode.NEXT_STEP}
 
     def __init__(self, num_envs: int, track_seed: int | None | Sequence[int | None] = None,
                  autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP, nearest_ray: bool = False,
-                 render_mode: str | None = None, **config: Any):
+                 render_mode: str | None = None, track_file: str | None = None, track_scale: float | None = None,
+                 track_closed: bool | None = None, **config: Any):
         if render_mode is not None:
             raise ValueError(f"the vector env does not render (render_mode={render_mode!r}); render one car with "
                              "gym.make('racing/Racing-v0', render_mode='rgb_array')")
@@ -60,9 +63,10 @@ class RacingVectorEnv(VectorEnv):
             raise ValueError(f"autoreset_mode must be one of {[m.value for m in AutoresetMode]}, "
                              f"got {autoreset_mode!r}") from None
         self.num_envs = int(num_envs)
-        self.config = RacingConfig.from_keywords(
-            "RacingVectorEnv (besides num_envs, track_seed, autoreset_mode, nearest_ray)", **config)
-        self.sim = RacingSim(self.num_envs, track_seed, self.config, nearest_ray=nearest_ray)
+        owner = "RacingVectorEnv (besides num_envs, track_seed, autoreset_mode, nearest_ray, track_file, ...)"
+        seeded = track_seed is not None and any(s is not None for s in np.atleast_1d(np.asarray(track_seed, object)))
+        track, self.config = env_track(owner, seeded, track_file, track_scale, track_closed, config)
+        self.sim = RacingSim(self.num_envs, track_seed, self.config, nearest_ray=nearest_ray, track=track)
         self.metadata = {**self.metadata, "autoreset_mode": autoreset_mode}
         self.autoreset_mode = autoreset_mode
         self.render_mode = None
@@ -135,8 +139,12 @@ class RacingVectorEnv(VectorEnv):
         sim, n = self.sim, self.config.num_segments
         values = {"x": sim.x.copy(), "y": sim.y.copy(), "theta": sim.theta.copy(), "speed": sim.speed.copy(),
                   "checkpoint": sim.checkpoint.copy(), "step": sim.t.copy(),
-                  "progress": (sim.checkpoint + sim.finished) / n, "crashed": self._crashed.copy(),
-                  "finished": sim.finished.copy()}
+                  "progress": (sim.checkpoint + sim.finished) / n, "crashes": sim.crashes.copy(),
+                  "crashed": self._crashed.copy(), "finished": sim.finished.copy()}
+        if sim.file_track is not None and sim.file_track.closed:
+            lap_times = np.empty(self.num_envs, dtype=object)
+            lap_times[:] = [list(times) for times in sim.lap_times]
+            values.update(laps=sim.laps.copy(), lap_times=lap_times)
         info: dict[str, np.ndarray] = {}
         for key, value in values.items():
             info[key] = value
