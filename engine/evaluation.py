@@ -142,20 +142,33 @@ def evaluate(net: Policy, settings: dict, track_seeds: list[int | str], episodes
     return results
 
 
-def film(net: Policy, settings: dict, track_seed: int, path: Path, seed: int = 0, fps: int = 30) -> int:
-    """Write one deterministic episode on ``track_seed`` as a GIF or MP4 (by suffix); returns frames."""
-    try:
-        import imageio.v2 as imageio
-    except ImportError:
-        raise RuntimeError("writing videos needs the render extra: pip install -c constraints/cpu.txt "
-                           "-e '.[render]'") from None
-    path = Path(path)
-    if path.suffix.lower() not in (".gif", ".mp4"):
-        raise ValueError(f"video path must end in .gif or .mp4, got {path.name!r}")
+def film(net: Policy, settings: dict, track_seed: int | str, path: Path, seed: int = 0, fps: int = 30) -> int:
+    """Write one deterministic episode on a track (a seed or a track file) as a GIF or MP4 (by
+    suffix); returns the number of frames."""
+    check_video_path(path)
     env = make_env(settings, track_seed, render_mode="rgb_array")
     frames: list = []
     run_episode(net, env, seed, frames)
     env.close()
+    return write_video(frames, path, fps)
+
+
+def check_video_path(path: Path) -> None:
+    """A video is a .gif or an .mp4, written with the render extra; refused before any episode runs."""
+    if Path(path).suffix.lower() not in (".gif", ".mp4"):
+        raise ValueError(f"video path must end in .gif or .mp4, got {Path(path).name!r}")
+    try:
+        import imageio.v2  # noqa: F401
+    except ImportError:
+        raise RuntimeError("writing videos needs the render extra: pip install -c constraints/cpu.txt "
+                           "-e '.[render]'") from None
+
+
+def write_video(frames: list, path: Path, fps: int = 30) -> int:
+    """Frames (RGB arrays) as a GIF or MP4 at ``fps``; returns how many."""
+    import imageio.v2 as imageio
+
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.suffix.lower() == ".gif":
         imageio.mimsave(path, frames, duration=1000 / fps, loop=0)

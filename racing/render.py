@@ -18,6 +18,7 @@ WALL = (240, 240, 240)
 CHECKPOINT_LINE = (120, 120, 128)
 FINISH = (250, 210, 60)
 CAR = (220, 30, 30)
+GHOST = (150, 170, 255)  # another car on the same track (drive.py: a policy racing the player)
 RAY = (255, 220, 70)
 TRAIL = (80, 170, 255)
 TEXT = (255, 255, 255)
@@ -80,17 +81,18 @@ class Canvas:
             self.pg.draw.lines(self.surface, TRAIL, False, self.to_screen(points), 2)
 
     def car(self, x: float, y: float, theta: float, readings: np.ndarray | None,
-            config: RacingConfig) -> None:
+            config: RacingConfig, colour: tuple = None) -> None:
         if readings is not None:
             origin = self.to_screen([[x, y]])[0]
             for end in self.to_screen(ray_endpoints(x, y, theta, readings, config)):
                 self.pg.draw.line(self.surface, RAY, origin, end, 1)
                 self.pg.draw.circle(self.surface, RAY, end, 3)
         outline = _car_outline(x, y, theta)
+        colour = CAR if colour is None else colour
         if self.scale * CAR_LENGTH < 6:  # too small to see: draw a dot
-            self.pg.draw.circle(self.surface, CAR, self.to_screen([[x, y]])[0], 4)
+            self.pg.draw.circle(self.surface, colour, self.to_screen([[x, y]])[0], 4)
         else:
-            self.pg.draw.polygon(self.surface, CAR, self.to_screen(outline))
+            self.pg.draw.polygon(self.surface, colour, self.to_screen(outline))
 
     def text(self, lines: list[str]) -> None:
         pg = self.pg
@@ -128,19 +130,25 @@ class Renderer:
         self.window = None
         self.clock = None
 
-    def draw(self, sim, car: int = 0) -> np.ndarray | None:
+    def draw(self, sim, car: int = 0, ghosts: list = (), extra: list[str] = ()) -> np.ndarray | None:
+        """The frame of ``sim``'s car ``car``; ``ghosts``: (x, y, theta) of other cars to draw faintly
+        (e.g. a policy's car on the same track); ``extra``: more lines of text."""
         x, y, theta = float(sim.x[car]), float(sim.y[car]), float(sim.theta[car])
         canvas = Canvas(self.size, (x, y), self.scale)
         canvas.track(sim.tracks[car])
+        for gx, gy, gtheta in ghosts:
+            canvas.car(gx, gy, gtheta, None, self.config, colour=GHOST)
         readings = sim.observe()[car]
         canvas.car(x, y, theta, readings, self.config)
-        lines = [f"speed {sim.speed[car]:5.1f}   checkpoint {sim.checkpoint[car]}/{self.config.num_segments}",
+        n = self.config.num_segments
+        progress = (int(sim.checkpoint[car]) + bool(sim.finished[car])) / n
+        lines = [f"speed {sim.speed[car]:5.1f}   checkpoint {sim.checkpoint[car]}/{n}   progress {progress:.0%}",
                  f"step {sim.t[car]}   crashes {sim.crashes[car]}"]
         if sim.tracks[car].closed:
             times = sim.lap_times[car]
             lines.append(f"lap {sim.laps[car] + 1}" + (f"   last {times[-1] * sim.STEP_SECONDS:.2f} s   best "
                                                        f"{min(times) * sim.STEP_SECONDS:.2f} s" if times else ""))
-        canvas.text(lines)
+        canvas.text(lines + list(extra))
         if not self.human:
             return canvas.rgb()
         pg = self.pg

@@ -1,0 +1,136 @@
+"""Drive the car yourself, with the arrow keys, in a window:
+
+    python drive.py [--track 2067791 | --track racing/tracks/oval.csv] [--ghost AGENT] [--seed 0]
+                    [--max-steps 200] [--fps 30] [--no-oracle]
+
+Up accelerates (full throttle), down brakes (throttle -1), neither holds the throttle at 0 (a
+target of half speed); left and right steer. AGENT (``score.py``'s kinds: a train.py run folder,
+a Stable-Baselines3 ``model.zip``, ``module:function``, ``pure_pursuit``, ``ray_follower``)
+drives the same episode beside you, drawn as a blue ghost car (it cannot touch you). At the end
+the window shows your total reward beside the ghost's and the oracle's on the same track and
+start state (the oracle takes a few seconds; ``--no-oracle`` skips it); the same lines are
+printed. Escape or closing the window ends the episode early. Needs the ``render`` extra.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+KEYS = ("up", "down", "left", "right")
+
+
+def action_of(pressed: set[str]) -> list[float]:
+    """[throttle, steering] of the arrow keys held."""
+    throttle = (1.0 if "up" in pressed else 0.0) - (1.0 if "down" in pressed else 0.0)
+    steer = (1.0 if "left" in pressed else 0.0) - (1.0 if "right" in pressed else 0.0)
+    return [throttle, steer]
+
+
+def play(track, seed: int = 0, ghost=None, max_steps: int = 200, fps: int = 30, oracle: bool = True,
+         script: dict[int, list[tuple[str, bool]]] | None = None) -> dict:
+    """One episode driven from the keyboard; returns the totals {"you", "ghost", "oracle"}.
+
+    ``script`` ({step: [(key, down), ...]}) posts those key events before each step (how the tests
+    drive it under SDL's dummy video driver)."""
+    from racing.gym_env import RacingEnv
+    from racing.render import Renderer, import_pygame
+
+    pg = import_pygame()
+    names = {pg.K_UP: "up", pg.K_DOWN: "down", pg.K_LEFT: "left", pg.K_RIGHT: "right"}
+    keys_of = {v: k for k, v in names.items()}
+    where = {"track_file": track} if isinstance(track, str) else {"track_seed": track}
+    env = RacingEnv(max_steps=max_steps, **where)
+    shadow = RacingEnv(max_steps=max_steps, **where) if ghost is not None else None
+    renderer = Renderer(env.config, human=True, fps=fps)
+    pg.display.init()  # the event queue needs it before the first frame
+    obs, _ = env.reset(seed=seed)
+    if shadow is not None:
+        ghost_obs, _ = shadow.reset(seed=seed)
+        ghost.reset()
+    pressed: set[str] = set()
+    totals = {"you": 0.0, "ghost": 0.0 if ghost is not None else None}
+    ghost_done, quit_early = False, False
+    for step in range(max_steps):
+        for key, down in (script or {}).get(step, []):
+            pg.event.post(pg.event.Event(pg.KEYDOWN if down else pg.KEYUP, key=keys_of[key]))
+        ghosts = [] if shadow is None else [(float(shadow.unwrapped.sim.x[0]), float(shadow.unwrapped.sim.y[0]),
+                                             float(shadow.unwrapped.sim.theta[0]))]
+        renderer.draw(env.unwrapped.sim, ghosts=ghosts,
+                      extra=[f"you {totals['you']:.1f}" + ("" if ghost is None else f"   ghost {totals['ghost']:.1f}")])
+        for event in pg.event.get():
+            if event.type == pg.QUIT or (event.type == pg.KEYDOWN and event.key == pg.K_ESCAPE):
+                quit_early = True
+            elif event.type in (pg.KEYDOWN, pg.KEYUP) and event.key in names:
+                (pressed.add if event.type == pg.KEYDOWN else pressed.discard)(names[event.key])
+        if quit_early:
+            break
+        obs, reward, terminated, truncated, _ = env.step(action_of(pressed))
+        totals["you"] += reward
+        if shadow is not None and not ghost_done:
+            ghost_obs, g_reward, g_term, g_trunc, _ = shadow.step(ghost.act(shadow, ghost_obs))
+            totals["ghost"] += g_reward
+            ghost_done = g_term or g_trunc
+        if terminated or truncated:
+            break
+    if oracle and not quit_early:
+        from racing.oracle import Oracle, drive
+
+        totals["oracle"] = drive(RacingEnv(max_steps=max_steps, **where), Oracle(env.config), seed)
+    lines = [f"you: {totals['you']:.1f}"]
+    if totals["ghost"] is not None:
+        lines.append(f"ghost ({ghost.name}): {totals['ghost']:.1f}")
+    if "oracle" in totals:
+        lines.append(f"oracle: {totals['oracle']:.1f}")
+    renderer.draw(env.unwrapped.sim, extra=["", *lines, "", "(close the window)"])
+    renderer.close()
+    print("; ".join(lines))
+    return totals
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--track", default="2067791", help="a track seed or a track file (default: 2067791)")
+    parser.add_argument("--ghost", default=None, help="an agent to race against, drawn as a ghost")
+    parser.add_argument("--seed", type=int, default=0, help="the start state's seed")
+    parser.add_argument("--max-steps", type=int, default=200)
+    parser.add_argument("--fps", type=int, default=30)
+    parser.add_argument("--no-oracle", action="store_true", help="do not run the oracle at the end")
+    args = parser.parse_args(argv)
+    if args.track.isdigit():
+        track = int(args.track)
+        if track >= 2**32:
+            parser.error(f"--track must be a seed in [0, 2**32) or a track file, got {args.track}")
+    else:
+        from racing.track_file import TrackFileError, load_track
+
+        try:
+            load_track(args.track)
+        except TrackFileError as err:
+            parser.error(f"--track: {err}")
+        track = args.track
+    if not 0 <= args.seed < 2**32 or args.max_steps < 1 or args.fps < 1:
+        parser.error("--seed must be in [0, 2**32), --max-steps and --fps at least 1")
+    ghost = None
+    if args.ghost is not None:
+        from engine import numerics
+
+        numerics.apply(numerics.DEFAULT)
+        from engine.benchmark import AgentError, load_agent
+
+        try:
+            ghost = load_agent(args.ghost)
+        except AgentError as err:
+            print(f"drive: {err}", file=sys.stderr)
+            return 2
+    try:
+        play(track, args.seed, ghost, args.max_steps, args.fps, oracle=not args.no_oracle)
+    except ImportError as err:
+        print(f"drive: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,210 @@
+"""The benchmark protocol: any agent scored on fixed tracks that nothing here was tuned on.
+
+Protocol (``docs/benchmark.md``): the ten generated tracks of ``TRACKS`` (drawn once from
+``numpy.random.SeedSequence(20261201)``; no configuration, tuning rule, test or result of this
+project names them), ``EPISODES`` = 5 episodes on each from the start states of seeds 0-4, the
+environment's defaults (200 steps, crash penalty 10), the agent's deterministic actions. An
+agent's score per track is its mean total reward; its benchmark score is the mean over the ten
+tracks, with a 95% percentile-bootstrap interval over tracks; its normalised score divides each
+track's score by the oracle's on that track (``analysis/data/oracle_benchmark.csv``, shipped),
+so 0 is a car that stands still and 1 the oracle.
+
+An agent is named by one string (``load_agent``):
+- a ``train.py`` run folder (its final deterministic policy, under the numerics it was trained in);
+- a Stable-Baselines3 ``model.zip`` (``predict(obs, deterministic=True)``);
+- ``module:function``: a Python callable ``observation (6 floats) -> [throttle, steering]``
+  (the module importable from the working directory);
+- ``oracle``, ``pure_pursuit``, ``ray_follower``: the project's reference drivers (the first
+  two see the simulator's true state and the track; the ray follower only the observation).
+"""
+
+from __future__ import annotations
+
+import csv
+import importlib
+import json
+import math
+import sys
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+TRACKS = (3011430478, 3667900085, 3988919934, 1407878595, 3364933968, 2100856258, 2610483764, 1931060112,
+          3123763360, 383847979)  # [int(s) for s in numpy.random.SeedSequence(20261201).generate_state(10)]
+EPISODES = 5
+ORACLE_SCORES = Path(__file__).resolve().parent.parent / "analysis" / "data" / "oracle_benchmark.csv"
+BUILTIN = ("oracle", "pure_pursuit", "ray_follower")
+
+
+class AgentError(ValueError):
+    """An agent specification that names nothing usable; the message says what was expected."""
+
+
+@dataclass
+class Agent:
+    """Something that drives: ``reset()`` at each episode's start, ``act(env, observation)`` each step
+    (``env``: the ``racing.RacingEnv``; privileged drivers read ``env.unwrapped.sim``)."""
+
+    name: str
+    act: Callable
+    reset: Callable = lambda: None
+    kind: str = "callable"
+
+
+def load_agent(spec: str) -> Agent:
+    """The agent a specification names (see the module docstring); ``AgentError`` otherwise."""
+    if spec in BUILTIN:
+        return _builtin(spec)
+    path = Path(spec)
+    if path.is_dir():
+        from engine.evaluation import RunFolderError, load_policy
+
+        try:
+            policy, _ = load_policy(path)
+        except RunFolderError as err:
+            raise AgentError(str(err)) from None
+        return Agent(str(path), lambda env, obs: policy(obs), kind="run folder")
+    if path.suffix == ".zip":
+        return _sb3(path)
+    if ":" in spec and not path.exists():
+        return _callable(spec)
+    raise AgentError(f"{spec!r} names no agent: give a train.py run folder, a Stable-Baselines3 model.zip, "
+                     f"module:function (a callable observation -> action), or one of {', '.join(BUILTIN)}")
+
+
+def _builtin(name: str) -> Agent:
+    if name == "ray_follower":
+        from racing.driver import ray_follower
+
+        return Agent(name, lambda env, obs: ray_follower(obs), kind="reference (observation only)")
+    if name == "pure_pursuit":
+        from racing.driver import PurePursuit
+
+        driver = PurePursuit()
+    else:
+        from racing.oracle import Oracle
+
+        driver = None  # built per environment (its config)
+    holder = {"driver": driver}
+
+    def act(env, obs):
+        if holder["driver"] is None:
+            holder["driver"] = Oracle(env.unwrapped.config)
+            holder["driver"].reset()
+        return holder["driver"].act(env.unwrapped.sim, 0)
+
+    def reset():
+        if holder["driver"] is not None:
+            holder["driver"].reset()
+
+    return Agent(name, act, reset, kind="reference (true state)")
+
+
+def _sb3(path: Path) -> Agent:
+    if not path.is_file():
+        raise AgentError(f"{path} does not exist (a Stable-Baselines3 model.zip was expected)")
+    try:
+        import stable_baselines3
+    except ImportError:
+        raise AgentError("scoring a model.zip needs Stable-Baselines3: pip install -c constraints/cpu.txt "
+                         "-e '.[baselines]'") from None
+    try:
+        with zipfile.ZipFile(path) as archive:
+            data = json.loads(archive.read("data"))
+        module = str((data.get("policy_class") or {}).get("__module__", ""))
+    except (zipfile.BadZipFile, KeyError, json.JSONDecodeError, OSError, AttributeError) as err:
+        raise AgentError(f"{path} is not a Stable-Baselines3 model.zip ({type(err).__name__})") from None
+    # The policy's module names the off-policy algorithms; the on-policy ones share theirs
+    algo = next((name for name in ("SAC", "TD3", "DDPG") if f".{name.lower()}." in module), None)
+    if algo is None and module.endswith("common.policies"):
+        algo = "PPO" if "clip_range" in data else "A2C" if "n_steps" in data else None
+    if algo is None:
+        raise AgentError(f"{path}: cannot tell which Stable-Baselines3 algorithm saved it (policy {module})")
+    model = getattr(stable_baselines3, algo).load(path, device="cpu")
+    return Agent(str(path), lambda env, obs: model.predict(obs, deterministic=True)[0], kind=f"Stable-Baselines3 {algo}")
+
+
+def _callable(spec: str) -> Agent:
+    module_name, _, attribute = spec.partition(":")
+    if "" not in sys.path and "." not in sys.path:
+        sys.path.insert(0, "")  # modules of the working directory, as `python -m` finds them
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as err:
+        raise AgentError(f"{spec}: cannot import module {module_name!r} ({err})") from None
+    function = getattr(module, attribute, None)
+    if not callable(function):
+        raise AgentError(f"{spec}: module {module_name!r} has no callable {attribute!r}")
+    return Agent(spec, lambda env, obs: function(obs))
+
+
+def run_episode(agent: Agent, env, seed: int, frames: list | None = None) -> float:
+    """One episode from the start state of ``seed``: its total reward (with ``frames``, every
+    rendered frame appended). The agent's action is checked as the environment checks any (a
+    clear error for a wrong shape or value)."""
+    obs, _ = env.reset(seed=seed)
+    agent.reset()
+    total, done = 0.0, False
+    if frames is not None:
+        frames.append(env.render())
+    while not done:
+        action = agent.act(env, obs)
+        obs, reward, terminated, truncated, _ = env.step(np.asarray(action, dtype=np.float64))
+        total += reward
+        done = terminated or truncated
+        if frames is not None:
+            frames.append(env.render())
+    return total
+
+
+def film(agent: Agent, track: int | str, path: Path, seed: int = 0, **options) -> tuple[int, float]:
+    """One episode of ``agent`` on a track (a seed or a track file) as a GIF or MP4, with the
+    progress and, on a circuit, the laps drawn; returns (frames, total reward)."""
+    from engine.evaluation import check_video_path, write_video
+    from racing.gym_env import RacingEnv
+
+    check_video_path(path)
+    where = {"track_file": track} if isinstance(track, str) else {"track_seed": track}
+    env = RacingEnv(render_mode="rgb_array", **where, **options)
+    frames: list = []
+    total = run_episode(agent, env, seed, frames)
+    env.close()
+    return write_video(frames, path), total
+
+
+def score(agent: Agent, tracks=TRACKS, episodes: int = EPISODES, first_seed: int = 0) -> dict[int, float]:
+    """{track: mean total reward over ``episodes`` episodes from start seeds ``first_seed``, ...}."""
+    from racing.gym_env import RacingEnv
+
+    if agent.name == "oracle":  # the planner's own protocol (racing.oracle.score): the shipped scores exactly
+        from racing import oracle
+
+        return {track: result["mean"] for track, result in oracle.score(list(tracks), episodes, first_seed).items()}
+    results = {}
+    for track in tracks:
+        env = RacingEnv(track_seed=track)
+        results[track] = math.fsum(run_episode(agent, env, first_seed + e) for e in range(episodes)) / episodes
+        env.close()
+    return results
+
+
+def read_oracle(path: Path = ORACLE_SCORES) -> dict[int, float]:
+    """{track: the oracle's mean total reward} for the benchmark tracks (shipped)."""
+    with open(path, newline="") as f:
+        return {int(row["track"]): float(row["mean_reward"]) for row in csv.DictReader(f)}
+
+
+def summarise(per_track: dict[int, float], oracle: dict[int, float]) -> dict:
+    """The benchmark score and the normalised score, each with its 95% interval over tracks."""
+    from analysis.compare import _interval
+
+    tracks = list(per_track)
+    raw = [per_track[t] for t in tracks]
+    normalised = [per_track[t] / oracle[t] for t in tracks if t in oracle]
+    summary = {"tracks": len(tracks), "mean": math.fsum(raw) / len(raw), "ci": _interval(raw)}
+    if len(normalised) == len(tracks):
+        summary.update(normalised=math.fsum(normalised) / len(normalised), normalised_ci=_interval(normalised))
+    return summary

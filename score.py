@@ -1,0 +1,144 @@
+"""Score any agent on the benchmark: ten fixed tracks nothing here was tuned on, five episodes
+each from the same start states (engine/benchmark.py; docs/benchmark.md):
+
+    python score.py AGENT [AGENT ...] [--table scores.csv] [--episodes 5]
+    python score.py AGENT --video agent.gif [--video-track SEED_OR_FILE] [--max-steps 400]
+
+AGENT is a train.py run folder, a Stable-Baselines3 ``model.zip``, ``module:function`` (a
+Python callable ``observation -> [throttle, steering]``, its module importable from here), or
+one of ``oracle``, ``pure_pursuit``, ``ray_follower``. For each it prints the benchmark score
+(the mean over tracks of the mean total reward per track) with its 95% interval over tracks, and
+the oracle-normalised score (each track's score over the oracle's, shipped in
+``analysis/data/oracle_benchmark.csv``) with its interval; ``--table`` writes every agent's
+per-track scores as CSV. ``--episodes`` other than 5 is not the protocol, and says so.
+``--video`` films one episode of each agent instead (progress, crashes and, on a circuit, laps
+drawn on the frames; the ``render`` extra), on the first benchmark track or ``--video-track``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from pathlib import Path
+
+from engine import numerics
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("agents", nargs="+", metavar="AGENT")
+    parser.add_argument("--episodes", type=int, default=None, help="episodes per track (the protocol: 5)")
+    parser.add_argument("--tracks", type=int, nargs="+", default=None,
+                        help="other track seeds (not the protocol: no oracle-normalised score unless shipped)")
+    parser.add_argument("--table", type=Path, default=None, help="write per-track scores to this CSV file")
+    parser.add_argument("--video", type=Path, default=None,
+                        help="film one episode of each agent instead of scoring (.gif or .mp4; one agent: this "
+                             "file; several: <stem>-<n><suffix>)")
+    parser.add_argument("--video-track", default=None,
+                        help="the track to film on: a seed or a track file (default: the first benchmark track)")
+    parser.add_argument("--max-steps", type=int, default=None, help="the film's episode length (default 200)")
+    parser.add_argument("--numerics", choices=numerics.MODES, default=None,
+                        help="the numerics to run run folders' policies in (default: the one they were trained in)")
+    args = parser.parse_args(argv)
+    if args.episodes is not None and args.episodes < 1:
+        parser.error(f"--episodes must be >= 1, got {args.episodes}")
+    if args.tracks is not None and any(not 0 <= t < 2**32 for t in args.tracks):
+        parser.error(f"--tracks must be track seeds in [0, 2**32), got {args.tracks}")
+    if args.video is not None and args.video.suffix.lower() not in (".gif", ".mp4"):
+        parser.error(f"--video must name a .gif or .mp4 file, got {str(args.video)!r}")
+    video_track = _track(parser, args.video_track)
+    if args.table is not None and args.table.is_dir():
+        parser.error(f"--table {args.table} is a folder; give a file name (e.g. {args.table / 'scores.csv'})")
+    folders = [Path(a) for a in args.agents if Path(a).is_dir()]
+    try:
+        mode = args.numerics or (_runs_numerics(folders) if folders else numerics.DEFAULT)
+        numerics.apply(mode)  # before torch loads
+    except (ValueError, numerics.NumericsError) as err:
+        print(f"score: {err}", file=sys.stderr)
+        return 2
+    from engine.benchmark import EPISODES, TRACKS, AgentError, load_agent, read_oracle, score, summarise
+
+    tracks = tuple(args.tracks) if args.tracks else TRACKS
+    episodes = args.episodes or EPISODES
+    try:
+        agents = [load_agent(spec) for spec in args.agents]  # every agent checked before any is scored
+    except AgentError as err:
+        print(f"score: {err}", file=sys.stderr)
+        return 2
+    if args.video is not None:
+        return _film(agents, args.video, video_track if video_track is not None else TRACKS[0], args.max_steps)
+    if (tracks, episodes) != (TRACKS, EPISODES):
+        print(f"note: {len(tracks)} tracks x {episodes} episodes is not the benchmark's protocol "
+              f"({len(TRACKS)} x {EPISODES}); the scores are not comparable with docs/benchmark.md")
+    oracle = read_oracle()
+    rows = []
+    for agent in agents:
+        try:
+            per_track = score(agent, tracks, episodes)
+        except (ValueError, TypeError) as err:  # e.g. a callable returning a wrong action
+            print(f"score: {agent.name}: {err}", file=sys.stderr)
+            return 2
+        summary = summarise(per_track, oracle)
+        low, high = summary["ci"]
+        line = (f"{agent.name} ({agent.kind}): score {summary['mean']:.1f} [{low:.1f}, {high:.1f}] over "
+                f"{summary['tracks']} tracks x {episodes} episodes")
+        if "normalised" in summary:
+            n_low, n_high = summary["normalised_ci"]
+            line += f"; oracle-normalised {summary['normalised']:.3f} [{n_low:.3f}, {n_high:.3f}]"
+        print(line)
+        rows += [{"agent": agent.name, "kind": agent.kind, "track": track, "episodes": episodes,
+                  "mean_reward": round(value, 6), "oracle": oracle.get(track, ""),
+                  "normalised": round(value / oracle[track], 6) if track in oracle else ""}
+                 for track, value in per_track.items()]
+    if args.table is not None:
+        args.table.parent.mkdir(parents=True, exist_ok=True)
+        with open(args.table, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+        print(f"wrote {args.table} ({len(rows)} rows)")
+    return 0
+
+
+def _track(parser, text: str | None) -> int | str | None:
+    """--video-track: a seed, or the path of a track file (checked now)."""
+    if text is None:
+        return None
+    if text.isdigit():
+        seed = int(text)
+        if seed >= 2**32:
+            parser.error(f"--video-track must be a seed in [0, 2**32) or a track file, got {text}")
+        return seed
+    from racing.track_file import TrackFileError, load_track
+
+    try:
+        load_track(text)
+    except TrackFileError as err:
+        parser.error(f"--video-track: {err}")
+    return text
+
+
+def _film(agents, path: Path, track, max_steps: int | None) -> int:
+    from engine.benchmark import film
+
+    options = {} if max_steps is None else {"max_steps": max_steps}
+    for n, agent in enumerate(agents):
+        out = path if len(agents) == 1 else path.with_name(f"{path.stem}-{n}{path.suffix}")
+        try:
+            frames, total = film(agent, track, out, **options)
+        except (RuntimeError, ValueError, TypeError) as err:
+            print(f"score: {agent.name}: {err}", file=sys.stderr)
+            return 2
+        print(f"wrote {out}: {agent.name} on track {track}, {frames} frames, total reward {total:.1f}")
+    return 0
+
+
+def _runs_numerics(folders: list[Path]) -> str:
+    from evaluate import runs_numerics
+
+    return runs_numerics(folders)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

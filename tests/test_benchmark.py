@@ -1,0 +1,165 @@
+"""The benchmark protocol and its commands (engine/benchmark.py, score.py, drive.py): fixed unseen
+tracks, every kind of agent, videos of any agent, and driving it yourself (headless)."""
+
+from __future__ import annotations
+
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from engine.benchmark import TRACKS, AgentError, load_agent, read_oracle, score, summarise
+from racing.track_file import example
+from tests.test_readme import readme_commands
+from tests.test_train import ENV, ROOT
+
+
+def test_the_benchmark_tracks_are_drawn_as_stated_and_named_nowhere_else():
+    assert list(TRACKS) == [int(s) for s in np.random.SeedSequence(20261201).generate_state(10)]
+    assert set(read_oracle()) == set(TRACKS)  # the oracle's scores ship for every one
+    pages = [p for folder in ("conf", "docs", "analysis", "tests", "learners", "engine", "racing")
+             for p in (ROOT / folder).rglob("*") if p.suffix in (".yaml", ".md", ".csv", ".py")]
+    allowed = {ROOT / "engine" / "benchmark.py", ROOT / "analysis" / "data" / "oracle_benchmark.csv",
+               ROOT / "docs" / "benchmark.md", Path(__file__)}
+    for path in pages:
+        if path in allowed:
+            continue
+        text = path.read_text(errors="replace")
+        named = [t for t in TRACKS if re.search(rf"\b{t}\b", text)]
+        assert not named, f"{path} names benchmark tracks {named}: they must stay unseen by every default and test"
+
+
+def test_every_kind_of_agent_loads_and_bad_ones_are_refused_clearly(tmp_path, monkeypatch):
+    (tmp_path / "my_driver.py").write_text("def drive(observation):\n    return [1.0, 0.0]\n"
+                                           "def broken(observation):\n    return [1.0]\n")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert load_agent("my_driver:drive").kind == "callable"
+    assert load_agent("ray_follower").kind == "reference (observation only)"
+    assert load_agent("pure_pursuit").kind == "reference (true state)"
+    with pytest.raises(AgentError, match="cannot import module 'no_such_module'"):
+        load_agent("no_such_module:drive")
+    with pytest.raises(AgentError, match="has no callable 'missing'"):
+        load_agent("my_driver:missing")
+    with pytest.raises(AgentError, match="names no agent: give a train.py run folder"):
+        load_agent("nothing")
+    with pytest.raises(AgentError, match="holds no finished run"):
+        load_agent(str(tmp_path))
+    (tmp_path / "model.zip").write_bytes(b"not a zip")
+    with pytest.raises(AgentError, match="is not a Stable-Baselines3 model.zip"):
+        load_agent("model.zip")
+    with pytest.raises(ValueError, match=r"action has shape \(1,\), expected \(2,\)"):
+        score(load_agent("my_driver:broken"), TRACKS[:1], 1)
+
+
+def test_a_stable_baselines3_model_zip_is_scored(tmp_path):
+    import gymnasium as gym
+    from stable_baselines3 import PPO, SAC
+
+    import racing  # noqa: F401 (registers the environment)
+
+    for kind in (SAC, PPO):
+        model = kind("MlpPolicy", gym.make("racing/Racing-v0", track_seed=1), device="cpu", seed=0)
+        model.save(tmp_path / f"{kind.__name__}.zip")
+        agent = load_agent(str(tmp_path / f"{kind.__name__}.zip"))
+        assert agent.kind == f"Stable-Baselines3 {kind.__name__}"
+        assert np.isfinite(score(agent, TRACKS[:1], 1)[TRACKS[0]])
+
+
+def test_score_py_prints_raw_and_normalised_scores_with_intervals(tmp_path):
+    table = tmp_path / "scores.csv"
+    result = subprocess.run([sys.executable, "score.py", "ray_follower", "racing.driver:ray_follower", "--episodes",
+                             "1", "--tracks", *map(str, TRACKS[:3]), "--table", str(table)], cwd=ROOT, env=ENV,
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    lines = result.stdout.splitlines()
+    assert lines[0].startswith("note: 3 tracks x 1 episodes is not the benchmark's protocol (10 x 5)")
+    pattern = r"ray_follower \(.*\): score [\d.]+ \[[\d.]+, [\d.]+\] over 3 tracks x 1 episodes; " \
+              r"oracle-normalised 0\.\d{3} \[0\.\d{3}, [01]\.\d{3}\]"
+    assert re.match(pattern, lines[1]) and re.match("racing.driver:" + pattern, lines[2])
+    assert lines[1].split(": score")[1] == lines[2].split(": score")[1]  # the same driver, the same numbers
+    rows = table.read_text().splitlines()
+    assert rows[0] == "agent,kind,track,episodes,mean_reward,oracle,normalised" and len(rows) == 7
+    per_track = {TRACKS[i]: float(rows[1 + i].split(",")[4]) for i in range(3)}
+    summary = summarise(per_track, read_oracle())
+    assert f"score {summary['mean']:.1f}" in lines[1]
+    bad = subprocess.run([sys.executable, "score.py", "ray_follower", "--tracks", "-1"], cwd=ROOT, env=ENV,
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "--tracks must be track seeds" in bad.stderr
+
+
+def test_any_agent_is_filmed_on_a_seed_or_a_file_track(tmp_path):
+    result = subprocess.run([sys.executable, "score.py", "pure_pursuit", "racing.driver:ray_follower", "--video",
+                             str(tmp_path / "drive.gif"), "--video-track", str(example("oval")), "--max-steps", "12"],
+                            cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "wrote " + str(tmp_path / "drive-0.gif") + ": pure_pursuit on track" in result.stdout
+    import imageio.v2 as imageio
+
+    for n in (0, 1):
+        frames = imageio.mimread(tmp_path / f"drive-{n}.gif")
+        assert len(frames) == 13 and frames[0].shape[:2] == (600, 600)
+
+
+def test_a_run_trained_on_a_file_track_is_filmed_and_scored(tmp_path):
+    from engine.config import RunConfig
+    from engine.runner import train_population
+
+    overrides = ["env.track=file", f"env.track_file={example('kidney')}", "episodes=2", "progress=false",
+                 "logger=none", "algo=spg", "er=recent", "algo.minibatch_size=50", "env.options.max_steps=50"]
+    settings = RunConfig.compose_mapping(*overrides)
+    train_population(RunConfig.from_mapping(settings), tmp_path / "run", settings)
+    video = subprocess.run([sys.executable, "evaluate.py", str(tmp_path / "run"), "--episodes", "1", "--video",
+                            str(tmp_path / "run.gif")], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=300)
+    assert video.returncode == 0, video.stderr[-2000:]
+    assert f"track {example('kidney')}: mean total reward" in video.stdout and "(51 frames)" in video.stdout
+    agent = load_agent(str(tmp_path / "run"))
+    assert agent.kind == "run folder" and np.isfinite(score(agent, TRACKS[:1], 1)[TRACKS[0]])
+
+
+def test_driving_yourself_headless_with_scripted_keys(monkeypatch, capsys):
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    import drive
+
+    assert drive.action_of({"up", "left"}) == [1.0, 1.0] and drive.action_of({"down", "right"}) == [-1.0, -1.0]
+    assert drive.action_of(set()) == [0.0, 0.0]
+    still = drive.play(str(example("oval")), max_steps=30, fps=10000, oracle=False, script={})
+    totals = drive.play(str(example("oval")), ghost=load_agent("ray_follower"), max_steps=30, fps=10000,
+                        oracle=True, script={0: [("up", True)], 20: [("up", False), ("down", True)]})
+    assert totals["you"] > still["you"] > 0  # full throttle beats holding a target of half speed
+    assert totals["ghost"] > 0 and totals["oracle"] > 0
+    assert f"you: {totals['you']:.1f}; ghost (ray_follower): {totals['ghost']:.1f}; oracle:" in capsys.readouterr().out
+
+
+def test_the_documented_benchmark_commands_run(tmp_path):
+    """Every python score.py / drive.py line of the README and docs/, at a tiny size."""
+    score_lines, drive_lines = readme_commands("score.py"), readme_commands("drive.py")
+    assert score_lines and drive_lines
+    for args in score_lines:
+        args = _tiny_paths(args, tmp_path)
+        if "--video" in args:
+            args += ["--max-steps", "5"]
+        elif not any(a == "--tracks" for a in args):
+            args += ["--episodes", "1", "--tracks", str(TRACKS[0])]
+        result = subprocess.run([sys.executable, "score.py", *args], cwd=ROOT, env=ENV, capture_output=True,
+                                text=True, timeout=600)
+        assert result.returncode == 0, (shlex.join(args), result.stderr[-2000:])
+    for args in drive_lines:
+        args = [a for a in args if a != "--no-oracle"] + ["--fps", "10000", "--max-steps", "5", "--no-oracle"]
+        result = subprocess.run([sys.executable, "drive.py", *args], cwd=ROOT, env={**ENV, "SDL_VIDEODRIVER": "dummy"},
+                                capture_output=True, text=True, timeout=300)
+        assert result.returncode == 0, (shlex.join(args), result.stderr[-2000:])
+        assert result.stdout.startswith("you: ")
+
+
+def _tiny_paths(args: list[str], tmp_path: Path) -> list[str]:
+    args = list(args)
+    for option in ("--table", "--video"):
+        if option in args:
+            i = args.index(option)
+            args[i + 1] = str(tmp_path / Path(args[i + 1]).name)
+    return args
