@@ -163,3 +163,31 @@ def _tiny_paths(args: list[str], tmp_path: Path) -> list[str]:
             i = args.index(option)
             args[i + 1] = str(tmp_path / Path(args[i + 1]).name)
     return args
+
+
+def test_the_leaderboard_scores_every_run_of_a_sweep_beside_the_references(tmp_path, capsys):
+    """python -m analysis.leaderboard on a tiny sweep: one agent per cell, its runs and tracks
+    resampled for the interval; a diverged run is left out and named."""
+    from analysis import leaderboard
+    from engine.config import RunConfig
+    from engine.runner import train_population
+
+    for overrides in (["algo=spg", "er=recent", "seeds=[1,2]"], ["algo=ppo_log", "er=recent", "seed=3",
+                                                                 "algo.critic_lr=1e30"]):
+        settings = RunConfig.compose_mapping(*overrides, "env.track=random", "episodes=2", "progress=false",
+                                             "logger=none", "algo.minibatch_size=50")
+        name = overrides[0].split("=")[1]
+        train_population(RunConfig.from_mapping(settings), tmp_path / "sweep" / name, settings)
+    assert leaderboard.main([str(tmp_path / "sweep"), "--out", str(tmp_path / "board")]) == 0
+    out, err = capsys.readouterr()
+    board = (tmp_path / "board" / "leaderboard.md").read_text()
+    assert board.splitlines()[0] == "| agent | runs | score [95% interval] | oracle-normalised [95% interval] |"
+    assert "| SPG, recent | 2 |" in board and "| reference: oracle | 1 | 165.9 [" in board
+    assert "| reference: ray follower | 1 | 133.4 [125.6, 141.8] | 0.803 [0.77" in board  # score.py's numbers
+    assert "skipped" in err and "ppo_log" in err  # the diverged run has no policy
+    assert len((tmp_path / "board" / "runs.csv").read_text().splitlines()) == 1 + 10 * 4
+    preset = RunConfig.compose("+experiment=benchmark", "+cell=memory-sac")  # the leaderboard's sweep
+    assert preset.env.track == "random" and preset.seeds == (1, 2, 3) and preset.algo.name == "sac"
+    scores = np.array([[1.0, 2.0], [3.0, 4.0]])
+    mean, low, high = leaderboard.interval(scores)
+    assert mean == 2.5 and 1.0 <= low < mean < high <= 4.0
