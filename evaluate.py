@@ -5,6 +5,8 @@
 
     python evaluate.py --oracle --tracks 2067791 773203 [--episodes 5] [--table oracle.csv]
 
+    python evaluate.py AGENT --video agent.gif [--tracks 2067791 | --track-file racing/tracks/oval.csv]
+
 A RUN_DIR is a finished train.py run folder (summary.json and actor.pt); any other folder
 stands for every finished run inside it (a sweep, a population). Policies act without
 exploration noise (the Gaussian's mean; SAC: tanh of it; TD3: its actor). Each run is evaluated
@@ -12,6 +14,10 @@ on its own track and on ``--tracks``; the table (printed, and written as CSV wit
 has one row per run and track. ``--video`` films one episode of the first run on the first
 track as a GIF or MP4 (needs the ``render`` extra). Policies run under the numerics mode their runs
 were trained in (``--numerics`` to choose another; ``engine/numerics.py``).
+
+An AGENT that is not a run folder (``oracle``, ``pure_pursuit``, ``ray_follower``, a
+Stable-Baselines3 ``model.zip`` or ``module:function``; ``score.py`` scores them) is filmed with
+``--video``, on the first of ``--tracks`` (default: the first benchmark track) or on a track file.
 
 ``--oracle`` scores the planning controller ``racing.oracle.Oracle`` (it sees the simulator's
 true state: a ceiling per track, not a policy) on ``--tracks`` with the same protocol;
@@ -68,6 +74,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="seed of the first start state")
     parser.add_argument("--table", type=Path, default=None, help="write the table to this CSV file")
     parser.add_argument("--video", type=Path, default=None, help="film the first run on the first track (.gif/.mp4)")
+    parser.add_argument("--track-file", default=None,
+                        help="with --video and an agent (not a run folder): film it on this track file")
     parser.add_argument("--numerics", choices=numerics.MODES, default=None,
                         help="the numerics mode to evaluate in (default: the one the runs were trained in)")
     oracle = parser.add_argument_group("the oracle (a planning controller with the true state)")
@@ -94,6 +102,9 @@ def main(argv: list[str] | None = None) -> int:
         return _oracle(args)
     if not args.paths:
         parser.error("give run or sweep folders to evaluate (or --oracle --tracks ...)")
+    agents = [p for p in args.paths if not p.is_dir()]
+    if agents and args.video is not None and len(agents) == len(args.paths) == 1:
+        return _film_agent(str(agents[0]), args)  # any agent filmed: the oracle, a driver, a model.zip, ...
     try:
         runs = find_runs(args.paths)
         numerics.apply(args.numerics or runs_numerics(runs))  # before torch loads
@@ -135,6 +146,24 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         print(f"wrote {args.video} ({frames} frames)")
     return 0 if rows else 2
+
+
+def _film_agent(spec: str, args) -> int:
+    """``--video`` of an agent that is not a run folder (``score.py``'s kinds: ``oracle``,
+    ``pure_pursuit``, ``ray_follower``, a Stable-Baselines3 ``model.zip``, ``module:function``) on
+    the first of ``--tracks`` (default: the first benchmark track) or on ``--track-file``."""
+    numerics.apply(args.numerics or numerics.DEFAULT)
+    from engine.benchmark import TRACKS, AgentError, film, load_agent
+
+    try:
+        agent = load_agent(spec)
+        track = args.track_file if args.track_file is not None else (args.tracks or [TRACKS[0]])[0]
+        frames, total = film(agent, track, args.video, args.seed)
+    except (AgentError, RuntimeError, ValueError, TypeError) as err:
+        print(f"evaluate: {err}", file=sys.stderr)
+        return 2
+    print(f"track {track}: {agent.name} drove to a total reward of {total:.1f}; wrote {args.video} ({frames} frames)")
+    return 0
 
 
 def _oracle(args) -> int:

@@ -103,6 +103,15 @@ def test_any_agent_is_filmed_on_a_seed_or_a_file_track(tmp_path):
     for n in (0, 1):
         frames = imageio.mimread(tmp_path / f"drive-{n}.gif")
         assert len(frames) == 13 and frames[0].shape[:2] == (600, 600)
+    same = subprocess.run([sys.executable, "evaluate.py", "racing.driver:ray_follower", "--video",
+                           str(tmp_path / "follower.mp4"), "--track-file", str(example("kidney"))], cwd=ROOT, env=ENV,
+                          capture_output=True, text=True, timeout=300)  # evaluate.py films any agent too
+    assert same.returncode == 0, same.stderr[-2000:]
+    assert f"wrote {tmp_path / 'follower.mp4'} (201 frames)" in same.stdout
+    from engine.benchmark import film
+
+    frames, total = film(load_agent("oracle"), TRACKS[0], tmp_path / "oracle.gif", max_steps=6)
+    assert frames == 7 and total > 0
 
 
 def test_a_run_trained_on_a_file_track_is_filmed_and_scored(tmp_path):
