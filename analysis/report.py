@@ -9,7 +9,6 @@ the reason, never counted.
 from __future__ import annotations
 
 import csv
-import json
 import math
 import statistics
 from dataclasses import dataclass, field

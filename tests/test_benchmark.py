@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import re
 import shlex
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +13,7 @@ import pytest
 from engine.benchmark import TRACKS, AgentError, load_agent, read_oracle, score, summarise
 from racing.track_file import example
 from tests.test_readme import readme_commands
-from tests.test_train import ENV, ROOT
+from tests.test_train import ROOT
 
 
 def test_the_benchmark_tracks_are_drawn_as_stated_and_named_nowhere_else():

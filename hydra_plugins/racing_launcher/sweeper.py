@@ -80,7 +80,6 @@ def check_jobs(loader, master, jobs: list[list[str]]) -> list[str]:
     """One line per problem of the sweep's jobs (see the module's docstring); none if all can run."""
     from engine import rundir
     from engine.config import ConfigError, RunConfig, config_mapping, register_resolvers
-    from engine.outputs import RunFolderError
 
     register_resolvers()
     sweep_dir = Path(str(master.hydra.sweep.dir))
