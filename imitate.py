@@ -1,0 +1,102 @@
+"""The reactive ceiling (docs/beyond.md): an actor network that sees only the observation, taught
+by the oracle itself with DAgger (engine/imitation.py), scored with the usual protocol:
+
+    python imitate.py --tracks 1001 1002 1003 [--hidden 100] [--rounds 4] [--episodes 5]
+                      [--processes 2] [--table ceiling.csv]
+
+Per track it prints the network's score after each round (five deterministic episodes from
+start seeds 0-4, mean total reward), the oracle's score on the track (``analysis/data/oracle.csv``
+where it has the track, else scored here with the same protocol) and the final score's fraction
+of it; then the mean fraction over the tracks with its 95% bootstrap interval over tracks.
+``--hidden 256 256`` gives a wider network. One track per process with ``--processes``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+from engine import numerics
+
+
+def _one(args: tuple):
+    track, settings = args
+    from engine.processes import exit_with_parent
+
+    exit_with_parent()
+    numerics.apply(numerics.DEFAULT)
+    import torch
+
+    from engine.imitation import dagger
+
+    torch.set_num_threads(1)
+    return dagger(track, settings)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--tracks", type=int, nargs="+", required=True)
+    parser.add_argument("--hidden", type=int, nargs="+", default=[100], help="hidden layer sizes (the paper's: 100)")
+    parser.add_argument("--rounds", type=int, default=4, help="DAgger rounds after the oracle's own episodes")
+    parser.add_argument("--episodes", type=int, default=5, help="data episodes per round and track")
+    parser.add_argument("--epochs", type=int, default=300, help="passes over the data per refit")
+    parser.add_argument("--processes", type=int, default=1)
+    parser.add_argument("--table", type=Path, default=None)
+    args = parser.parse_args(argv)
+    if any(not 0 <= t < 2**32 for t in args.tracks):
+        parser.error(f"--tracks must be track seeds in [0, 2**32), got {args.tracks}")
+    if args.processes < 1:
+        parser.error(f"--processes must be at least 1, got {args.processes}")
+    numerics.apply(numerics.DEFAULT)
+    from analysis.report import read_oracle
+    from engine.imitation import DaggerSettings, mean
+    from engine.processes import spawn_context
+
+    try:
+        settings = DaggerSettings(rounds=args.rounds, episodes=args.episodes, hidden=tuple(args.hidden),
+                                  epochs=args.epochs)
+    except ValueError as err:
+        parser.error(str(err))
+    work = [(track, settings) for track in args.tracks]
+    if args.processes == 1:
+        results = [_one(item) for item in work]
+    else:
+        with ProcessPoolExecutor(min(args.processes, len(work)), mp_context=spawn_context()) as pool:
+            results = list(pool.map(_one, work))
+    oracle = read_oracle()
+    missing = [t for t in args.tracks if t not in oracle]
+    if missing:
+        from racing.oracle import score
+
+        oracle.update({t: r["mean"] for t, r in score(missing, 5).items()})
+    rows, fractions = [], []
+    for result in results:
+        ceiling = oracle[result.track]
+        fraction = result.scores[-1] / ceiling
+        fractions.append(fraction)
+        print(f"track {result.track}: " + ", ".join(f"round {k} {s:.1f}" for k, s in enumerate(result.scores))
+              + f"; oracle {ceiling:.1f}; final {fraction:.3f} of the oracle ({result.samples[-1]} labels, "
+              f"{result.seconds:.0f} s)")
+        rows += [{"track": result.track, "hidden": " ".join(map(str, settings.hidden)), "round": k, "score": round(s, 6),
+                  "labels": n, "oracle": round(ceiling, 6), "fraction": round(s / ceiling, 6)}
+                 for k, (s, n) in enumerate(zip(result.scores, result.samples))]
+    from analysis.compare import _interval
+
+    low, high = _interval(fractions)
+    print(f"hidden {list(settings.hidden)}: {mean(fractions):.3f} of the oracle [{low:.3f}, {high:.3f}] over "
+          f"{len(fractions)} tracks")
+    if args.table is not None:
+        args.table.parent.mkdir(parents=True, exist_ok=True)
+        with open(args.table, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+        print(f"wrote {args.table} ({len(rows)} rows)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
