@@ -27,7 +27,6 @@ true state: a ceiling per track, not a policy) on ``--tracks`` with the same pro
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import sys
 from pathlib import Path
@@ -196,12 +195,9 @@ def _oracle(args) -> int:
 
 
 def _write_table(path: Path, rows: list[dict]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    print(f"wrote {path} ({len(rows)} rows)")
+    from engine.outputs import write_table
+
+    write_table(path, rows)
 
 
 def _print(rows: list[dict], several: bool) -> None:

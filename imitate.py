@@ -14,7 +14,6 @@ of it; then the mean fraction over the tracks with its 95% bootstrap interval ov
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -89,12 +88,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"hidden {list(settings.hidden)}: {mean(fractions):.3f} of the oracle [{low:.3f}, {high:.3f}] over "
           f"{len(fractions)} tracks")
     if args.table is not None:
-        args.table.parent.mkdir(parents=True, exist_ok=True)
-        with open(args.table, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
-        print(f"wrote {args.table} ({len(rows)} rows)")
+        from engine.outputs import write_table
+
+        write_table(args.table, rows)
     return 0
 
 

@@ -18,7 +18,6 @@ drawn on the frames; the ``render`` extra), on the first benchmark track or ``--
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 from pathlib import Path
 
@@ -92,12 +91,9 @@ def main(argv: list[str] | None = None) -> int:
                   "normalised": round(value / oracle[track], 6) if track in oracle else ""}
                  for track, value in per_track.items()]
     if args.table is not None:
-        args.table.parent.mkdir(parents=True, exist_ok=True)
-        with open(args.table, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
-        print(f"wrote {args.table} ({len(rows)} rows)")
+        from engine.outputs import write_table
+
+        write_table(args.table, rows)
     return 0
 
 

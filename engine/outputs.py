@@ -142,6 +142,18 @@ def make_torchrl_logger(kind: str, out_dir: Path):
     return get_logger(kind, logger_name=str(out_dir), experiment_name="logs")
 
 
+def write_table(path: Path, rows: list[dict]) -> None:
+    """Rows (dicts with the same keys) as a CSV file, its header the first row's keys; prints where."""
+    path = Path(path)
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=list(rows[0]))
+    writer.writeheader()
+    writer.writerows(rows)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(path, text.getvalue().encode())
+    print(f"wrote {path} ({len(rows)} rows)")
+
+
 def write_atomic(path: Path, data: bytes) -> None:
     """Replace ``path`` with ``data`` so that a crash at any byte leaves the old file or the new one:
     a temporary file beside it, flushed to the disk, renamed over it. A full disk raises ``DiskFull``
