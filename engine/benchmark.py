@@ -30,7 +30,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 
 TRACKS = (3011430478, 3667900085, 3988919934, 1407878595, 3364933968, 2100856258, 2610483764, 1931060112,
           3123763360, 383847979)  # [int(s) for s in numpy.random.SeedSequence(20261201).generate_state(10)]
@@ -142,22 +141,11 @@ def _callable(spec: str) -> Agent:
 
 
 def run_episode(agent: Agent, env, seed: int, frames: list | None = None) -> float:
-    """One episode from the start state of ``seed``: its total reward (with ``frames``, every
-    rendered frame appended). The agent's action is checked as the environment checks any (a
-    clear error for a wrong shape or value)."""
-    obs, _ = env.reset(seed=seed)
-    agent.reset()
-    total, done = 0.0, False
-    if frames is not None:
-        frames.append(env.render())
-    while not done:
-        action = agent.act(env, obs)
-        obs, reward, terminated, truncated, _ = env.step(np.asarray(action, dtype=np.float64))
-        total += reward
-        done = terminated or truncated
-        if frames is not None:
-            frames.append(env.render())
-    return total
+    """One episode of ``agent`` from the start state of ``seed``: its total reward
+    (``engine.evaluation.drive_episode``)."""
+    from engine.evaluation import drive_episode
+
+    return drive_episode(agent.act, env, seed, frames, agent.reset)
 
 
 def film(agent: Agent, track: int | str, path: Path, seed: int = 0, **options) -> tuple[int, float]:

@@ -112,16 +112,23 @@ def make_env(settings: dict, track: int | str, render_mode: str | None = None) -
 
 
 def run_episode(net: Policy, env: RacingEnv, seed: int, frames: list | None = None) -> float:
-    """One deterministic episode from the start state of ``seed``; its total reward.
+    """One deterministic episode of a trained policy from the start state of ``seed``; its total
+    reward (with ``frames``, every rendered frame, the start included, appended to it)."""
+    return drive_episode(lambda _env, obs: deterministic_action(net, obs), env, seed, frames)
 
-    With ``frames``, every rendered frame (the start included) is appended to it.
-    """
+
+def drive_episode(act, env: RacingEnv, seed: int, frames: list | None = None, reset=None) -> float:
+    """One episode driven by ``act(env, observation) -> action`` from the start state of ``seed``
+    (``reset()``, if given, called once the car is at the start); its total reward. The action is
+    checked as the environment checks any; ``frames`` as for ``run_episode``."""
     obs, _ = env.reset(seed=seed)
+    if reset is not None:
+        reset()
     if frames is not None:
         frames.append(env.render())
     total, done = 0.0, False
     while not done:
-        obs, reward, terminated, truncated, _ = env.step(deterministic_action(net, obs))
+        obs, reward, terminated, truncated, _ = env.step(act(env, obs))
         total += reward
         done = terminated or truncated
         if frames is not None:

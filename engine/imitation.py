@@ -50,18 +50,6 @@ class DaggerResult:
     seconds: float = 0.0
 
 
-class ActorPolicy:
-    """The network's deterministic action for one observation (numpy in, numpy out)."""
-
-    def __init__(self, net):
-        self.net = net
-
-    @torch.no_grad()
-    def __call__(self, observation: np.ndarray) -> np.ndarray:
-        loc, _ = self.net(torch.as_tensor(observation, dtype=torch.float32).unsqueeze(0))
-        return loc.clamp(-1.0, 1.0)[0].numpy()
-
-
 def fit(observations: np.ndarray, actions: np.ndarray, settings: DaggerSettings, obs_size: int):
     """A fresh network regressed onto the data (its mean head onto the actions)."""
     from learners.solo import GaussianPolicyNet
@@ -87,6 +75,7 @@ def fit(observations: np.ndarray, actions: np.ndarray, settings: DaggerSettings,
 def dagger(track: int, settings: DaggerSettings = DaggerSettings(), oracle_settings=None) -> DaggerResult:
     """DAgger on one track (see the module docstring); the scores are the protocol's."""
     from engine.benchmark import Agent, score
+    from engine.evaluation import Policy
     from racing.gym_env import RacingEnv
     from racing.oracle import Oracle, OracleSettings
 
@@ -109,7 +98,7 @@ def dagger(track: int, settings: DaggerSettings = DaggerSettings(), oracle_setti
                 drive = label if policy is None else policy(obs)  # round 0: the oracle drives
                 obs, _, terminated, truncated, _ = env.step(drive)
                 done = terminated or truncated
-        policy = ActorPolicy(fit(np.array(observations), np.array(actions), settings, env.config.obs_size))
+        policy = Policy(fit(np.array(observations), np.array(actions), settings, env.config.obs_size), "paper")
         agent = Agent(f"dagger round {round_}", lambda _env, o, p=policy: p(o))
         result.scores.append(score(agent, (track,))[track])
         result.samples.append(len(observations))
