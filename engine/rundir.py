@@ -56,6 +56,21 @@ class FolderState:
                 "pass overwrite=true to clear the folder and start afresh")
 
 
+def refusal(found: FolderState, settings: dict | None, solo: bool = True) -> str | None:
+    """Why a new run of ``settings`` may not start in ``found``'s folder without ``overwrite=true``
+    (None: it may; a finished run of these very settings is skipped, not refused). ``solo=False``:
+    the folder is a population member's, where a solo run's checkpoint is another run."""
+    if found.kind == "finished" and found.summary.get("settings") != settings:
+        return (f"{found.folder} holds a finished run of a different configuration; choose another folder "
+                "(hydra.run.dir=..., or hydra.sweep.dir=... for a sweep) or pass overwrite=true to replace it")
+    if found.kind == "damaged":
+        return found.refusal()
+    if found.kind == "resumable" and not solo:
+        return (f"{found.folder} holds the checkpoint of a solo run of its seed; resume it with that run's "
+                "command, or pass overwrite=true to start this population afresh")
+    return None
+
+
 def checkpoints(folder: Path) -> list[Path]:
     """The checkpoints in a folder: ``checkpoint.pt`` and those of a split population's parts."""
     return sorted(p for p in Path(folder).glob("checkpoint*.pt") if p.is_file())

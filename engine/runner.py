@@ -65,21 +65,13 @@ def finished_run(folder: Path, settings: dict | None, overwrite: bool = False, s
     unless ``overwrite``: then the folder is cleared, its summary first. An empty folder is
     started afresh."""
     found = rundir.state(folder)
-    if found.kind == "finished":
-        if found.summary.get("settings") == settings:
-            return found.summary
-        if not overwrite:
-            raise ConfigError(f"{folder} holds a finished run of a different configuration; choose another "
-                              "folder (hydra.run.dir=...) or pass overwrite=true to replace it")
-    elif found.kind == "damaged":
-        if not overwrite:
-            raise ConfigError(found.refusal())
-    elif found.kind == "resumable" and not solo:
-        if not overwrite:
-            raise ConfigError(f"{folder} holds the checkpoint of a solo run of its seed; resume it with that run's "
-                              "command, or pass overwrite=true to start this population afresh")
-    else:
+    if found.kind == "finished" and found.summary.get("settings") == settings:
+        return found.summary
+    problem = rundir.refusal(found, settings, solo)
+    if problem is None:  # empty, or a solo run's own checkpoint (which _resumed_parts continues)
         return None
+    if not overwrite:
+        raise ConfigError(problem)
     rundir.clear(folder)
     return None
 
@@ -128,11 +120,11 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
     out_dir = Path(out_dir)
     folders = [out_dir, *(member_folder(cfg, out_dir, s) for s in cfg.members)]
     with rundir.lock(folders), StopSignals() as stop:  # refused at once if another process has a folder
-        return _train_locked(cfg, out_dir, settings, skipped, on_start, compiled, stop)
+        return _train_locked(cfg, out_dir, folders, settings, skipped, on_start, compiled, stop)
 
 
-def _train_locked(cfg: RunConfig, out_dir: Path, settings: dict | None, skipped: list | None, on_start,
-                  compiled: dict, stop: StopSignals) -> list[dict]:
+def _train_locked(cfg: RunConfig, out_dir: Path, folders: list[Path], settings: dict | None, skipped: list | None,
+                  on_start, compiled: dict, stop: StopSignals) -> list[dict]:
     start = time.perf_counter()
     torch.set_num_threads(cfg.threads)
     settings = run_settings(settings) if settings is not None else None
@@ -141,7 +133,7 @@ def _train_locked(cfg: RunConfig, out_dir: Path, settings: dict | None, skipped:
     if cfg.overwrite:  # start afresh: no checkpoint is continued
         for path in checkpoint.in_folder(out_dir):
             path.unlink()
-    for folder in {out_dir, *(member_folder(cfg, out_dir, s) for s in cfg.members)}:
+    for folder in folders:
         rundir.remove_temporaries(folder)  # a killed writer's; never a finished file
     parts = _resumed_parts(out_dir, settings)  # each continues as the population it was
     resumed = {seed for _, seeds, _ in parts for seed in seeds}

@@ -127,14 +127,11 @@ def _folder_problem(rundir, RunConfig, run_cfg, settings: dict, folder: Path, me
 
     training = RunConfig.run_settings(settings)
     for seed, path in members.items():
-        found = rundir.state(path)
         if run_cfg.overwrite:
             break
-        if found.kind == "damaged":
-            return found.refusal()
-        if found.kind == "finished" and found.summary.get("settings") != run_cfg.member_settings(training, seed):
-            return (f"{path} holds a finished run of a different configuration; choose another sweep folder "
-                    "(hydra.sweep.dir=...) or pass overwrite=true to replace it")
+        problem = rundir.refusal(rundir.state(path), run_cfg.member_settings(training, seed), solo=path == folder)
+        if problem:
+            return problem
     if folder.exists() or any(p.exists() for p in members.values()):
         try:
             with rundir.lock([p for p in [folder, *members.values()] if p.exists()]):
