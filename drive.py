@@ -97,18 +97,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fps", type=int, default=30)
     parser.add_argument("--no-oracle", action="store_true", help="do not run the oracle at the end")
     args = parser.parse_args(argv)
-    if args.track.isdigit():
-        track = int(args.track)
-        if track >= 2**32:
-            parser.error(f"--track must be a seed in [0, 2**32) or a track file, got {args.track}")
-    else:
-        from racing.track_file import TrackFileError, load_track
+    from racing.track_file import TrackFileError, parse_track
 
-        try:
-            load_track(args.track)
-        except TrackFileError as err:
-            parser.error(f"--track: {err}")
-        track = args.track
+    try:
+        track = parse_track("--track", args.track)
+    except TrackFileError as err:
+        parser.error(str(err))
     if not 0 <= args.seed < 2**32 or args.max_steps < 1 or args.fps < 1:
         parser.error("--seed must be in [0, 2**32), --max-steps and --fps at least 1")
     ghost = None

@@ -99,20 +99,12 @@ def main(argv: list[str] | None = None) -> int:
 
 def _track(parser, text: str | None) -> int | str | None:
     """--video-track: a seed, or the path of a track file (checked now)."""
-    if text is None:
-        return None
-    if text.isdigit():
-        seed = int(text)
-        if seed >= 2**32:
-            parser.error(f"--video-track must be a seed in [0, 2**32) or a track file, got {text}")
-        return seed
-    from racing.track_file import TrackFileError, load_track
+    from racing.track_file import TrackFileError, parse_track
 
     try:
-        load_track(text)
+        return None if text is None else parse_track("--video-track", text)
     except TrackFileError as err:
-        parser.error(f"--video-track: {err}")
-    return text
+        parser.error(str(err))
 
 
 def _film(agents, path: Path, track, max_steps: int | None) -> int:

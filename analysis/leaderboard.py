@@ -16,7 +16,6 @@ policy cannot be loaded (diverged, damaged) is listed and left out.
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 from pathlib import Path
 
@@ -89,12 +88,10 @@ def main(argv: list[str] | None = None) -> int:
                       "high": round(high, 2), "normalised": round(n_mean, 4), "normalised_low": round(n_low, 4),
                       "normalised_high": round(n_high, 4)})
     board.sort(key=lambda row: -row["score"])
-    args.out.mkdir(parents=True, exist_ok=True)
-    for name, table in (("runs.csv", rows), ("leaderboard.csv", board)):
-        with open(args.out / name, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(table[0]))
-            writer.writeheader()
-            writer.writerows(table)
+    from engine.outputs import write_table
+
+    write_table(args.out / "runs.csv", rows)
+    write_table(args.out / "leaderboard.csv", board)
     lines = ["| agent | runs | score [95% interval] | oracle-normalised [95% interval] |", "|---|---:|---:|---:|"]
     lines += [f"| {r['agent']} | {r['runs']} | {r['score']:.1f} [{r['low']:.1f}, {r['high']:.1f}] | "
               f"{r['normalised']:.3f} [{r['normalised_low']:.3f}, {r['normalised_high']:.3f}] |" for r in board]

@@ -141,7 +141,7 @@ class Renderer:
         readings = sim.observe()[car]
         canvas.car(x, y, theta, readings, self.config)
         n = self.config.num_segments
-        progress = (int(sim.checkpoint[car]) + bool(sim.finished[car])) / n
+        progress = sim.car_state(car)["progress"]
         lines = [f"speed {sim.speed[car]:5.1f}   checkpoint {sim.checkpoint[car]}/{n}   progress {progress:.0%}",
                  f"step {sim.t[car]}   crashes {sim.crashes[car]}"]
         if sim.tracks[car].closed:

@@ -226,6 +226,20 @@ def track_config(track: Track, config: RacingConfig) -> RacingConfig:
     return dataclasses.replace(config, num_segments=track.num_checkpoints)
 
 
+def parse_track(option: str, text: str) -> int | str:
+    """A command line's track: a seed (digits), or the path of a track file, loaded once to check it;
+    ``TrackFileError`` saying which (``option`` names the argument)."""
+    if text.isdigit():
+        if int(text) >= 2**32:
+            raise TrackFileError(f"{option} must be a seed in [0, 2**32) or a track file, got {text}")
+        return int(text)
+    try:
+        load_track(text)
+    except TrackFileError as err:
+        raise TrackFileError(f"{option}: {err}") from None
+    return text
+
+
 def env_track(owner: str, seeded: bool, track_file, track_scale, track_closed,
               keywords: dict) -> tuple[Track | None, RacingConfig]:
     """An environment's file track (None without ``track_file``) and its config; ``seeded``: the
