@@ -25,7 +25,7 @@ from engine import numerics
 
 NAMES = {"ppo": "PPO", "ppo_log": "PPO (log ratio)", "spg": "SPG", "spg_multi": "SPG, multiple epochs",
          "spg_p": "SPG-p", "spg_p_multi": "SPG-p, multiple epochs", "sac": "SAC", "tqc": "TQC",
-         "crossq": "CrossQ", "td3": "TD3"}
+         "crossq": "CrossQ", "td3": "TD3", "droq": "DroQ"}
 
 
 def interval(scores: np.ndarray, reps: int = 10000, seed: int = 0) -> tuple[float, float, float]:

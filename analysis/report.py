@@ -25,7 +25,7 @@ COLUMN_TITLES = {"ppo": "PPO linear", "ppo_log": "PPO log", "spg": "SPG single",
                  "spg_p": "SPG-p single", "spg_p_multi": "SPG-p multiple"}
 # every algorithm a run folder can name, for tables that list cells beyond the paper's
 ALGO_TITLES = {**COLUMN_TITLES, "sac": "SAC", "sac_sb3": "SAC at SB3's settings", "td3": "TD3", "tqc": "TQC",
-               "crossq": "CrossQ", "sb3_sac": "Stable-Baselines3 SAC", "sb3_ppo": "Stable-Baselines3 PPO"}
+               "crossq": "CrossQ", "droq": "DroQ", "sb3_sac": "Stable-Baselines3 SAC", "sb3_ppo": "Stable-Baselines3 PPO"}
 
 
 @dataclass

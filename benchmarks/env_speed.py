@@ -117,6 +117,7 @@ def torchrl_tensors(n: int, seconds: float) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=2.0, help="time per row")
+    parser.add_argument("--max-cars", type=int, default=4096, help="leave out the rows of more cars than this")
     args = parser.parse_args()
     torch.set_num_threads(1)
 
@@ -126,11 +127,11 @@ def main() -> None:
             ("Gymnasium env (gym.make)", 1, gymnasium_env(args.seconds)),
             ("Gymnasium env (gym.make), nearest_ray=True", 1, gymnasium_env(args.seconds, nearest=True)),
             ("TorchRL env, step_tensors", 1, torchrl_tensors(1, args.seconds))]
-    for n in (8, 64, 1024):
+    for n in (n for n in (8, 64, 1024) if n <= args.max_cars):
         rows.append(("Gymnasium SyncVectorEnv of single envs (make_vec, sync)", n,
                      gymnasium_vector(n, args.seconds, "sync")))
         rows.append(("Gymnasium native vector env (make_vec)", n, gymnasium_vector(n, args.seconds, "vector_entry_point")))
-    for n in (1, 64, 1024, 4096):
+    for n in (n for n in (1, 64, 1024, 4096) if n <= args.max_cars):
         rows.append(("TorchRL env, step_and_maybe_reset", n, torchrl_env(n, args.seconds)))
     nearest = rows[1][2]
     print(f"numpy {np.__version__}, torch {torch.__version__} ({torch.get_num_threads()} thread), "

@@ -2,7 +2,8 @@
 
 from collectors.episodes import BACKENDS, DirectCollector, make_collector
 from collectors.replay import ReplayMemory, ReplaySchedule, sample_minibatch
-from collectors.returns import RETURN_KEY, add_monte_carlo_returns, episode_transitions
+from collectors.returns import RETURN_KEY, STEPS_KEY, add_monte_carlo_returns, episode_transitions, n_step_transitions
 
-__all__ = ["BACKENDS", "DirectCollector", "RETURN_KEY", "ReplayMemory", "ReplaySchedule",
-           "add_monte_carlo_returns", "episode_transitions", "make_collector", "sample_minibatch"]
+__all__ = ["BACKENDS", "DirectCollector", "RETURN_KEY", "ReplayMemory", "ReplaySchedule", "STEPS_KEY",
+           "add_monte_carlo_returns", "episode_transitions", "make_collector", "n_step_transitions",
+           "sample_minibatch"]

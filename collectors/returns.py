@@ -29,3 +29,40 @@ def add_monte_carlo_returns(batch: TensorDictBase, gamma: float, key: str = RETU
 def episode_transitions(batch: TensorDictBase, keys: tuple[str, ...] = TRANSITION_KEYS) -> TensorDictBase:
     """The ``[N, T]`` batch as ``N * T`` independent transitions with only ``keys``."""
     return batch.select(*keys).reshape(-1)
+
+
+STEPS_KEY = "steps_to_next_obs"  # TorchRL's value estimators discount the bootstrap by gamma ** this
+
+
+def n_step_transitions(batch: TensorDictBase, gamma: float, n: int) -> TensorDictBase:
+    """The ``[N, T]`` transitions of ``batch`` (time on dim 1) as n-step transitions, a new TensorDict.
+
+    Transition t keeps its observation and action; its reward becomes
+    ``sum_{i<m} gamma^i r_{t+i}``, its next observation (and ``done``, ``terminated``) that
+    after step ``t+m-1``, and ``STEPS_KEY`` holds ``m``, where ``m = n`` unless the episode
+    ends first (``("next", "done")``, a time limit or a terminal state, or the batch's end):
+    TorchRL's TD targets then bootstrap with ``gamma ** m`` (``r + gamma^m * V(s_{t+m})``, no
+    bootstrap after a terminal state). ``n = 1`` gives the one-step transitions with ``m = 1``.
+    The sums run step by step in float32 in the same order for every car, so a member's
+    transitions do not depend on the others in the batch."""
+    if n < 1:
+        raise ValueError(f"n-step returns need n >= 1, got {n}")
+    reward, done = batch["next", "reward"], batch["next", "done"]
+    steps = reward.shape[1]
+    # last[t]: the step whose next state transition t bootstraps from; alive: no episode end yet
+    last = torch.arange(steps, device=reward.device).expand(reward.shape[0], steps).clone()
+    total = reward.clone()
+    alive = ~done.squeeze(-1)
+    for i in range(1, n):
+        later = torch.arange(i, steps + i, device=reward.device).clamp_max(steps - 1)
+        inside = alive & (torch.arange(steps, device=reward.device) + i < steps)  # [N, T]
+        total = torch.where(inside.unsqueeze(-1), total + gamma ** i * reward[:, later], total)
+        last = torch.where(inside, later.expand_as(last), last)
+        alive = inside & ~done[:, later].squeeze(-1)
+    rows = torch.arange(reward.shape[0], device=reward.device).unsqueeze(1)
+    out = batch.clone(False)
+    following = batch.get("next")[rows, last]
+    following.set("reward", total)
+    out.set("next", following)
+    out.set(STEPS_KEY, (last - torch.arange(steps, device=reward.device) + 1).unsqueeze(-1).to(reward.dtype))
+    return out

@@ -34,7 +34,7 @@ from pathlib import Path
 import torch
 from tensordict import TensorDictBase
 
-from collectors import add_monte_carlo_returns
+from collectors import add_monte_carlo_returns, n_step_transitions
 from engine import checkpoint, numerics, setup
 from engine import rundir
 from engine.processes import RunStopped, StopSignals, exit_with_parent, keep_freed_memory, spawn_context
@@ -280,6 +280,8 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
                 if learner.monte_carlo:
                     add_monte_carlo_returns(batch, cfg.gamma)
                 recent = batch.select(*learner.transition_keys)  # [members, steps]
+                if learner.n_step > 1:
+                    recent = n_step_transitions(recent, cfg.gamma, learner.n_step)
                 memory.add(recent)
             with _timer(timing, "train_s"):
                 if schedule.train_on_recent:

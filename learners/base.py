@@ -56,6 +56,7 @@ class Learner:
     phases: UpdatePhase
     transition_keys: tuple  # what the replay memory keeps of each step
     monte_carlo: bool  # the transitions carry Monte-Carlo returns (the paper's protocol)
+    n_step: int = 1  # the memory keeps n-step transitions (collectors.returns.n_step_transitions)
 
     def member_weights(self, member: int) -> dict[str, dict[str, torch.Tensor]]:
         """Member ``member``'s trained weights, {"actor": ..., "critic": ...}, on the CPU."""

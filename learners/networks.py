@@ -240,14 +240,85 @@ class StackedGaussianPolicyNet(nn.Module):
         return _unpad_rows(loc, shape), _unpad_rows(scale, shape)
 
 
+class StackedLayerNorm(nn.Module):
+    """Layer normalisation of ``[R, N, F]`` rows per member: each row's features normalised by their
+    mean and (biased) variance, then scaled and shifted by the member's ``weight`` and ``bias``
+    (``[R, F]``), as ``torch.nn.LayerNorm`` computes. Each row's statistics are its own, and the
+    standard deviation is taken in float64 and rounded (correctly rounded, as
+    ``learners.optim.exact_sqrt``), so it does not depend on the CPU's vector math."""
+
+    def __init__(self, members: int, features: int, eps: float = 1e-5):
+        super().__init__()
+        self.eps = eps
+        self.weight = nn.Parameter(torch.ones(members, features))
+        self.bias = nn.Parameter(torch.zeros(members, features))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        mean = x.mean(-1, keepdim=True)
+        centred = x - mean
+        std = (centred.square().mean(-1, keepdim=True).double() + self.eps).sqrt().to(x.dtype)
+        return centred / std * self.weight.unsqueeze(1) + self.bias.unsqueeze(1)
+
+
+class StackedDropout(nn.Module):
+    """Dropout of ``[R, N, F]`` in training mode: each element kept with probability ``1 - rate`` and
+    scaled by ``1 / (1 - rate)``, member r's mask drawn from ``generators[r]`` (``[N, F]`` uniform
+    draws per call), so a member's masks do not depend on the other members. The identity in
+    evaluation mode."""
+
+    def __init__(self, rate: float, generators: Sequence[torch.Generator]):
+        super().__init__()
+        self.rate, self.generators = rate, list(generators)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not self.training or self.rate == 0:
+            return x
+        keep = torch.stack([torch.rand(x.shape[1:], generator=g, device=x.device, dtype=x.dtype)
+                            for g in self.generators]) >= self.rate
+        return x * keep / (1 - self.rate)
+
+
+class _RegularisedMLP(StackedMLP):
+    """A ``StackedMLP`` whose hidden layers are Linear -> dropout -> layer norm -> activation (DroQ's
+    Q-network; either part may be off)."""
+
+    def __init__(self, members: int, sizes: Sequence[int], activation: str, dropout: float, layer_norm: bool,
+                 generators: Sequence[torch.Generator] | None):
+        super().__init__(members, sizes, activation, linear_output=True)
+        if dropout and generators is None:
+            raise ValueError("dropout needs the members' generators")
+        hidden = sizes[1:-1]
+        self.dropouts = nn.ModuleList(StackedDropout(dropout, generators) for _ in hidden) if dropout else None
+        self.norms = nn.ModuleList(StackedLayerNorm(members, width) for width in hidden) if layer_norm else None
+
+    def forward_rows(self, x: torch.Tensor) -> torch.Tensor:
+        last = len(self.layers) - 1
+        for i, layer in enumerate(self.layers):
+            x = layer(x)
+            if i < last:
+                if self.dropouts is not None:
+                    x = self.dropouts[i](x)
+                if self.norms is not None:
+                    x = self.norms[i](x)
+                x = per_member(self.activation, x)
+        return x
+
+
 class StackedCriticNet(nn.Module):
     """``learners.solo.CriticNet`` for R members: V(s) or Q(s, a), ``[R, ..., outputs]`` (one value,
-    or TQC's quantiles of the return)."""
+    or TQC's quantiles of the return). With ``dropout`` or ``layer_norm`` (DroQ's Q-networks) each
+    hidden layer is Linear -> dropout -> layer norm -> activation, member r's dropout masks drawn
+    from ``generators[r]``."""
 
     def __init__(self, members: int, in_features: int, hidden: Sequence[int], activation: str = "tanh",
-                 outputs: int = 1):
+                 outputs: int = 1, dropout: float = 0.0, layer_norm: bool = False,
+                 generators: Sequence[torch.Generator] | None = None):
         super().__init__()
-        self.net = StackedMLP(members, [in_features, *hidden, outputs], activation, linear_output=True)
+        sizes = [in_features, *hidden, outputs]
+        if dropout or layer_norm:
+            self.net = _RegularisedMLP(members, sizes, activation, dropout, layer_norm, generators)
+        else:
+            self.net = StackedMLP(members, sizes, activation, linear_output=True)
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
         return self.net(inputs[0] if len(inputs) == 1 else torch.cat(inputs, dim=-1))

@@ -10,13 +10,14 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_env_speed_benchmark_prints_its_table():
-    result = subprocess.run([sys.executable, "-m", "benchmarks.env_speed", "--seconds", "0.01"],
+    result = subprocess.run([sys.executable, "-m", "benchmarks.env_speed", "--seconds", "0.01", "--max-cars", "64"],
                             capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
-    assert len(rows) == 1 + 15  # header and one row per implementation and size
-    assert "| TorchRL env, step_and_maybe_reset | 4096 |" in result.stdout
-    assert "| Gymnasium native vector env (make_vec) | 1024 |" in result.stdout
+    assert len(rows) == 1 + 11  # header and one row per implementation and size up to 64 cars
+    assert "| TorchRL env, step_and_maybe_reset | 64 |" in result.stdout
+    assert "| Gymnasium native vector env (make_vec) | 64 |" in result.stdout
+    assert "| 1024 |" not in result.stdout
 
 
 def test_train_speed_benchmark_prints_its_tables():
@@ -67,3 +68,13 @@ def test_oracle_convergence_benchmark_prints_its_table():
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
     assert len(rows) == 1 + 2 and rows[1].startswith("| base |") and rows[2].startswith("| candidates=4 |")
+
+
+def test_recipe_cost_benchmark_prints_its_table():
+    result = subprocess.run([sys.executable, "-m", "benchmarks.recipe_cost", "--sizes", "1", "--steps", "2",
+                             "--recipes", "sac", "droq"], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
+    assert len(rows) == 1 + 2
+    assert "| sac | algo=sac | 1 | 1 | 39200 |" in result.stdout  # before each episode after the 5 of warm-up
+    assert "| droq | algo=droq | 1 | 20 | 784000 |" in result.stdout

@@ -28,6 +28,9 @@ class TDOptions:
     warmup_episodes: int
     tau: float | None  # None: no target networks (crossq)
     loss_function: str
+    n_step: int = 1  # TD targets over n environment steps (collectors.returns.n_step_transitions)
+    critic_dropout: float = 0.0  # DroQ: dropout of the Q-networks' hidden units (each member's own masks)
+    critic_layer_norm: bool = False  # DroQ: layer normalisation of the Q-networks' hidden units
 
     def __post_init__(self) -> None:
         positive("algo.td.updates_per_step", self.updates_per_step)
@@ -35,6 +38,9 @@ class TDOptions:
         if self.tau is not None and not 0 < self.tau <= 1:
             raise ConfigError(f"algo.td.tau must be in (0, 1], got {self.tau}")
         choice("algo.td.loss_function", self.loss_function, LOSS_FUNCTIONS)
+        at_least("algo.td.n_step", self.n_step, 1)
+        if not 0 <= self.critic_dropout < 1:
+            raise ConfigError(f"algo.td.critic_dropout must be in [0, 1), got {self.critic_dropout}")
 
     def updates_before(self, episode: int, steps: int) -> int:
         """Gradient steps taken in all, up to the start of episode ``episode`` (``episode`` episodes of
@@ -117,7 +123,11 @@ def check(algo) -> None:
     if algo.loss != "crossq" and tau is None:
         raise ConfigError(f"algo {algo.name}: loss {algo.loss} updates target networks by algo.td.tau; "
                           "give a value in (0, 1]")
-    given = (algo.td or {}).get("loss_function")
+    td = algo.td or {}
+    if algo.loss == "crossq" and (td.get("critic_dropout") or td.get("critic_layer_norm")):
+        raise ConfigError(f"algo {algo.name}: loss crossq's Q-networks are batch-normalised; "
+                          "set algo.td.critic_dropout: 0.0 and algo.td.critic_layer_norm: false")
+    given = td.get("loss_function")
     if algo.loss == "tqc" and given is not None and given != "smooth_l1":
         raise ConfigError(f"algo {algo.name}: loss tqc trains its critics with the quantile Huber loss; set "
                           f"algo.td.loss_function: smooth_l1 (got {given})")

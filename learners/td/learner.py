@@ -93,8 +93,9 @@ def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
             q = StackedBNCriticNet(members, obs_dim + action_dim, net.critic_hidden, net.activation,
                                    momentum=algo.crossq.batch_norm_momentum).to(device)
         else:
-            q = StackedCriticNet(members, obs_dim + action_dim, net.critic_hidden, net.activation,
-                                 outputs=outputs).to(device)
+            q = StackedCriticNet(members, obs_dim + action_dim, net.critic_hidden, net.activation, outputs=outputs,
+                                 dropout=algo.td.critic_dropout, layer_norm=algo.td.critic_layer_norm,
+                                 generators=generators).to(device)
         reset_parameters(q, generators)
         qvalue_nets.append(q)
     qvalues = [TensorDictModule(q, ["observation", "action"], ["state_action_value"]) for q in qvalue_nets]
@@ -325,4 +326,4 @@ def build(cfg, env, generators: Sequence[torch.Generator], memory: ReplayMemory)
     optimisers = make_optimisers(cfg, loss)
     phases = TDPhaseRunner(cfg, loss, optimisers, generators, memory if cfg.er.priority else None)
     return Learner(networks, loss, optimisers, memory, phases,
-                   TD_TRANSITION_KEYS, monte_carlo=False)
+                   TD_TRANSITION_KEYS, monte_carlo=False, n_step=cfg.algo.td.n_step)

@@ -1,0 +1,95 @@
+"""What a run of each off-policy recipe costs, measured before its sweeps are planned.
+
+    python -m benchmarks.recipe_cost [--sizes 3 25] [--steps 40] [--recipes sac droq ...]
+
+For each recipe (an algorithm with its settings; ``RECIPES``) and population size R, one short
+population run on the wide grid's fixed tracks (one warm-up episode, then one block of ``--steps``
+gradient steps, one thread, the default numerics), and a second one of twice the steps, measure
+the seconds per gradient step of the whole population (from their difference) and per collected
+episode. A gradient step costs the same whatever the schedule
+(its minibatch and networks do not change), so the cost of a full run follows: the recipe's
+gradient steps for ``episodes`` (201) episodes times the step's cost, plus the collection. The
+table gives per recipe and R: milliseconds per gradient step (population, and per member), the
+CPU minutes per member for a whole run, and the hours a population of R needs on one core. Absolute
+numbers depend on the machine and the hour (this one's speed drifts by 2x): plan with the ratios
+between recipes, measured in one process.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
+
+from engine import numerics  # noqa: E402
+
+numerics.apply(numerics.DEFAULT)
+
+from benchmarks.population_speed import member_seeds  # noqa: E402
+from benchmarks.train_speed import table  # noqa: E402
+from engine.config import RunConfig  # noqa: E402
+from engine.runner import train_population  # noqa: E402
+
+RECIPES = {  # name: (overrides of the recipe, shown as given)
+    "sac": ["algo=sac"],
+    "sac-per": ["algo=sac", "er=prioritised"],
+    "sac-nstep3": ["algo=sac", "algo.td.n_step=3"],
+    "droq": ["algo=droq"],
+    "tqc": ["algo=tqc"],
+    "crossq": ["algo=crossq"],
+    "td3": ["algo=td3"],
+}
+
+
+def _timed(recipe: list[str], members: int, steps: int, episode_steps: int) -> dict:
+    seeds = ",".join(map(str, member_seeds(members)))
+    utd = steps / episode_steps  # one block of `steps` gradient steps before the second episode
+    cfg = RunConfig.compose(*recipe, "episodes=2", "final_window=2", "algo.td.warmup_episodes=1",
+                            f"algo.td.updates_per_step={utd}", "progress=false", "logger=none", "checkpoint_every=0",
+                            f"seeds=[{seeds}]")
+    with tempfile.TemporaryDirectory() as out:
+        summary = train_population(cfg, Path(out))[0]
+    return {"train": summary["time/train_s"], "episode": summary["time/rollout_s"] / 2}
+
+
+def measure(recipe: list[str], members: int, steps: int, episode_steps: int = 200) -> dict:
+    """Seconds per gradient step (population) and per collected episode: two short runs, of ``steps``
+    and ``2 * steps`` gradient steps, whose difference leaves out what the first steps cost once
+    (allocations, first calls)."""
+    probe = RunConfig.compose(*recipe)
+    short, long = _timed(recipe, members, steps, episode_steps), _timed(recipe, members, 2 * steps, episode_steps)
+    return {"step": max(long["train"] - short["train"], 0.0) / steps, "episode": long["episode"],
+            "td": probe.algo.td, "episodes": probe.episodes}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[3, 25], help="population sizes R")
+    parser.add_argument("--steps", type=int, default=40, help="gradient steps measured per recipe and size")
+    parser.add_argument("--recipes", nargs="+", default=list(RECIPES), choices=list(RECIPES))
+    args = parser.parse_args(argv)
+    import torch
+
+    torch.set_num_threads(1)
+    rows = []
+    for name in args.recipes:
+        for members in args.sizes:
+            m = measure(RECIPES[name], members, args.steps)
+            td = m["td"]
+            updates = td.updates_before(m["episodes"] - 1, 200)  # a whole run's: before its last episode
+            seconds = updates * m["step"] + m["episodes"] * m["episode"]  # the population's
+            rows.append([name, " ".join(RECIPES[name]), members, f"{td.updates_per_step:g}", updates,
+                         f"{m['step'] * 1e3:.1f}", f"{m['step'] / members * 1e3:.2f}",
+                         f"{seconds / members / 60:.1f}", f"{seconds / 3600:.2f}"])
+    table("Cost of a whole run (201 episodes) per recipe, from a short run on one thread",
+          ["recipe", "overrides", "R", "updates/step", "gradient steps", "ms/step (population)",
+           "ms/step per member", "CPU min per member", "hours per population (one core)"], rows)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

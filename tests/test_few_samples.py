@@ -1,0 +1,151 @@
+"""Options of the off-policy learners for few samples: n-step TD targets (``algo.td.n_step``) and
+DroQ's Q-networks (``algo.td.critic_dropout``, ``algo.td.critic_layer_norm``; ``algo=droq``).
+
+Checked: the n-step transitions against sums written out by hand, TorchRL's TD target with them,
+layer normalisation against ``torch.nn.LayerNorm``, dropout's masks and scaling, and whole runs:
+a member equals its solo run, an interrupted run resumes exactly, one step is the old learner.
+"""
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from collectors import STEPS_KEY, n_step_transitions
+from engine.config import ConfigError
+from engine.runner import train_population
+from learners.networks import StackedDropout, StackedLayerNorm
+from tests.test_config import load
+from tests.test_offpolicy import A, B, FAST, training, transitions
+from tests.test_resilience import interrupted_after
+
+DROQ = ["algo.td.critic_dropout=0.1", "algo.td.critic_layer_norm=true"]
+
+
+def episode_batch(rewards, done_at=()):
+    """One car's ``[1, T]`` batch: rewards as given, observations numbered by step, done where asked."""
+    steps = len(rewards)
+    done = torch.zeros(1, steps, 1, dtype=torch.bool)
+    for t in done_at:
+        done[0, t] = True
+    step = torch.arange(steps, dtype=torch.float32).reshape(1, steps, 1)
+    return TensorDict({
+        "observation": step.expand(1, steps, 6).clone(), "action": torch.zeros(1, steps, 2),
+        "next": TensorDict({"observation": (step + 1).expand(1, steps, 6).clone(),
+                            "reward": torch.tensor(rewards, dtype=torch.float32).reshape(1, steps, 1),
+                            "done": done, "terminated": torch.zeros_like(done)}, batch_size=[1, steps]),
+    }, batch_size=[1, steps])
+
+
+def test_n_step_transitions_sum_discounted_rewards_and_stop_at_the_episode_end():
+    g = 0.5
+    batch = episode_batch([1.0, 2.0, 4.0, 8.0, 16.0, 32.0], done_at=(2, 5))  # two episodes of 3 steps
+    out = n_step_transitions(batch, g, 3)
+    r = [1.0, 2.0, 4.0, 8.0, 16.0, 32.0]
+    expected = [r[0] + g * r[1] + g * g * r[2], r[1] + g * r[2], r[2],
+                r[3] + g * r[4] + g * g * r[5], r[4] + g * r[5], r[5]]
+    assert out["next", "reward"].flatten().tolist() == expected
+    assert out[STEPS_KEY].flatten().tolist() == [3, 2, 1, 3, 2, 1]
+    assert out["next", "observation"][0, :, 0].tolist() == [3, 3, 3, 6, 6, 6]  # the state after the window
+    assert out["next", "done"].flatten().tolist() == [True] * 6
+    assert torch.equal(out["observation"], batch["observation"]) and torch.equal(out["action"], batch["action"])
+    assert batch["next", "reward"].flatten().tolist() == r  # the collected batch is left as it was
+    # n = 2 in an episode that runs on past the batch's end (the sum stops at the last step)
+    out = n_step_transitions(episode_batch([1.0, 2.0, 4.0]), g, 2)
+    assert out["next", "reward"].flatten().tolist() == [2.0, 4.0, 4.0]
+    assert out[STEPS_KEY].flatten().tolist() == [2, 2, 1]
+    # n = 1: the one-step transitions themselves
+    one = n_step_transitions(batch, g, 1)
+    assert torch.equal(one["next", "reward"], batch["next", "reward"]) and one[STEPS_KEY].eq(1).all()
+
+
+def test_members_get_the_n_step_transitions_they_get_alone():
+    data = transitions(3, 200, seed=4)
+    data["next", "done"][:, -1] = True
+    both = n_step_transitions(data, 0.9, 4)
+    for r in range(3):
+        alone = n_step_transitions(data[r:r + 1], 0.9, 4)
+        assert torch.equal(both["next", "reward"][r:r + 1], alone["next", "reward"])
+
+
+@pytest.mark.parametrize("algo", ["sac", "td3"])
+def test_torchrl_targets_bootstrap_with_gamma_to_the_steps(algo):
+    cfg, t = training(algo, "gamma=0.9")
+    data = transitions(2, 5)
+    data.set(STEPS_KEY, torch.tensor([1.0, 2, 3, 3, 1]).expand(2, 5).unsqueeze(-1).clone())
+    next_value = torch.full((2, 5, 1), 10.0)
+    target = t.loss.value_estimator.value_estimate(data, next_value=next_value)
+    expected = data["next", "reward"] + 0.9 ** data[STEPS_KEY] * 10.0
+    torch.testing.assert_close(target, expected)
+
+
+def test_stacked_layer_norm_is_torch_layer_norm_per_member():
+    x = torch.randn(3, 7, 100, generator=torch.Generator().manual_seed(0))
+    norm = StackedLayerNorm(3, 100)
+    with torch.no_grad():
+        norm.weight.uniform_(0.5, 1.5)
+        norm.bias.uniform_(-1, 1)
+    for r in range(3):
+        reference = torch.nn.functional.layer_norm(x[r], (100,), norm.weight[r], norm.bias[r], eps=1e-5)
+        torch.testing.assert_close(norm(x)[r], reference, rtol=1e-5, atol=1e-5)
+        alone = StackedLayerNorm(1, 100)
+        alone.load_state_dict({"weight": norm.weight[r:r + 1], "bias": norm.bias[r:r + 1]})
+        assert torch.equal(alone(x[r:r + 1])[0], norm(x)[r])
+
+
+def test_dropout_keeps_units_at_its_rate_scaled_and_draws_each_member_alone():
+    gens = [torch.Generator().manual_seed(s) for s in (1, 2)]
+    drop = StackedDropout(0.25, gens)
+    out = drop(torch.ones(2, 400, 100))
+    kept = out.ne(0)
+    assert abs(kept.float().mean().item() - 0.75) < 0.01
+    assert torch.equal(out[kept], torch.full_like(out[kept], 1 / 0.75))
+    alone = StackedDropout(0.25, [torch.Generator().manual_seed(2)])(torch.ones(1, 400, 100))
+    assert torch.equal(alone[0], out[1])
+    drop.eval()
+    assert torch.equal(drop(out), out)
+
+
+def test_each_member_equals_its_solo_run(tmp_path):
+    run = ["algo=sac", "er=memory", *FAST, "algo.td.updates_per_step=0.1", "algo.td.n_step=3", *DROQ]
+    train_population(load(*run, f"seed={B}"), tmp_path / "solo")
+    train_population(load(*run, f"seeds=[{B},{A}]"), tmp_path / "pair")
+    assert ((tmp_path / "pair" / f"seed{B}" / "metrics.csv").read_bytes()
+            == (tmp_path / "solo" / "metrics.csv").read_bytes())
+
+
+def test_an_interrupted_droq_run_resumes_exactly(tmp_path):
+    """The dropout masks come from the members' generators, which the checkpoint saves."""
+    run = ["algo=sac", "er=prioritised", *FAST, "episodes=5", "checkpoint_every=2", f"seeds=[{A},{B}]",
+           "algo.td.n_step=3", *DROQ]
+    train_population(load(*run), tmp_path / "reference")
+    with interrupted_after(3):
+        train_population(load(*run), tmp_path / "run")
+    train_population(load(*run), tmp_path / "run")
+    for seed in (A, B):
+        assert ((tmp_path / "run" / f"seed{seed}" / "metrics.csv").read_bytes()
+                == (tmp_path / "reference" / f"seed{seed}" / "metrics.csv").read_bytes())
+
+
+def test_the_options_change_the_run_and_their_defaults_do_not(tmp_path):
+    run = ["algo=sac", "er=memory", *FAST, "algo.td.updates_per_step=0.1", f"seed={A}"]
+    train_population(load(*run), tmp_path / "plain")
+    train_population(load(*run, "algo.td.n_step=1", "algo.td.critic_dropout=0.0",
+                          "algo.td.critic_layer_norm=false"), tmp_path / "defaults")
+    train_population(load(*run, "algo.td.n_step=3"), tmp_path / "nstep")
+    plain = (tmp_path / "plain" / "metrics.csv").read_bytes()
+    assert (tmp_path / "defaults" / "metrics.csv").read_bytes() == plain
+    assert (tmp_path / "nstep" / "metrics.csv").read_bytes() != plain
+
+
+@pytest.mark.parametrize("override, message", [
+    (["algo=sac", "algo.td.n_step=0"], "n_step must be >= 1"),
+    (["algo=sac", "algo.td.n_step=1.5"], "n_step must be an integer"),
+    (["algo=sac", "algo.td.critic_dropout=1.0"], "critic_dropout must be in [0, 1)"),
+    (["algo=sac", "algo.td.critic_layer_norm=3"], "critic_layer_norm must be"),
+    (["algo=crossq", "+algo.td.critic_layer_norm=true"], "batch-normalised"),
+    (["algo=sac", "algo.td.critic_dropout=0.01", "compile=true"], "not supported with algo.td.critic_dropout"),
+])
+def test_bad_settings_are_refused_with_a_reason(override, message):
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)").replace("[", r"\[")
+                       .replace("]", r"\]")):
+        load(*override)
