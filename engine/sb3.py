@@ -98,6 +98,7 @@ def _train(algo: str, seed: int, episodes: int, folder: Path, final_window: int,
     import stable_baselines3
     import torch
     from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.logger import Logger
 
     import racing
     from engine import numerics
@@ -108,6 +109,9 @@ def _train(algo: str, seed: int, episodes: int, folder: Path, final_window: int,
     env = gym.make(racing.ENV_ID, track_seed=seed)
     kind = {"sac": stable_baselines3.SAC, "ppo": stable_baselines3.PPO}[algo]
     model = kind("MlpPolicy", env, seed=seed, device="cpu", verbose=0)
+    # No output of SB3's own logger (it would make an empty folder in the temporary directory per run):
+    # the run's metrics are written below.
+    model.set_logger(Logger(folder=None, output_formats=[]))
     settings["sb3"] = _hyperparameters(model)
     metrics = MetricsWriter(folder, list(EPISODE_COLUMNS))
     rewards: list[float] = []
