@@ -2,12 +2,15 @@
 by the oracle itself with DAgger (engine/imitation.py), scored with the usual protocol:
 
     python imitate.py --tracks 1001 1002 1003 [--hidden 100] [--rounds 4] [--episodes 5]
-                      [--processes 2] [--table ceiling.csv]
+                      [--labels best|mean] [--processes 2] [--table ceiling.csv]
 
 Per track it prints the network's score after each round (five deterministic episodes from
 start seeds 0-4, mean total reward), the oracle's score on the track (``analysis/data/oracle.csv``
 where it has the track, else scored here with the same protocol) and the final score's fraction
-of it; then the mean fraction over the tracks with its 95% bootstrap interval over tracks.
+of it, and the network's mean squared error on its own data (the fit error: how closely the pupil
+matches the oracle where it has labels); then the mean fraction over the tracks with its 95%
+bootstrap interval over tracks. ``--labels mean`` labels each state with the mean first action of
+the oracle's last elite plans instead of its best plan's (a smoother target).
 ``--hidden 256 256`` gives a wider network. One track per process with ``--processes``.
 """
 
@@ -42,6 +45,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rounds", type=int, default=4, help="DAgger rounds after the oracle's own episodes")
     parser.add_argument("--episodes", type=int, default=5, help="data episodes per round and track")
     parser.add_argument("--epochs", type=int, default=300, help="passes over the data per refit")
+    parser.add_argument("--labels", choices=["best", "mean"], default="best",
+                        help="the oracle's action (best: its best plan's first step) or its last elite mean's")
     parser.add_argument("--processes", type=int, default=1)
     parser.add_argument("--table", type=Path, default=None)
     args = parser.parse_args(argv)
@@ -56,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         settings = DaggerSettings(rounds=args.rounds, episodes=args.episodes, hidden=tuple(args.hidden),
-                                  epochs=args.epochs)
+                                  epochs=args.epochs, label=args.labels)
     except ValueError as err:
         parser.error(str(err))
     work = [(track, settings) for track in args.tracks]
@@ -78,10 +83,11 @@ def main(argv: list[str] | None = None) -> int:
         fractions.append(fraction)
         print(f"track {result.track}: " + ", ".join(f"round {k} {s:.1f}" for k, s in enumerate(result.scores))
               + f"; oracle {ceiling:.1f}; final {fraction:.3f} of the oracle ({result.samples[-1]} labels, "
-              f"{result.seconds:.0f} s)")
-        rows += [{"track": result.track, "hidden": " ".join(map(str, settings.hidden)), "round": k, "score": round(s, 6),
-                  "labels": n, "oracle": round(ceiling, 6), "fraction": round(s / ceiling, 6)}
-                 for k, (s, n) in enumerate(zip(result.scores, result.samples))]
+              f"fit error {result.fit_error[-1]:.4f}, {result.seconds:.0f} s)")
+        rows += [{"track": result.track, "hidden": " ".join(map(str, settings.hidden)), "label": settings.label,
+                  "round": k, "score": round(s, 6), "labels": n, "fit_error": round(e, 6), "oracle": round(ceiling, 6),
+                  "fraction": round(s / ceiling, 6)}
+                 for k, (s, n, e) in enumerate(zip(result.scores, result.samples, result.fit_error))]
     from analysis.compare import _interval
 
     low, high = _interval(fractions)

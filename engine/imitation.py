@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 DATA_SEED = 1000  # data episodes start from seeds DATA_SEED + k; scored episodes from 0-4
+LABELS = ("best", "mean")
 
 
 @dataclass(frozen=True)
@@ -33,6 +34,7 @@ class DaggerSettings:
     minibatch: int = 256
     lr: float = 1e-3
     seed: int = 0
+    label: str = "best"  # best: the oracle's action (its best plan's first step); mean: its last elite mean's
 
     def __post_init__(self) -> None:
         for name in ("episodes", "epochs", "minibatch"):
@@ -40,6 +42,8 @@ class DaggerSettings:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
         if self.rounds < 0 or not self.hidden or min(self.hidden) < 1 or not self.lr > 0:
             raise ValueError("rounds must be >= 0, hidden a non-empty list of positive sizes and lr > 0")
+        if self.label not in LABELS:
+            raise ValueError(f"label must be one of {LABELS}, got {self.label!r}")
 
 
 @dataclass
@@ -47,6 +51,7 @@ class DaggerResult:
     track: int
     scores: list[float] = field(default_factory=list)  # the network's protocol score after each round
     samples: list[int] = field(default_factory=list)  # aggregated (observation, action) pairs per round
+    fit_error: list[float] = field(default_factory=list)  # the network's mean squared error on its data per round
     seconds: float = 0.0
 
 
@@ -72,6 +77,15 @@ def fit(observations: np.ndarray, actions: np.ndarray, settings: DaggerSettings,
     return net
 
 
+def fit_error(net, observations: np.ndarray, actions: np.ndarray) -> float:
+    """The network's mean squared error on (observation, action) pairs (actions clipped as ``fit``
+    trains on them): how far the pupil is from its labels where it has data."""
+    with torch.no_grad():
+        loc, _ = net(torch.as_tensor(observations, dtype=torch.float32))
+        target = torch.as_tensor(np.clip(actions, -1.0, 1.0), dtype=torch.float32)
+        return float(((loc - target) ** 2).mean())
+
+
 def dagger(track: int, settings: DaggerSettings = DaggerSettings(), oracle_settings=None) -> DaggerResult:
     """DAgger on one track (see the module docstring); the scores are the protocol's."""
     from engine.benchmark import Agent, score
@@ -92,13 +106,15 @@ def dagger(track: int, settings: DaggerSettings = DaggerSettings(), oracle_setti
             oracle.reset()
             done = False
             while not done:
-                label = oracle.act(env.sim, 0)  # the oracle's action from this state
+                action = oracle.act(env.sim, 0)  # the oracle's action from this state
                 observations.append(obs)
-                actions.append(label)
-                drive = label if policy is None else policy(obs)  # round 0: the oracle drives
+                actions.append(action if settings.label == "best" else oracle.elite_mean)
+                drive = action if policy is None else policy(obs)  # round 0: the oracle drives
                 obs, _, terminated, truncated, _ = env.step(drive)
                 done = terminated or truncated
-        policy = Policy(fit(np.array(observations), np.array(actions), settings, env.config.obs_size), "paper")
+        net = fit(np.array(observations), np.array(actions), settings, env.config.obs_size)
+        result.fit_error.append(fit_error(net, np.array(observations), np.array(actions)))
+        policy = Policy(net, "paper")
         agent = Agent(f"dagger round {round_}", lambda _env, o, p=policy: p(o))
         result.scores.append(score(agent, (track,))[track])
         result.samples.append(len(observations))

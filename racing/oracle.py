@@ -92,6 +92,7 @@ class Oracle:
             mean, std = elite.mean(0), np.maximum(elite.std(0), s.min_std)
         # the rest of the plan, its last action repeated to the full horizon
         self.plan = np.concatenate([best_plan[1:], np.tile(best_plan[-1:], (s.horizon - horizon + 1, 1))])
+        self.elite_mean = mean[0].copy()  # the last round's elite mean first action: a smoother label
         return best_plan[0].copy()
 
     def _rollout(self, sim: RacingSim, car: int, samples: np.ndarray) -> np.ndarray:

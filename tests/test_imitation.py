@@ -12,12 +12,13 @@ def test_imitate_py_teaches_a_network_from_the_oracle_and_scores_it(tmp_path, ca
 
     table = tmp_path / "ceiling.csv"
     assert imitate.main(["--tracks", "2067791", "--rounds", "1", "--episodes", "1", "--epochs", "20",
-                         "--table", str(table)]) == 0
+                         "--labels", "mean", "--table", str(table)]) == 0
     out = capsys.readouterr().out
     assert "track 2067791: round 0 " in out and ", round 1 " in out and "; oracle 172.2; final 0." in out
-    assert "(400 labels, " in out  # two rounds of one 200-step episode, every state labelled
+    assert "(400 labels, fit error 0." in out  # two rounds of one 200-step episode, every state labelled
     rows = table.read_text().splitlines()
-    assert rows[0] == "track,hidden,round,score,labels,oracle,fraction" and len(rows) == 3
+    assert rows[0] == "track,hidden,label,round,score,labels,fit_error,oracle,fraction" and len(rows) == 3
+    assert rows[1].startswith("2067791,100,mean,0,")
 
 
 def test_data_episodes_never_start_where_scored_ones_do_and_settings_are_checked():
@@ -26,3 +27,18 @@ def test_data_episodes_never_start_where_scored_ones_do_and_settings_are_checked
         DaggerSettings(episodes=0)
     with pytest.raises(ValueError, match="hidden a non-empty list"):
         DaggerSettings(hidden=())
+    with pytest.raises(ValueError, match="label must be one of"):
+        DaggerSettings(label="median")
+
+
+def test_the_oracle_offers_its_last_elite_mean_beside_its_action():
+    from racing.oracle import Oracle, OracleSettings
+    from racing.sim import RacingSim
+
+    settings = OracleSettings(candidates=16, horizon=5, iterations=2)
+    sim = RacingSim(1, 2067791)
+    sim.seed(0)
+    sim.reset()
+    oracle = Oracle(settings=settings, seed=3)
+    action = oracle.act(sim, 0)
+    assert oracle.elite_mean.shape == action.shape == (2,) and abs(oracle.elite_mean).max() <= 1
