@@ -149,3 +149,26 @@ def test_bad_settings_are_refused_with_a_reason(override, message):
     with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)").replace("[", r"\[")
                        .replace("]", r"\]")):
         load(*override)
+
+
+def test_the_budget_table_reads_a_run_s_final_performance_at_shorter_budgets(tmp_path, capsys):
+    """A run of 4 episodes gives what a run of 2 reports as its final performance (the same first
+    episodes), and its own at 4; the table says so per track."""
+    from analysis import budget
+
+    run = ["algo=sac", "er=memory", *FAST, "final_window=2", "eval_seeds=[1]", "eval_episodes=1"]
+    train_population(load(*run, "episodes=2", f"seed={A}"), tmp_path / "short")
+    train_population(load(*run, "episodes=4", f"seeds=[{A},{B}]"), tmp_path / "long")
+    assert budget.main([str(tmp_path / "long"), "--budgets", "2", "4", "--window", "2",
+                        "--table", str(tmp_path / "budget.csv")]) == 0
+    import json
+
+    short = json.loads((tmp_path / "short" / "summary.json").read_text())
+    rows = {(int(r.split(",")[2]), int(r.split(",")[3])): r.split(",")
+            for r in (tmp_path / "budget.csv").read_text().splitlines()[1:]}
+    header = (tmp_path / "budget.csv").read_text().splitlines()[0].split(",")
+    assert header == ["algo", "er", "track", "budget", "final", "oracle", "fraction", "evaluation"]
+    assert float(rows[A, 2][4]) == pytest.approx(short["final_mean"], abs=1e-6)
+    assert rows[A, 2][7] == "" and rows[A, 4][7] != ""  # the evaluation belongs to the run's own end
+    out = capsys.readouterr().out
+    assert f"| {A} | " in out and f"| {B} | " in out and "2 episodes: " in out and "4 episodes: " in out
