@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import json
 import os
-import platform
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -181,14 +179,3 @@ def test_train_py_runs_and_records_the_mode_asked_for(tmp_path):
     assert summary["settings"]["numerics"] == "native"
     result = run_train("numerics=fast", f"hydra.run.dir={tmp_path}")
     assert result.returncode == 2 and "numerics must be one of" in result.stderr
-
-
-@pytest.mark.skipif(shutil.which("qemu-x86_64") is None or platform.machine() != "x86_64",
-                    reason="needs qemu-x86_64 (apt install qemu-user) on an x86-64 machine to emulate another CPU")
-def test_portable_runs_are_the_same_on_an_emulated_amd_cpu():
-    """One short PPO run here and on QEMU's AMD EPYC (AVX2, another vendor: MKL's other code paths);
-    episodes of 64 steps (one minibatch), as emulation is slow."""
-    from tests import cross_cpu
-
-    assert cross_cpu.main(["--cpus", "EPYC-Rome", "--cells", "ppo_log/recent", "--episodes", "1",
-                           "--max-steps", "64"]) == 0
