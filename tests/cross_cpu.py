@@ -13,7 +13,7 @@ differs. Haswell is an Intel AVX2 CPU, EPYC-Rome an AMD one (QEMU 7.2 emulates n
 the defaults. It checks the code paths; QEMU computes the CPU's approximate instructions
 (reciprocal square root, reciprocal) exactly where hardware approximates, which is why a
 result that uses them (torch's float32 sqrt through MKL) differs under emulation: the project
-avoids them (``learners.optim.exact_sqrt``). ``tests/test_numerics.py`` runs a tiny version
+avoids them (``learners.optim.exact_sqrt``). ``tests/test_emulated_cpu.py`` runs a tiny version
 when ``qemu-x86_64`` is installed.
 """
 
