@@ -6,7 +6,7 @@ by the oracle itself with DAgger (engine/imitation.py), scored with the usual pr
 
 Per track it prints the network's score after each round (five deterministic episodes from
 start seeds 0-4, mean total reward), the oracle's score on the track (``analysis/data/oracle.csv``
-where it has the track, else scored here with the same protocol) and the final score's fraction
+or ``oracle_tuning.csv`` where they have the track, else scored here with the same protocol) and the final score's fraction
 of it, and the network's mean squared error on its own data (the fit error: how closely the pupil
 matches the oracle where it has labels); then the mean fraction over the tracks with its 95%
 bootstrap interval over tracks. ``--labels mean`` labels each state with the mean first action of
@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.processes < 1:
         parser.error(f"--processes must be at least 1, got {args.processes}")
     numerics.apply(numerics.DEFAULT)
-    from analysis.report import read_oracle
+    from analysis.report import TUNING_ORACLE_TABLE, read_oracle
     from engine.imitation import DaggerSettings, mean
     from engine.processes import spawn_context
 
@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         with ProcessPoolExecutor(min(args.processes, len(work)), mp_context=spawn_context()) as pool:
             results = list(pool.map(_one, work))
-    oracle = read_oracle()
+    oracle = {**read_oracle(), **read_oracle(TUNING_ORACLE_TABLE)}
     missing = [t for t in args.tracks if t not in oracle]
     if missing:
         from racing.oracle import score

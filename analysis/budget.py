@@ -8,7 +8,8 @@ at ``episodes``) computes the same first E episodes whatever ``episodes`` says, 
 gives its final performance at every shorter budget E: the mean total reward of training episodes
 E - window .. E - 1, which is what a run of E episodes reports as ``final_mean``. Per run folder
 (a run, or a population's folder of members) and budget it prints that value, its fraction of the
-oracle's score on the run's track (``analysis/data/oracle.csv``), and per budget the mean fraction
+oracle's score on the run's track (``analysis/data/oracle.csv``, ``oracle_tuning.csv`` for the
+tuning tracks), and per budget the mean fraction
 over the runs with a 95% bootstrap interval over tracks; the deterministic policy's score at the
 end of the run (summary.json's evaluation on its own track) where the run has one.
 """
@@ -20,7 +21,7 @@ import math
 import sys
 from pathlib import Path
 
-from analysis.report import Run, find_runs, read_oracle
+from analysis.report import TUNING_ORACLE_TABLE, Run, find_runs, read_oracle
 
 
 def final_at(rewards: list[float], budget: int, window: int) -> float | None:
@@ -65,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     if not runs:
         print(f"no runs with metrics under {', '.join(map(str, args.folders))}", file=sys.stderr)
         return 1
-    oracle = read_oracle()
+    oracle = {**read_oracle(), **read_oracle(TUNING_ORACLE_TABLE)}
     rows = budget_rows(runs, args.budgets, args.window, oracle)
     from analysis.compare import _interval
     from engine.imitation import mean

@@ -19,6 +19,7 @@ from engine.outputs import METRICS_FILE, SUMMARY_FILE
 PAPER_TABLE = Path(__file__).resolve().parent / "data" / "paper_table1.csv"
 EPISODE_STEPS = 200  # racing.RacingConfig.max_steps (not imported: the report reads folders only)
 ORACLE_TABLE = Path(__file__).resolve().parent / "data" / "oracle.csv"  # evaluate.py --oracle --table
+TUNING_ORACLE_TABLE = ORACLE_TABLE.with_name("oracle_tuning.csv")  # the same for the tuning tracks 1001-1003
 ER_ROWS = ("recent", "memory", "hybrid")
 ALGO_COLUMNS = ("ppo", "ppo_log", "spg", "spg_multi", "spg_p", "spg_p_multi")
 COLUMN_TITLES = {"ppo": "PPO linear", "ppo_log": "PPO log", "spg": "SPG single", "spg_multi": "SPG multiple",
