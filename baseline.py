@@ -1,12 +1,13 @@
 """Outside reference learners: Stable-Baselines3's SAC and PPO with their defaults, one run per track:
 
     python baseline.py --algos sac ppo --tracks 2067791 5468063 [--episodes 201] [--jobs 2]
-                       [--out outputs/sweeps/sb3]
+                       [--out outputs/sweeps/sb3] [--random-tracks]
 
 Each run writes ``<out>/sb3_<algo>/default/seed<track>/`` (``metrics.csv``, ``summary.json``,
 ``model.zip``), which ``report.py`` reads like a ``train.py`` run; finished runs of the same
 settings are skipped, a finished run of other settings or a damaged folder is refused (the folder
-rules of ``engine/rundir.py``). ``--jobs`` runs that many at once, one process each (one torch thread
+rules of ``engine/rundir.py``). ``--random-tracks`` trains on a new random track every episode (the
+benchmark's protocol, docs/benchmark.md; the seeds then seed the runs). ``--jobs`` runs that many at once, one process each (one torch thread
 per run). Needs the ``baselines`` extra (``pip install -c constraints/cpu.txt -e '.[baselines]'``).
 What a run is, exactly: ``engine/sb3.py``.
 """
@@ -26,10 +27,10 @@ from engine.sb3 import ALGOS, BaselineError, run_folder, settings_of, train
 
 
 def _train(args: tuple, worker: bool = True) -> dict:
-    algo, seed, episodes, out, window, mode = args
+    algo, seed, episodes, out, window, mode, random_tracks = args
     if worker:
         exit_with_parent()
-    return train(algo, seed, episodes, out, window, mode)
+    return train(algo, seed, episodes, out, window, mode, random_tracks)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,6 +45,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--numerics", choices=[m for m in numerics.MODES if m != "fma"], default="portable",
                         help="portable (default: the same numbers on every AVX2 CPU) or native")
     parser.add_argument("--out", type=Path, default=Path("outputs/sweeps/sb3"))
+    parser.add_argument("--random-tracks", action="store_true",
+                        help="a new random track every episode (the benchmark's training; --tracks then only seed the runs)")
     args = parser.parse_args(argv)
     if importlib.util.find_spec("stable_baselines3") is None:
         print("baseline.py needs Stable-Baselines3: pip install -c constraints/cpu.txt -e '.[baselines]'",
@@ -52,14 +55,14 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for algo in args.algos:
             for seed in args.tracks:
-                settings_of(algo, seed, args.episodes, args.final_window, args.numerics)
+                settings_of(algo, seed, args.episodes, args.final_window, args.numerics, args.random_tracks)
         if args.jobs < 1:
             raise BaselineError(f"--jobs must be at least 1, got {args.jobs}")
         numerics.apply(args.numerics)
     except (BaselineError, numerics.NumericsError) as err:
         print(f"Refusing to run: {err}", file=sys.stderr)
         return 2
-    work = [(algo, seed, args.episodes, args.out, args.final_window, args.numerics)
+    work = [(algo, seed, args.episodes, args.out, args.final_window, args.numerics, args.random_tracks)
             for algo in args.algos for seed in args.tracks]
     try:
         if args.jobs == 1:

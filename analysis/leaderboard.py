@@ -25,7 +25,8 @@ from engine import numerics
 
 NAMES = {"ppo": "PPO", "ppo_log": "PPO (log ratio)", "spg": "SPG", "spg_multi": "SPG, multiple epochs",
          "spg_p": "SPG-p", "spg_p_multi": "SPG-p, multiple epochs", "sac": "SAC", "tqc": "TQC",
-         "crossq": "CrossQ", "td3": "TD3", "droq": "DroQ"}
+         "crossq": "CrossQ", "td3": "TD3", "droq": "DroQ", "sb3_sac": "Stable-Baselines3 SAC",
+         "sb3_ppo": "Stable-Baselines3 PPO"}
 
 
 def interval(scores: np.ndarray, reps: int = 10000, seed: int = 0) -> tuple[float, float, float]:
@@ -39,6 +40,22 @@ def interval(scores: np.ndarray, reps: int = 10000, seed: int = 0) -> tuple[floa
     return float(scores.mean()), float(low), float(high)
 
 
+def _numerics(runs: list[Path], runs_numerics) -> str:
+    """The mode the runs were trained in (``evaluate.runs_numerics``), where Stable-Baselines3's runs
+    (``baseline.py``: portable, torch's own layers) count as any exact mode: their layers compute
+    the same under fma, whose settings are portable's but for the project's own layers."""
+    from engine import rundir
+
+    sb3 = [run for run in runs if (rundir.state(run).summary or {}).get("algo", "").startswith("sb3_")]
+    others = [run for run in runs if run not in sb3]
+    if not others:
+        return runs_numerics(sb3)
+    mode = runs_numerics(others)
+    if sb3 and mode not in ("fma", "portable"):
+        return runs_numerics(runs)  # mixed with native runs: refused there
+    return mode
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("sweeps", type=Path, nargs="+", metavar="SWEEP_DIR")
@@ -49,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         runs = find_runs(args.sweeps)
-        numerics.apply(runs_numerics(runs))  # before torch loads
+        numerics.apply(_numerics(runs, runs_numerics))  # before torch loads
     except (RunFolderError, numerics.NumericsError) as err:
         print(f"leaderboard: {err}", file=sys.stderr)
         return 2

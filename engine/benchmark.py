@@ -11,7 +11,8 @@ so 0 is a car that stands still and 1 the oracle.
 
 An agent is named by one string (``load_agent``):
 - a ``train.py`` run folder (its final deterministic policy, under the numerics it was trained in);
-- a Stable-Baselines3 ``model.zip`` (``predict(obs, deterministic=True)``);
+- a Stable-Baselines3 ``model.zip`` (``predict(obs, deterministic=True)``), or a ``baseline.py`` run
+  folder (its ``model.zip``);
 - ``module:function``: a Python callable ``observation (6 floats) -> [throttle, steering]``
   (the module importable from the working directory);
 - ``oracle``, ``pure_pursuit``, ``ray_follower``: the project's reference drivers (the first
@@ -58,6 +59,8 @@ def load_agent(spec: str) -> Agent:
     if spec in BUILTIN:
         return _builtin(spec)
     path = Path(spec)
+    if path.is_dir() and (path / "model.zip").is_file() and not (path / "actor.pt").exists():
+        return _sb3(path / "model.zip")  # a run folder of baseline.py (Stable-Baselines3)
     if path.is_dir():
         from engine.evaluation import RunFolderError, load_policy
 

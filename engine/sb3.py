@@ -1,7 +1,9 @@
 """Stable-Baselines3's SAC and PPO, with their own defaults, on ``racing/Racing-v0``: outside
 reference learners, written as run folders the report reads like this project's.
 
-One run per track seed: ``gym.make("racing/Racing-v0", track_seed=seed)`` (200-step episodes
+One run per track seed: ``gym.make("racing/Racing-v0", track_seed=seed)`` (or, with
+``random_tracks``, ``track_seed=None``: a new track every episode, the benchmark's training; the
+seed then seeds the run and its first reset) (200-step episodes
 ending by truncation, which SB3 bootstraps through), SB3's algorithm with every hyperparameter
 at its default (``"MlpPolicy"``: 256x256 networks for SAC, 64x64 for PPO; SAC: one gradient
 step per environment step, batch 256, gamma 0.99, learned temperature; PPO: 2048-step rollouts,
@@ -43,16 +45,20 @@ def run_folder(out: Path, algo: str, seed: int) -> Path:
     return Path(out) / f"sb3_{algo}" / "default" / f"seed{seed}"
 
 
-def settings_of(algo: str, seed: int, episodes: int, final_window: int, numerics_mode: str) -> dict:
-    """What decides a run's numbers, before SB3's own hyperparameters are added."""
+def settings_of(algo: str, seed: int, episodes: int, final_window: int, numerics_mode: str,
+                random_tracks: bool = False) -> dict:
+    """What decides a run's numbers, before SB3's own hyperparameters are added (``track: random`` only
+    for a run on random tracks, so that the settings of earlier runs on their seed's track stay as
+    they were recorded)."""
     if algo not in ALGOS:
         raise BaselineError(f"algo must be one of {', '.join(ALGOS)}, got {algo!r}")
     if episodes < 1 or final_window < 1:
         raise BaselineError(f"episodes and final_window must be at least 1, got {episodes} and {final_window}")
     if not 0 <= seed < 2**32:
         raise BaselineError(f"track seeds are in [0, 2**32), got {seed}")
-    return {"baseline": "stable-baselines3", "algo": algo, "seed": seed, "episodes": episodes,
-            "final_window": final_window, "numerics": numerics_mode, "threads": 1}
+    settings = {"baseline": "stable-baselines3", "algo": algo, "seed": seed, "episodes": episodes,
+                "final_window": final_window, "numerics": numerics_mode, "threads": 1}
+    return {**settings, "track": "random"} if random_tracks else settings
 
 
 def _hyperparameters(model) -> dict:
@@ -68,7 +74,7 @@ def _hyperparameters(model) -> dict:
 
 
 def train(algo: str, seed: int, episodes: int, out: Path, final_window: int = 20,
-          numerics_mode: str = "portable") -> dict:
+          numerics_mode: str = "portable", random_tracks: bool = False) -> dict:
     """Train one SB3 run into its folder (``run_folder``); returns its summary (an earlier
     finished run of the same settings is returned without training; a finished run of other
     settings or a damaged folder is refused, ``BaselineError``). In a fresh process this sets
@@ -76,7 +82,7 @@ def train(algo: str, seed: int, episodes: int, out: Path, final_window: int = 20
     from engine import numerics
 
     numerics.apply(numerics_mode)
-    settings = settings_of(algo, seed, episodes, final_window, numerics_mode)
+    settings = settings_of(algo, seed, episodes, final_window, numerics_mode, random_tracks)
     folder = run_folder(out, algo, seed)
     with rundir.lock([folder]):  # the folder's rules are train.py's (engine.rundir)
         found = rundir.state(folder)
@@ -89,11 +95,11 @@ def train(algo: str, seed: int, episodes: int, out: Path, final_window: int = 20
             raise BaselineError(f"{folder} holds a finished run of other settings; choose another --out or move "
                                 "it away")
         rundir.clear(folder)  # an unfinished run's rows: SB3 runs restart from the beginning
-        return _train(algo, seed, episodes, folder, final_window, numerics_mode, settings)
+        return _train(algo, seed, episodes, folder, final_window, numerics_mode, settings, random_tracks)
 
 
 def _train(algo: str, seed: int, episodes: int, folder: Path, final_window: int, numerics_mode: str,
-           settings: dict) -> dict:
+           settings: dict, random_tracks: bool = False) -> dict:
     import gymnasium as gym
     import stable_baselines3
     import torch
@@ -106,7 +112,8 @@ def _train(algo: str, seed: int, episodes: int, folder: Path, final_window: int,
 
     torch.set_num_threads(1)
 
-    env = gym.make(racing.ENV_ID, track_seed=seed)
+    # random tracks: a new track per episode, from the env's generator (seeded by the first reset)
+    env = gym.make(racing.ENV_ID, track_seed=None if random_tracks else seed)
     kind = {"sac": stable_baselines3.SAC, "ppo": stable_baselines3.PPO}[algo]
     model = kind("MlpPolicy", env, seed=seed, device="cpu", verbose=0)
     # No output of SB3's own logger (it would make an empty folder in the temporary directory per run):

@@ -73,3 +73,33 @@ def test_the_documented_command_writes_runs_the_report_reads_and_reruns_identica
 def test_bad_arguments_are_refused_with_a_reason(tmp_path, args, message):
     result = baseline(*args, "--out", str(tmp_path))
     assert result.returncode == 2 and message in result.stderr and "Traceback" not in result.stderr
+
+
+def test_random_tracks_train_on_a_new_track_each_episode_and_the_benchmark_scores_the_folder(tmp_path):
+    """--random-tracks (the benchmark's training): the run's settings say so, its episodes differ
+    from the same seed's fixed-track run, and score.py's agent loader takes the run folder."""
+    from engine.benchmark import load_agent
+
+    common = ["--algos", "ppo", "--tracks", "7", "--episodes", "2"]
+    assert baseline(*common, "--out", str(tmp_path / "fixed")).returncode == 0
+    result = baseline(*common, "--random-tracks", "--out", str(tmp_path / "random"))
+    assert result.returncode == 0, result.stderr[-3000:]
+    folder = tmp_path / "random" / "sb3_ppo" / "default" / "seed7"
+    settings = json.loads((folder / "summary.json").read_text())["settings"]
+    assert settings["track"] == "random"
+    assert "track" not in json.loads((tmp_path / "fixed" / "sb3_ppo" / "default" / "seed7" / "summary.json")
+                                     .read_text())["settings"]  # as runs before the option recorded them
+    fixed = read_rows(tmp_path / "fixed" / "sb3_ppo" / "default" / "seed7" / "metrics.csv")
+    assert read_rows(folder / "metrics.csv")[1] != fixed[1]  # the second episode is on another track
+    agent = load_agent(str(folder))
+    assert agent.kind == "Stable-Baselines3 PPO"
+    # The leaderboard scores these beside this project's runs (fma) under fma: their torch layers
+    # compute the same there as under portable, the mode they were trained in.
+    from analysis.leaderboard import _numerics
+    from evaluate import runs_numerics
+    from tests.test_train import run_train
+
+    ours = tmp_path / "ours"
+    assert run_train("algo=ppo", "er=recent", "episodes=1", "progress=false", f"hydra.run.dir={ours}").returncode == 0
+    assert _numerics([folder], runs_numerics) == "portable"
+    assert _numerics([ours, folder], runs_numerics) == "fma"
