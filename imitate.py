@@ -2,7 +2,7 @@
 by the oracle itself with DAgger (engine/imitation.py), scored with the usual protocol:
 
     python imitate.py --tracks 1001 1002 1003 [--hidden 100] [--rounds 4] [--episodes 5]
-                      [--labels best|mean] [--processes 2] [--table ceiling.csv]
+                      [--labels best|mean] [--noise-states 200] [--processes 2] [--table ceiling.csv]
 
 Per track it prints the network's score after each round (five deterministic episodes from
 start seeds 0-4, mean total reward), the oracle's score on the track (``analysis/data/oracle.csv``
@@ -10,7 +10,10 @@ or ``oracle_tuning.csv`` where they have the track, else scored here with the sa
 of it, and the network's mean squared error on its own data (the fit error: how closely the pupil
 matches the oracle where it has labels); then the mean fraction over the tracks with its 95%
 bootstrap interval over tracks. ``--labels mean`` labels each state with the mean first action of
-the oracle's last elite plans instead of its best plan's (a smoother target).
+the oracle's last elite plans instead of its best plan's (a smoother target). ``--noise-states M``
+labels M states of the last round again, ``--noise-labels`` times each by oracles planning from
+scratch: the labels' variance per state is the error floor of any function of the state, beside
+the pupil's squared error against their mean.
 ``--hidden 256 256`` gives a wider network. One track per process with ``--processes``.
 """
 
@@ -47,6 +50,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--epochs", type=int, default=300, help="passes over the data per refit")
     parser.add_argument("--labels", choices=["best", "mean"], default="best",
                         help="the oracle's action (best: its best plan's first step) or its last elite mean's")
+    parser.add_argument("--noise-states", type=int, default=0,
+                        help="after the last round, label this many of its states again (--noise-labels times each)")
+    parser.add_argument("--noise-labels", type=int, default=8, help="labels per state for --noise-states")
     parser.add_argument("--processes", type=int, default=1)
     parser.add_argument("--table", type=Path, default=None)
     args = parser.parse_args(argv)
@@ -61,7 +67,8 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         settings = DaggerSettings(rounds=args.rounds, episodes=args.episodes, hidden=tuple(args.hidden),
-                                  epochs=args.epochs, label=args.labels)
+                                  epochs=args.epochs, label=args.labels, noise_states=args.noise_states,
+                                  noise_labels=args.noise_labels)
     except ValueError as err:
         parser.error(str(err))
     work = [(track, settings) for track in args.tracks]
@@ -83,10 +90,16 @@ def main(argv: list[str] | None = None) -> int:
         fractions.append(fraction)
         print(f"track {result.track}: " + ", ".join(f"round {k} {s:.1f}" for k, s in enumerate(result.scores))
               + f"; oracle {ceiling:.1f}; final {fraction:.3f} of the oracle ({result.samples[-1]} labels, "
-              f"fit error {result.fit_error[-1]:.4f}, {result.seconds:.0f} s)")
+              f"fit error {result.fit_error[-1]:.4f}, {result.seconds:.0f} s)"
+              + ("" if result.label_noise is None else
+                 f"; repeated labels: their variance {result.label_noise:.4f}, the pupil's squared error to "
+                 f"their mean {result.error_to_mean_label:.4f}"))
         rows += [{"track": result.track, "hidden": " ".join(map(str, settings.hidden)), "label": settings.label,
                   "round": k, "score": round(s, 6), "labels": n, "fit_error": round(e, 6), "oracle": round(ceiling, 6),
-                  "fraction": round(s / ceiling, 6)}
+                  "fraction": round(s / ceiling, 6),
+                  "label_noise": "" if result.label_noise is None or k < len(result.scores) - 1 else round(result.label_noise, 6),
+                  "error_to_mean_label": "" if result.label_noise is None or k < len(result.scores) - 1
+                  else round(result.error_to_mean_label, 6)}
                  for k, (s, n, e) in enumerate(zip(result.scores, result.samples, result.fit_error))]
     from analysis.compare import _interval
 

@@ -35,6 +35,8 @@ class DaggerSettings:
     lr: float = 1e-3
     seed: int = 0
     label: str = "best"  # best: the oracle's action (its best plan's first step); mean: its last elite mean's
+    noise_states: int = 0  # after the last round: states of it labelled again noise_labels times (label_noise)
+    noise_labels: int = 8
 
     def __post_init__(self) -> None:
         for name in ("episodes", "epochs", "minibatch"):
@@ -42,6 +44,9 @@ class DaggerSettings:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
         if self.rounds < 0 or not self.hidden or min(self.hidden) < 1 or not self.lr > 0:
             raise ValueError("rounds must be >= 0, hidden a non-empty list of positive sizes and lr > 0")
+        if self.noise_states < 0 or self.noise_labels < 2:
+            raise ValueError(f"noise_states must be >= 0 and noise_labels >= 2, got {self.noise_states}, "
+                             f"{self.noise_labels}")
         if self.label not in LABELS:
             raise ValueError(f"label must be one of {LABELS}, got {self.label!r}")
 
@@ -52,6 +57,8 @@ class DaggerResult:
     scores: list[float] = field(default_factory=list)  # the network's protocol score after each round
     samples: list[int] = field(default_factory=list)  # aggregated (observation, action) pairs per round
     fit_error: list[float] = field(default_factory=list)  # the network's mean squared error on its data per round
+    label_noise: float | None = None  # the oracle's own spread: mean variance of repeated labels of one state
+    error_to_mean_label: float | None = None  # the final network's squared error against those labels' mean
     seconds: float = 0.0
 
 
@@ -100,12 +107,15 @@ def dagger(track: int, settings: DaggerSettings = DaggerSettings(), oracle_setti
     actions: list[np.ndarray] = []
     result = DaggerResult(track)
     policy = None
+    visited: list[tuple[np.ndarray, dict]] = []  # the last round's (observation, car state)
     for round_ in range(settings.rounds + 1):
         for k in range(settings.episodes):
             obs, _ = env.reset(seed=DATA_SEED + round_ * settings.episodes + k)
             oracle.reset()
             done = False
             while not done:
+                if round_ == settings.rounds and settings.noise_states:
+                    visited.append((obs, {name: getattr(env.sim, name)[0].copy() for name in Oracle.STATE}))
                 action = oracle.act(env.sim, 0)  # the oracle's action from this state
                 observations.append(obs)
                 actions.append(action if settings.label == "best" else oracle.elite_mean)
@@ -118,9 +128,40 @@ def dagger(track: int, settings: DaggerSettings = DaggerSettings(), oracle_setti
         agent = Agent(f"dagger round {round_}", lambda _env, o, p=policy: p(o))
         result.scores.append(score(agent, (track,))[track])
         result.samples.append(len(observations))
+    if settings.noise_states:
+        result.label_noise, result.error_to_mean_label = label_noise(
+            env, visited, policy, settings, oracle_settings or OracleSettings())
     env.close()
     result.seconds = round(time.perf_counter() - start, 1)
     return result
+
+
+def label_noise(env, visited: list, policy, settings: DaggerSettings, oracle_settings) -> tuple[float, float]:
+    """How much of the pupil's error is the labels' own: ``settings.noise_states`` states of the last
+    round (drawn with ``settings.seed``), each labelled ``settings.noise_labels`` times by oracles of
+    seeds 1, 2, ... planning from scratch (no earlier plan). Returns the mean (over states and the
+    two action dimensions) of the labels' unbiased variance per state, the error floor of any
+    function of the state against single labels, and the pupil's mean squared error against each
+    state's mean label. Labels as ``settings.label`` says; actions clipped to [-1, 1]."""
+    from racing.oracle import Oracle
+
+    rng = np.random.default_rng(settings.seed)
+    picks = rng.choice(len(visited), size=min(settings.noise_states, len(visited)), replace=False)
+    oracles = [Oracle(env.config, oracle_settings, seed=k + 1) for k in range(settings.noise_labels)]
+    variances, errors = [], []
+    for index in sorted(picks):
+        obs, state = visited[index]
+        for name, value in state.items():
+            getattr(env.sim, name)[0] = value
+        labels = []
+        for oracle in oracles:
+            oracle.reset()
+            action = oracle.act(env.sim, 0)
+            labels.append(np.clip(action if settings.label == "best" else oracle.elite_mean, -1.0, 1.0))
+        labels = np.array(labels)
+        variances.append(labels.var(axis=0, ddof=1).mean())
+        errors.append(((np.asarray(policy(obs)) - labels.mean(axis=0)) ** 2).mean())
+    return float(np.mean(variances)), float(np.mean(errors))
 
 
 def mean(values: list[float]) -> float:

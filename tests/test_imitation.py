@@ -12,13 +12,17 @@ def test_imitate_py_teaches_a_network_from_the_oracle_and_scores_it(tmp_path, ca
 
     table = tmp_path / "ceiling.csv"
     assert imitate.main(["--tracks", "2067791", "--rounds", "1", "--episodes", "1", "--epochs", "20",
-                         "--labels", "mean", "--table", str(table)]) == 0
+                         "--labels", "mean", "--noise-states", "3", "--noise-labels", "2", "--table", str(table)]) == 0
     out = capsys.readouterr().out
     assert "track 2067791: round 0 " in out and ", round 1 " in out and "; oracle 172.2; final 0." in out
     assert "(400 labels, fit error 0." in out  # two rounds of one 200-step episode, every state labelled
     rows = table.read_text().splitlines()
-    assert rows[0] == "track,hidden,label,round,score,labels,fit_error,oracle,fraction" and len(rows) == 3
-    assert rows[1].startswith("2067791,100,mean,0,")
+    assert rows[0] == ("track,hidden,label,round,score,labels,fit_error,oracle,fraction,label_noise,"
+                       "error_to_mean_label") and len(rows) == 3
+    assert rows[1].startswith("2067791,100,mean,0,") and rows[1].endswith(",,")  # repeated labels: last round only
+    noise, error = map(float, rows[2].split(",")[-2:])
+    assert noise >= 0 and error >= 0
+    assert "; repeated labels: their variance " in out
 
 
 def test_data_episodes_never_start_where_scored_ones_do_and_settings_are_checked():
@@ -29,6 +33,8 @@ def test_data_episodes_never_start_where_scored_ones_do_and_settings_are_checked
         DaggerSettings(hidden=())
     with pytest.raises(ValueError, match="label must be one of"):
         DaggerSettings(label="median")
+    with pytest.raises(ValueError, match="noise_labels >= 2"):
+        DaggerSettings(noise_states=10, noise_labels=1)
 
 
 def test_the_oracle_offers_its_last_elite_mean_beside_its_action():
