@@ -6,6 +6,8 @@ layer normalisation against ``torch.nn.LayerNorm``, dropout's masks and scaling,
 a member equals its solo run, an interrupted run resumes exactly, one step is the old learner.
 """
 
+import re
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -146,8 +148,7 @@ def test_the_options_change_the_run_and_their_defaults_do_not(tmp_path):
     (["algo=sac", "algo.td.critic_dropout=0.01", "compile=true"], "not supported with algo.td.critic_dropout"),
 ])
 def test_bad_settings_are_refused_with_a_reason(override, message):
-    with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)").replace("[", r"\[")
-                       .replace("]", r"\]")):
+    with pytest.raises(ConfigError, match=re.escape(message)):
         load(*override)
 
 
