@@ -2,7 +2,8 @@
 by the oracle itself with DAgger (engine/imitation.py), scored with the usual protocol:
 
     python imitate.py --tracks 1001 1002 1003 [--hidden 100] [--rounds 4] [--episodes 5]
-                      [--labels best|mean] [--noise-states 200] [--processes 2] [--table ceiling.csv]
+                      [--labels best|mean] [--features observation|state] [--noise-states 200]
+                      [--processes 2] [--table ceiling.csv]
 
 Per track it prints the network's score after each round (five deterministic episodes from
 start seeds 0-4, mean total reward), the oracle's score on the track (``analysis/data/oracle.csv``
@@ -13,7 +14,9 @@ bootstrap interval over tracks. ``--labels mean`` labels each state with the mea
 the oracle's last elite plans instead of its best plan's (a smoother target). ``--noise-states M``
 labels M states of the last round again, ``--noise-labels`` times each by oracles planning from
 scratch: the labels' variance per state is the error floor of any function of the state, beside
-the pupil's squared error against their mean.
+the pupil's squared error against their mean. ``--features state`` gives the pupil the car's true
+state besides the observation (a privileged pupil, not a policy of the task): how well the oracle's
+actions can be fitted when nothing is hidden.
 ``--hidden 256 256`` gives a wider network. One track per process with ``--processes``.
 """
 
@@ -50,6 +53,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--epochs", type=int, default=300, help="passes over the data per refit")
     parser.add_argument("--labels", choices=["best", "mean"], default="best",
                         help="the oracle's action (best: its best plan's first step) or its last elite mean's")
+    parser.add_argument("--features", choices=["observation", "state"], default="observation",
+                        help="the pupil's input; state: also the car's true state (a privileged pupil, no policy)")
     parser.add_argument("--noise-states", type=int, default=0,
                         help="after the last round, label this many of its states again (--noise-labels times each)")
     parser.add_argument("--noise-labels", type=int, default=8, help="labels per state for --noise-states")
@@ -67,7 +72,8 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         settings = DaggerSettings(rounds=args.rounds, episodes=args.episodes, hidden=tuple(args.hidden),
-                                  epochs=args.epochs, label=args.labels, noise_states=args.noise_states,
+                                  epochs=args.epochs, label=args.labels, features=args.features,
+                                  noise_states=args.noise_states,
                                   noise_labels=args.noise_labels)
     except ValueError as err:
         parser.error(str(err))
@@ -95,6 +101,7 @@ def main(argv: list[str] | None = None) -> int:
                  f"; repeated labels: their variance {result.label_noise:.4f}, the pupil's squared error to "
                  f"their mean {result.error_to_mean_label:.4f}"))
         rows += [{"track": result.track, "hidden": " ".join(map(str, settings.hidden)), "label": settings.label,
+                  "features": settings.features,
                   "round": k, "score": round(s, 6), "labels": n, "fit_error": round(e, 6), "oracle": round(ceiling, 6),
                   "fraction": round(s / ceiling, 6),
                   "label_noise": "" if result.label_noise is None or k < len(result.scores) - 1 else round(result.label_noise, 6),

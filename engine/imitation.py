@@ -23,6 +23,22 @@ import torch
 
 DATA_SEED = 1000  # data episodes start from seeds DATA_SEED + k; scored episodes from 0-4
 LABELS = ("best", "mean")
+FEATURES = ("observation", "state")
+
+
+def pupil_input(env, obs: np.ndarray, features: str) -> np.ndarray:
+    """What the pupil sees: the observation, or (``state``, a privileged pupil that is no policy of
+    this task) the observation and the car's true state: its position scaled to the track's
+    bounding box, the heading's cosine and sine, the checkpoint and the time step as fractions."""
+    if features == "observation":
+        return obs
+    sim = env.unwrapped.sim
+    low, high = sim.tracks[0].bounds()
+    position = (np.array([sim.x[0], sim.y[0]]) - low) / np.maximum(high - low, 1e-9)
+    config = env.unwrapped.config
+    return np.concatenate([obs, position, [np.cos(sim.theta[0]), np.sin(sim.theta[0]),
+                                           sim.checkpoint[0] / config.num_segments, sim.t[0] / config.max_steps]]
+                          ).astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -35,6 +51,7 @@ class DaggerSettings:
     lr: float = 1e-3
     seed: int = 0
     label: str = "best"  # best: the oracle's action (its best plan's first step); mean: its last elite mean's
+    features: str = "observation"  # the pupil's input: the observation, or "state": it and the car's true state
     noise_states: int = 0  # after the last round: states of it labelled again noise_labels times (label_noise)
     noise_labels: int = 8
 
@@ -47,6 +64,8 @@ class DaggerSettings:
         if self.noise_states < 0 or self.noise_labels < 2:
             raise ValueError(f"noise_states must be >= 0 and noise_labels >= 2, got {self.noise_states}, "
                              f"{self.noise_labels}")
+        if self.features not in FEATURES:
+            raise ValueError(f"features must be one of {FEATURES}, got {self.features!r}")
         if self.label not in LABELS:
             raise ValueError(f"label must be one of {LABELS}, got {self.label!r}")
 
@@ -116,16 +135,18 @@ def dagger(track: int, settings: DaggerSettings = DaggerSettings(), oracle_setti
             while not done:
                 if round_ == settings.rounds and settings.noise_states:
                     visited.append((obs, {name: getattr(env.sim, name)[0].copy() for name in Oracle.STATE}))
+                seen = pupil_input(env, obs, settings.features)
                 action = oracle.act(env.sim, 0)  # the oracle's action from this state
-                observations.append(obs)
+                observations.append(seen)
                 actions.append(action if settings.label == "best" else oracle.elite_mean)
-                drive = action if policy is None else policy(obs)  # round 0: the oracle drives
+                drive = action if policy is None else policy(seen)  # round 0: the oracle drives
                 obs, _, terminated, truncated, _ = env.step(drive)
                 done = terminated or truncated
-        net = fit(np.array(observations), np.array(actions), settings, env.config.obs_size)
+        net = fit(np.array(observations), np.array(actions), settings, len(observations[0]))
         result.fit_error.append(fit_error(net, np.array(observations), np.array(actions)))
         policy = Policy(net, "paper")
-        agent = Agent(f"dagger round {round_}", lambda _env, o, p=policy: p(o))
+        agent = Agent(f"dagger round {round_}",
+                      lambda driven, o, p=policy: p(pupil_input(driven, o, settings.features)))
         result.scores.append(score(agent, (track,))[track])
         result.samples.append(len(observations))
     if settings.noise_states:
@@ -160,7 +181,7 @@ def label_noise(env, visited: list, policy, settings: DaggerSettings, oracle_set
             labels.append(np.clip(action if settings.label == "best" else oracle.elite_mean, -1.0, 1.0))
         labels = np.array(labels)
         variances.append(labels.var(axis=0, ddof=1).mean())
-        errors.append(((np.asarray(policy(obs)) - labels.mean(axis=0)) ** 2).mean())
+        errors.append(((np.asarray(policy(pupil_input(env, obs, settings.features))) - labels.mean(axis=0)) ** 2).mean())
     return float(np.mean(variances)), float(np.mean(errors))
 
 

@@ -17,12 +17,25 @@ def test_imitate_py_teaches_a_network_from_the_oracle_and_scores_it(tmp_path, ca
     assert "track 2067791: round 0 " in out and ", round 1 " in out and "; oracle 172.2; final 0." in out
     assert "(400 labels, fit error 0." in out  # two rounds of one 200-step episode, every state labelled
     rows = table.read_text().splitlines()
-    assert rows[0] == ("track,hidden,label,round,score,labels,fit_error,oracle,fraction,label_noise,"
+    assert rows[0] == ("track,hidden,label,features,round,score,labels,fit_error,oracle,fraction,label_noise,"
                        "error_to_mean_label") and len(rows) == 3
-    assert rows[1].startswith("2067791,100,mean,0,") and rows[1].endswith(",,")  # repeated labels: last round only
+    assert rows[1].startswith("2067791,100,mean,observation,0,") and rows[1].endswith(",,")  # repeated labels: last round only
     noise, error = map(float, rows[2].split(",")[-2:])
     assert noise >= 0 and error >= 0
     assert "; repeated labels: their variance " in out
+
+
+def test_a_privileged_pupil_sees_the_observation_and_the_car_s_true_state():
+    from engine.imitation import dagger, pupil_input
+    from racing.gym_env import RacingEnv
+
+    env = RacingEnv(track_seed=2067791)
+    obs, _ = env.reset(seed=0)
+    seen = pupil_input(env, obs, "state")
+    assert seen.shape == (12,) and (seen[:6] == obs).all() and (0 <= seen[6:8]).all() and (seen[6:8] <= 1).all()
+    assert pupil_input(env, obs, "observation") is obs
+    result = dagger(2067791, DaggerSettings(rounds=0, episodes=1, epochs=2, features="state"))
+    assert len(result.scores) == 1 and result.samples == [200]
 
 
 def test_data_episodes_never_start_where_scored_ones_do_and_settings_are_checked():
@@ -33,6 +46,8 @@ def test_data_episodes_never_start_where_scored_ones_do_and_settings_are_checked
         DaggerSettings(hidden=())
     with pytest.raises(ValueError, match="label must be one of"):
         DaggerSettings(label="median")
+    with pytest.raises(ValueError, match="features must be one of"):
+        DaggerSettings(features="pixels")
     with pytest.raises(ValueError, match="noise_labels >= 2"):
         DaggerSettings(noise_states=10, noise_labels=1)
 
