@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.processes < 1:
         parser.error(f"--processes must be at least 1, got {args.processes}")
     numerics.apply(numerics.DEFAULT)
-    from analysis.report import TUNING_ORACLE_TABLE, read_oracle
+    from analysis.report import read_oracles
     from engine.imitation import DaggerSettings, mean
     from engine.processes import spawn_context
 
@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         with ProcessPoolExecutor(min(args.processes, len(work)), mp_context=spawn_context()) as pool:
             results = list(pool.map(_one, work))
-    oracle = {**read_oracle(), **read_oracle(TUNING_ORACLE_TABLE)}
+    oracle = read_oracles()
     missing = [t for t in args.tracks if t not in oracle]
     if missing:
         from racing.oracle import score

@@ -18,10 +18,11 @@ from __future__ import annotations
 
 import argparse
 import math
+import statistics
 import sys
 from pathlib import Path
 
-from analysis.report import TUNING_ORACLE_TABLE, Run, find_runs, read_oracle
+from analysis.report import Run, find_runs, read_oracles
 
 
 def final_at(rewards: list[float], budget: int, window: int) -> float | None:
@@ -66,10 +67,9 @@ def main(argv: list[str] | None = None) -> int:
     if not runs:
         print(f"no runs with metrics under {', '.join(map(str, args.folders))}", file=sys.stderr)
         return 1
-    oracle = {**read_oracle(), **read_oracle(TUNING_ORACLE_TABLE)}
+    oracle = read_oracles()
     rows = budget_rows(runs, args.budgets, args.window, oracle)
     from analysis.compare import _interval
-    from engine.imitation import mean
 
     print("| track | " + " | ".join(f"{b} episodes" for b in args.budgets) + " | deterministic, at the end |")
     print("|---:|" + "---:|" * (len(args.budgets) + 1))
@@ -84,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
         fractions = [r["fraction"] for r in rows if r["budget"] == budget and r["fraction"] != ""]
         if fractions:
             low, high = _interval(fractions)
-            summary.append(f"{budget} episodes: {mean(fractions):.3f} of the oracle [{low:.3f}, {high:.3f}] "
+            summary.append(f"{budget} episodes: {statistics.fmean(fractions):.3f} of the oracle [{low:.3f}, {high:.3f}] "
                            f"over {len(fractions)} tracks")
     print("\n".join(summary))
     if args.table is not None:

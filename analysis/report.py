@@ -241,6 +241,12 @@ def write_table_csv(table: list[Cell], path: Path) -> None:
                              _num(c.paper_sem), _num(c.z)])
 
 
+def read_oracles() -> dict[int, float]:
+    """{track seed: the oracle's mean total reward} over every shipped table: the evaluation tracks'
+    (``ORACLE_TABLE``) and the tuning tracks' (``TUNING_ORACLE_TABLE``)."""
+    return {**read_oracle(), **read_oracle(TUNING_ORACLE_TABLE)}
+
+
 def read_oracle(path: Path | None = None) -> dict[int, float]:
     """{track seed: the oracle's mean total reward} (``evaluate.py --oracle --table``; default
     ``analysis/data/oracle.csv``), {} if absent."""

@@ -49,13 +49,14 @@ def n_step_transitions(batch: TensorDictBase, gamma: float, n: int) -> TensorDic
         raise ValueError(f"n-step returns need n >= 1, got {n}")
     reward, done = batch["next", "reward"], batch["next", "done"]
     steps = reward.shape[1]
+    times = torch.arange(steps, device=reward.device)
     # last[t]: the step whose next state transition t bootstraps from; alive: no episode end yet
-    last = torch.arange(steps, device=reward.device).expand(reward.shape[0], steps).clone()
+    last = times.expand(reward.shape[0], steps).clone()
     total = reward.clone()
     alive = ~done.squeeze(-1)
     for i in range(1, n):
-        later = torch.arange(i, steps + i, device=reward.device).clamp_max(steps - 1)
-        inside = alive & (torch.arange(steps, device=reward.device) + i < steps)  # [N, T]
+        later = (times + i).clamp_max(steps - 1)
+        inside = alive & (times + i < steps)  # [N, T]
         total = torch.where(inside.unsqueeze(-1), total + gamma ** i * reward[:, later], total)
         last = torch.where(inside, later.expand_as(last), last)
         alive = inside & ~done[:, later].squeeze(-1)
@@ -64,5 +65,5 @@ def n_step_transitions(batch: TensorDictBase, gamma: float, n: int) -> TensorDic
     following = batch.get("next")[rows, last]
     following.set("reward", total)
     out.set("next", following)
-    out.set(STEPS_KEY, (last - torch.arange(steps, device=reward.device) + 1).unsqueeze(-1).to(reward.dtype))
+    out.set(STEPS_KEY, (last - times + 1).unsqueeze(-1).to(reward.dtype))
     return out

@@ -81,6 +81,12 @@ class DaggerResult:
     seconds: float = 0.0
 
 
+def _tensors(observations: np.ndarray, actions: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """The regression's inputs and targets (actions clipped to [-1, 1])."""
+    return (torch.as_tensor(observations, dtype=torch.float32),
+            torch.as_tensor(np.clip(actions, -1.0, 1.0), dtype=torch.float32))
+
+
 def fit(observations: np.ndarray, actions: np.ndarray, settings: DaggerSettings, obs_size: int):
     """A fresh network regressed onto the data (its mean head onto the actions)."""
     from learners.solo import GaussianPolicyNet
@@ -89,8 +95,7 @@ def fit(observations: np.ndarray, actions: np.ndarray, settings: DaggerSettings,
     torch.manual_seed(settings.seed)
     net = GaussianPolicyNet(obs_size, 2, list(settings.hidden), "tanh")
     optimiser = torch.optim.Adam(net.parameters(), lr=settings.lr)
-    x = torch.as_tensor(observations, dtype=torch.float32)
-    y = torch.as_tensor(np.clip(actions, -1.0, 1.0), dtype=torch.float32)
+    x, y = _tensors(observations, actions)
     for _ in range(settings.epochs):
         order = torch.randperm(len(x), generator=generator)
         for start in range(0, len(x), settings.minibatch):
@@ -103,13 +108,18 @@ def fit(observations: np.ndarray, actions: np.ndarray, settings: DaggerSettings,
     return net
 
 
+def label(oracle, action: np.ndarray, settings: DaggerSettings) -> np.ndarray:
+    """The label of the state ``oracle`` just planned from (``action`` its answer), as ``settings.label`` says."""
+    return action if settings.label == "best" else oracle.elite_mean
+
+
 def fit_error(net, observations: np.ndarray, actions: np.ndarray) -> float:
     """The network's mean squared error on (observation, action) pairs (actions clipped as ``fit``
     trains on them): how far the pupil is from its labels where it has data."""
+    x, y = _tensors(observations, actions)
     with torch.no_grad():
-        loc, _ = net(torch.as_tensor(observations, dtype=torch.float32))
-        target = torch.as_tensor(np.clip(actions, -1.0, 1.0), dtype=torch.float32)
-        return float(((loc - target) ** 2).mean())
+        loc, _ = net(x)
+        return float(((loc - y) ** 2).mean())
 
 
 def dagger(track: int, settings: DaggerSettings = DaggerSettings(), oracle_settings=None) -> DaggerResult:
@@ -138,12 +148,13 @@ def dagger(track: int, settings: DaggerSettings = DaggerSettings(), oracle_setti
                 seen = pupil_input(env, obs, settings.features)
                 action = oracle.act(env.sim, 0)  # the oracle's action from this state
                 observations.append(seen)
-                actions.append(action if settings.label == "best" else oracle.elite_mean)
+                actions.append(label(oracle, action, settings))
                 drive = action if policy is None else policy(seen)  # round 0: the oracle drives
                 obs, _, terminated, truncated, _ = env.step(drive)
                 done = terminated or truncated
-        net = fit(np.array(observations), np.array(actions), settings, len(observations[0]))
-        result.fit_error.append(fit_error(net, np.array(observations), np.array(actions)))
+        data = np.array(observations), np.array(actions)
+        net = fit(*data, settings, len(observations[0]))
+        result.fit_error.append(fit_error(net, *data))
         policy = Policy(net, "paper")
         agent = Agent(f"dagger round {round_}",
                       lambda driven, o, p=policy: p(pupil_input(driven, o, settings.features)))
@@ -177,8 +188,7 @@ def label_noise(env, visited: list, policy, settings: DaggerSettings, oracle_set
         labels = []
         for oracle in oracles:
             oracle.reset()
-            action = oracle.act(env.sim, 0)
-            labels.append(np.clip(action if settings.label == "best" else oracle.elite_mean, -1.0, 1.0))
+            labels.append(np.clip(label(oracle, oracle.act(env.sim, 0), settings), -1.0, 1.0))
         labels = np.array(labels)
         variances.append(labels.var(axis=0, ddof=1).mean())
         errors.append(((np.asarray(policy(pupil_input(env, obs, settings.features))) - labels.mean(axis=0)) ** 2).mean())

@@ -167,6 +167,12 @@ def _unpad_rows(x: torch.Tensor, shape: torch.Size) -> torch.Tensor:
     return x.reshape(*shape[:-1], x.shape[-1])
 
 
+def wide_std(var: torch.Tensor, eps: float) -> torch.Tensor:
+    """``sqrt(var + eps)`` taken in float64 and rounded to ``var``'s dtype: correctly rounded (as
+    ``learners.optim.exact_sqrt``), so it does not depend on the CPU's vector math."""
+    return (var.double() + eps).sqrt().to(var.dtype)
+
+
 class StackedBatchNorm(nn.Module):
     """Batch normalisation of ``[R, ..., F]`` per member: each member's features are normalised
     by the mean and (biased) variance over its own rows in training mode, by its running
@@ -195,7 +201,7 @@ class StackedBatchNorm(nn.Module):
                 self.running_var.mul_(1 - self.momentum).add_(self.momentum * unbiased)
         else:
             mean, var = self.running_mean, self.running_var
-        std = (var.double() + self.eps).sqrt().to(var.dtype)  # correctly rounded (as learners.optim.exact_sqrt)
+        std = wide_std(var, self.eps)
         out = (flat - mean.unsqueeze(1)) / std.unsqueeze(1) * self.weight.unsqueeze(1) + self.bias.unsqueeze(1)
         return out.reshape(x.shape)
 
@@ -256,7 +262,7 @@ class StackedLayerNorm(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         mean = x.mean(-1, keepdim=True)
         centred = x - mean
-        std = (centred.square().mean(-1, keepdim=True).double() + self.eps).sqrt().to(x.dtype)
+        std = wide_std(centred.square().mean(-1, keepdim=True), self.eps)
         return centred / std * self.weight.unsqueeze(1) + self.bias.unsqueeze(1)
 
 
