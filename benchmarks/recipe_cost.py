@@ -12,7 +12,9 @@ gradient steps for ``episodes`` (201) episodes times the step's cost, plus the c
 table gives per recipe and R: milliseconds per gradient step (population, and per member), the
 CPU minutes per member for a whole run, and the hours a population of R needs on one core. Absolute
 numbers depend on the machine and the hour (this one's speed drifts by 2x): plan with the ratios
-between recipes, measured in one process.
+between recipes, measured in one process. ``sac-module`` is SAC with its gradient step through
+TorchRL's loss module instead of the fused step (``losses.td.fused_sac_losses``, the same bits):
+its row against ``sac``'s is what the fused step saves.
 """
 
 from __future__ import annotations
@@ -36,12 +38,16 @@ from engine.runner import train_population  # noqa: E402
 RECIPES = {  # name: (overrides of the recipe, shown as given)
     "sac": ["algo=sac"],
     "sac-per": ["algo=sac", "er=prioritised"],
+    "sac-module": ["algo=sac"],  # SAC's step through TorchRL's loss module (the fused step's baseline)
     "sac-nstep3": ["algo=sac", "algo.td.n_step=3"],
     "droq": ["algo=droq"],
     "tqc": ["algo=tqc"],
     "crossq": ["algo=crossq"],
     "td3": ["algo=td3"],
 }
+
+
+UNFUSED = {"sac-module"}  # recipes measured with learners.td.learner.FUSED_SAC off
 
 
 def _timed(recipe: list[str], members: int, steps: int, episode_steps: int) -> dict:
@@ -55,12 +61,18 @@ def _timed(recipe: list[str], members: int, steps: int, episode_steps: int) -> d
     return {"train": summary["time/train_s"], "episode": summary["time/rollout_s"] / 2}
 
 
-def measure(recipe: list[str], members: int, steps: int, episode_steps: int = 200) -> dict:
+def measure(recipe: list[str], members: int, steps: int, episode_steps: int = 200, fused: bool = True) -> dict:
     """Seconds per gradient step (population) and per collected episode: two short runs, of ``steps``
     and ``2 * steps`` gradient steps, whose difference leaves out what the first steps cost once
     (allocations, first calls)."""
+    from learners.td import learner
+
     probe = RunConfig.compose(*recipe)
-    short, long = _timed(recipe, members, steps, episode_steps), _timed(recipe, members, 2 * steps, episode_steps)
+    previous, learner.FUSED_SAC = learner.FUSED_SAC, fused
+    try:
+        short, long = _timed(recipe, members, steps, episode_steps), _timed(recipe, members, 2 * steps, episode_steps)
+    finally:
+        learner.FUSED_SAC = previous
     return {"step": max(long["train"] - short["train"], 0.0) / steps, "episode": long["episode"],
             "td": probe.algo.td, "episodes": probe.episodes}
 
@@ -77,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for name in args.recipes:
         for members in args.sizes:
-            m = measure(RECIPES[name], members, args.steps)
+            m = measure(RECIPES[name], members, args.steps, fused=name not in UNFUSED)
             td = m["td"]
             updates = td.updates_before(m["episodes"] - 1, 200)  # a whole run's: before its last episode
             seconds = updates * m["step"] + m["episodes"] * m["episode"]  # the population's

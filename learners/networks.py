@@ -70,23 +70,30 @@ class StackedLinear(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """``[R, ..., in] -> [R, ..., out]``."""
-        if x.shape[0] != self.members:
-            raise ValueError(f"input has {x.shape[0]} members on its first dimension, this layer {self.members}")
-        flat = x.reshape(self.members, -1, x.shape[-1])
-        weight, bias = self.weight, self.bias
-        if kernels.active() and flat.device.type == "cpu" and flat.dtype == weight.dtype == torch.float32:
-            # numerics=fma: the project's products, each element one fixed chain of FMAs
-            out = kernel_ops.linear(flat, weight, bias)
-            return out.reshape(*x.shape[:-1], out.shape[-1])
-        if weight.shape[1] == 1:
-            # A one-unit layer computes as two units, the second all zeros, and drops it.
-            # With a matrix dimension of 1 (this layer's forward and its weight gradient), the
-            # batched matrix product takes matrix-vector paths whose rounding depends on the
-            # number of members on some CPUs (seen with AVX-512); without one, it does not.
-            weight = torch.cat([weight, weight.new_zeros(weight.shape)], dim=1)
-            bias = torch.cat([bias, bias.new_zeros(bias.shape)], dim=1)
-        out = torch.baddbmm(bias.unsqueeze(1), flat, weight.transpose(1, 2))[..., :self.weight.shape[1]]
+        return stacked_linear(x, self.weight, self.bias)
+
+
+def stacked_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """``StackedLinear``'s computation with the given parameters (weight ``[R, out, in]``, bias
+    ``[R, out]``): ``[R, ..., in] -> [R, ..., out]``."""
+    members = weight.shape[0]
+    if x.shape[0] != members:
+        raise ValueError(f"input has {x.shape[0]} members on its first dimension, this layer {members}")
+    flat = x.reshape(members, -1, x.shape[-1])
+    units = weight.shape[1]
+    if kernels.active() and flat.device.type == "cpu" and flat.dtype == weight.dtype == torch.float32:
+        # numerics=fma: the project's products, each element one fixed chain of FMAs
+        out = kernel_ops.linear(flat, weight, bias)
         return out.reshape(*x.shape[:-1], out.shape[-1])
+    if units == 1:
+        # A one-unit layer computes as two units, the second all zeros, and drops it.
+        # With a matrix dimension of 1 (this layer's forward and its weight gradient), the
+        # batched matrix product takes matrix-vector paths whose rounding depends on the
+        # number of members on some CPUs (seen with AVX-512); without one, it does not.
+        weight = torch.cat([weight, weight.new_zeros(weight.shape)], dim=1)
+        bias = torch.cat([bias, bias.new_zeros(bias.shape)], dim=1)
+    out = torch.baddbmm(bias.unsqueeze(1), flat, weight.transpose(1, 2))[..., :units]
+    return out.reshape(*x.shape[:-1], out.shape[-1])
 
 
 class _Tanh(torch.autograd.Function):
@@ -97,7 +104,7 @@ class _Tanh(torch.autograd.Function):
 
     @staticmethod
     def forward(x: torch.Tensor) -> torch.Tensor:
-        return torch.sigmoid(x * 2.0).mul(2.0).sub(1.0)
+        return torch.sigmoid(x * 2.0).mul(2.0).sub(1.0)  # not in place: vmap's rule traces it with autograd
 
     @staticmethod
     def setup_context(ctx, inputs, output) -> None:
@@ -109,10 +116,25 @@ class _Tanh(torch.autograd.Function):
         return torch.ops.aten.tanh_backward(grad, y)
 
 
+class _EagerTanh(torch.autograd.Function):
+    """``_Tanh`` outside torch.vmap and torch.compile: a forward with ``ctx``, which torch calls
+    without binding its arguments by signature (about 0.1 ms a call)."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor) -> torch.Tensor:
+        y = torch.sigmoid(x * 2.0).mul_(2.0).sub_(1.0)  # _Tanh's values
+        ctx.save_for_backward(y)
+        return y
+
+    backward = _Tanh.backward
+
+
 def fast_tanh(x: torch.Tensor) -> torch.Tensor:
     """tanh(x) to within 2.4e-7 (absolute), about 1.6x faster than ``torch.tanh`` forward and
     backward on minibatch-sized float32 inputs here (``benchmarks/population_speed.py``)."""
-    return _Tanh.apply(x)
+    if torch.compiler.is_compiling() or torch._C._are_functorch_transforms_active():
+        return _Tanh.apply(x)
+    return _EagerTanh.apply(x)
 
 
 _STACKED_ACTIVATIONS = {"tanh": fast_tanh, "relu": torch.relu, "elu": nn.functional.elu}
@@ -141,11 +163,22 @@ class StackedMLP(nn.Module):
         rows, shape = _pad_rows(x, self.row_multiple)
         return _unpad_rows(self.forward_rows(rows), shape)
 
+    def forward_with(self, x: torch.Tensor, parameters: Sequence[tuple[torch.Tensor, torch.Tensor]]) -> torch.Tensor:
+        """``forward`` with other parameters (see ``forward_rows_with``)."""
+        rows, shape = _pad_rows(x, self.row_multiple)
+        return _unpad_rows(self.forward_rows_with(rows, parameters), shape)
+
     def forward_rows(self, x: torch.Tensor) -> torch.Tensor:
         """``[R, N, in] -> [R, N, out]`` for N a multiple of ``row_multiple``."""
-        last = len(self.layers) - 1
-        for i, layer in enumerate(self.layers):
-            x = layer(x)
+        return self.forward_rows_with(x, [(layer.weight, layer.bias) for layer in self.layers])
+
+    def forward_rows_with(self, x: torch.Tensor, parameters: Sequence[tuple[torch.Tensor, torch.Tensor]]) -> torch.Tensor:
+        """``forward_rows`` with other parameters, a (weight, bias) pair per layer whose leading
+        dimension may hold any number of stacked networks (``[S, out, in]``, ``[S, out]``; ``x``
+        ``[S, N, in]``): what one network of this shape computes for each, in one pass."""
+        last = len(parameters) - 1
+        for i, (weight, bias) in enumerate(parameters):
+            x = stacked_linear(x, weight, bias)
             if not (self.linear_output and i == last):
                 x = per_member(self.activation, x)
         return x

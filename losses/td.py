@@ -32,6 +32,7 @@ from torchrl.modules import TanhNormal
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import CrossQLoss, SACLoss, TD3Loss, TQCLoss
 from torchrl.objectives.utils import distance_loss
+from torchrl.objectives.value.functional import td0_return_estimate
 
 from losses.common import PRIORITY_KEY  # noqa: F401  (TorchRL's SAC writes each transition's |TD error| there)
 
@@ -127,6 +128,78 @@ class MemberSACLoss(MemberTemperature, SACLoss):
 
     def _compute_target_v2(self, tensordict: TensorDictBase) -> torch.Tensor:
         return self._with_target_alpha(super()._compute_target_v2, tensordict)
+
+
+def fused_sac_available(loss, actor_net: nn.Module) -> bool:
+    """Whether ``fused_sac_losses`` computes ``loss``'s step: SAC (not TQC or CrossQ) eagerly, with
+    Q-networks that are plain stacked MLPs (no dropout or layer norm) and the actor network the
+    loss's own."""
+    critic = getattr(loss.qvalue_network, "module", None)
+    actor_params = set(map(id, loss.actor_network_params.values(True, True)))
+    return (type(loss) is MemberSACLoss and loss.deactivate_vmap and getattr(loss, "_version", 2) == 2
+            and hasattr(getattr(critic, "net", None), "forward_with") and not hasattr(critic.net, "norms")
+            and actor_params == set(map(id, actor_net.parameters())))
+
+
+def _stacked_values(loss, inputs: torch.Tensor, params: TensorDictBase) -> torch.Tensor:
+    """Every Q-network's values ``[Q, R, B, 1]`` for inputs ``[R, B, obs + action]`` and stacked
+    parameters ``[Q, R, ...]``, in one pass over ``Q * R`` networks (each computes alone, as in
+    TorchRL's loop over the Q-networks)."""
+    mlp = loss.qvalue_network.module.net
+    layers = params["module", "net", "layers"]
+    q, members = layers["0", "weight"].shape[:2]
+    pairs = [(layers[str(i), "weight"].flatten(0, 1), layers[str(i), "bias"].flatten(0, 1)) for i in range(len(mlp.layers))]
+    x = inputs.expand(q, *inputs.shape).reshape(q * members, *inputs.shape[1:])
+    return mlp.forward_with(x, pairs).reshape(q, members, *inputs.shape[1:-1], -1)
+
+
+def fused_sac_losses(loss: "MemberSACLoss", actor_net: nn.Module,
+                     batch: TensorDictBase) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+    """``MemberSACLoss``'s three losses per member (``member_means`` of ``loss(batch)``) and the
+    minibatch's priorities, computed on plain tensors: the same operations in the same order as
+    TorchRL's ``SACLoss`` (v2: ``_compute_target_v2``, ``qvalue_v2_loss``, ``actor_loss``,
+    ``_alpha_loss``, importance weights when the minibatch has them), so the same bits, forward
+    and backward (tested), without its TensorDict and parameter-swapping work per call, which
+    costs more than the arithmetic at these sizes. Where ``fused_sac_available`` holds."""
+    keys = loss.tensor_keys
+    for key in (("collector", "mask"), "shifted_valid"):  # TorchRL's loss masks: not written here
+        if key in batch.keys(True):
+            raise ValueError(f"fused_sac_losses does not apply loss masks ({key!r} in the minibatch)")
+    weights = batch.get(keys.priority_weight, None) if loss.use_prioritized_weights in (True, "auto") else None
+    observation, following = batch.get("observation"), batch.get("next")
+    members = observation.shape[0]
+    with torch.no_grad():  # the target, as _compute_target_v2 and the TD(0) estimator compute it
+        next_observation = following.get("observation")
+        loc, scale = actor_net(next_observation)
+        next_action, next_log_prob = DrawnTanhNormal(loc, scale, following.get(ACTION_NOISE_KEY),
+                                                     low=-1.0, high=1.0).rsample_and_log_prob()
+        next_values = _stacked_values(loss, torch.cat([next_observation, next_action], -1),
+                                      loss.target_qvalue_network_params)
+        alpha = loss._alpha.reshape(members, 1, 1)
+        next_value = (next_values - alpha * next_log_prob.unsqueeze(-1)).min(0)[0]
+        reward = following.get(keys.reward)
+        estimator = loss.value_estimator
+        gamma = estimator.gamma.to(reward.device)
+        steps = batch.get(estimator.tensor_keys.steps_to_next_obs, None)
+        if steps is not None:
+            gamma = gamma ** steps.view_as(reward)
+        target = td0_return_estimate(gamma=gamma, next_state_value=next_value, reward=reward,
+                                     terminated=following.get(keys.terminated)).squeeze(-1)
+    predicted = _stacked_values(loss, torch.cat([observation, batch.get("action")], -1),
+                                loss.qvalue_network_params).squeeze(-1)
+    td_error = abs(predicted - target)
+    loss_qvalue = distance_loss(predicted, target.expand_as(predicted), loss_function=loss.loss_function).sum(0)
+    loc, scale = actor_net(observation)
+    action, log_prob = DrawnTanhNormal(loc, scale, batch.get(ACTION_NOISE_KEY), low=-1.0, high=1.0).rsample_and_log_prob()
+    min_q = _stacked_values(loss, torch.cat([observation, action], -1),
+                            loss.qvalue_network_params.detach()).min(0)[0].squeeze(-1)
+    loss_actor = loss._alpha * log_prob - min_q
+    loss_alpha = loss._alpha_loss(log_prob.detach())
+    if weights is not None:
+        loss_qvalue, loss_actor, loss_alpha = loss_qvalue * weights, loss_actor * weights, loss_alpha * weights
+    losses = {"loss_qvalue": member_means(loss_qvalue), "loss_actor": member_means(loss_actor),
+              "loss_alpha": member_means(loss_alpha)}
+    return losses, td_error.detach().max(0)[0]
 
 
 class _QuantileHuber(torch.autograd.Function):

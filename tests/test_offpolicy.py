@@ -253,6 +253,68 @@ def test_td3_preact_penalty_adds_the_mean_square_of_the_pre_tanh_action():
     assert all(g is not None for pair in grads for g in pair) and not all(torch.equal(a, b) for a, b in grads)
 
 
+@pytest.mark.parametrize("mode", ["fma", "portable"])
+@pytest.mark.parametrize("extra", [[], ["er=prioritised", "algo.td.n_step=3", "algo.td.loss_function=smooth_l1"]])
+def test_fused_sac_step_is_the_torchrl_loss_bit_for_bit(mode, extra):
+    """The fused SAC step (plain tensors, the Q-networks in one stacked pass) gives TorchRL's loss
+    module's losses, priorities and gradients bit for bit: with importance weights, n-step
+    discounts, another critic loss, in both numerics that switch after torch loads."""
+    from learners import kernels
+
+    cfg, t = training("sac", *extra, seeds=(A, B, 7))
+    assert t.phases.fused
+    data = transitions(3, 256)
+    g = torch.Generator().manual_seed(5)
+    if extra:
+        data.set("priority_weight", torch.rand(3, 256, generator=g))
+        data.set("steps_to_next_obs", torch.randint(1, 4, (3, 256, 1), generator=g))
+    t.loss.draw(data)
+    loss = t.loss
+    params = [*loss.actor_network_params.values(True, True), loss.log_alpha, *loss.qvalue_network_params.values(True, True)]
+
+    def step(fused):
+        t.phases.fused = fused
+        for p in params:
+            p.grad = None
+        losses, priority = t.phases._sac_losses(data.clone())
+        (sum(losses.values()) * torch.tensor([1.0, 2.0, 3.0])).sum().backward()
+        return losses, priority, [p.grad.clone() for p in params]
+
+    previous = kernels.active()
+    try:
+        if kernels.use(mode == "fma"):
+            pytest.skip("the kernels cannot be built here")
+        (theirs, their_priority, their_grads), (ours, our_priority, our_grads) = step(False), step(True)
+    finally:
+        kernels.use(previous)
+    assert set(ours) == set(theirs) and all(torch.equal(ours[k], theirs[k]) for k in theirs)
+    assert torch.equal(our_priority, their_priority)
+    assert all(a.any() for a in our_grads) and all(torch.equal(a, b) for a, b in zip(our_grads, their_grads))
+
+
+def test_a_run_with_the_fused_sac_step_is_a_run_through_the_loss_module(tmp_path, monkeypatch):
+    """Whole runs (prioritised replay, two members, a hundred gradient steps): byte-identical
+    learning curves and weights with and without the fused step."""
+    from learners.td import learner
+
+    cfg = load("algo=sac", "er=prioritised", f"seeds=[{A},{B}]", "episodes=3", "algo.td.warmup_episodes=1",
+               "algo.td.updates_per_step=0.25", "progress=false", "logger=none", "checkpoint_every=0")
+    outputs = {}
+    for fused in (True, False):
+        monkeypatch.setattr(learner, "FUSED_SAC", fused)
+        out = tmp_path / str(fused)
+        train_population(cfg, out)
+        outputs[fused] = sorted((p.relative_to(out), p.read_bytes()) for p in out.rglob("*")
+                                if p.is_file() and p.suffix in (".csv", ".pt") and "checkpoint" not in p.name)
+    assert outputs[True] and outputs[True] == outputs[False]
+
+
+def test_fused_sac_step_is_taken_only_where_it_computes_the_loss():
+    for algo, extra, fused in [("sac", [], True), ("tqc", [], False), ("crossq", [], False), ("td3", [], False),
+                               ("droq", [], False), ("sac", ["compile=true"], False)]:
+        assert training(algo, *extra)[1].phases.fused is fused, (algo, extra)
+
+
 @pytest.mark.parametrize("algo", ["sac", "tqc", "crossq", "td3"])
 def test_each_loss_term_reaches_only_its_own_networks_and_members_do_not_mix(algo):
     cfg, t = training(algo)

@@ -36,7 +36,10 @@ from learners.networks import BlockSampler, StackedBNCriticNet, StackedCriticNet
 from learners.optim import MemberAdam
 from learners.td import ENTROPY_LOSSES
 from losses.td import (ACTION_NOISE_KEY, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhNormal, MemberCrossQLoss, MemberSACLoss,
-                       MemberTD3Loss, MemberTQCLoss, SmoothedActor, member_means)
+                       MemberTD3Loss, MemberTQCLoss, SmoothedActor, fused_sac_available, fused_sac_losses, member_means)
+
+FUSED_SAC = True  # SAC's eager step by losses.td.fused_sac_losses (the same bits as TorchRL's SACLoss, faster);
+#                   False: through the loss module (benchmarks/recipe_cost.py --reference compares them)
 
 TD_TRANSITION_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
                       ("next", "terminated"))
@@ -199,9 +202,11 @@ class TDPhaseRunner:
     interface (``active``, ``freeze``, the metrics' names)."""
 
     def __init__(self, cfg, loss, optimisers: Optimisers, generators: Sequence[torch.Generator],
-                 memory=None):
+                 memory=None, actor_net: nn.Module | None = None):
         """``memory``: the replay memory when its sampler is prioritised (else None). Each step's
-        objective is compiled when ``cfg.compile`` (``learners.compiling``)."""
+        objective is compiled when ``cfg.compile`` (``learners.compiling``). SAC's eager step
+        computes on plain tensors (``losses.td.fused_sac_losses``: TorchRL's numbers, bit for bit)
+        when ``FUSED_SAC`` and the actor network (``actor_net``) and Q-networks allow it."""
         self.loss, self.optimisers, self.generators = loss, optimisers, list(generators)
         self.kind, self.td = cfg.algo.loss, cfg.algo.td
         self.steps = cfg.env.episode_steps
@@ -213,6 +218,8 @@ class TDPhaseRunner:
         self.critic_metrics = ("loss_qvalue",)
         self.entropy = self.kind in ENTROPY_LOSSES  # SAC's step (TQC's loss is a SACLoss)
         self.actor_metrics = ("loss_actor", "loss_alpha", "alpha") if self.entropy else ("loss_actor",)
+        self.actor_net = actor_net
+        self.fused = FUSED_SAC and actor_net is not None and not cfg.compile and fused_sac_available(loss, actor_net)
         self._sac_objective = compile_step(self._sac_losses, cfg.compile)
         self._critic_objective = compile_step(self._td3_critic_losses, cfg.compile)
         self._actor_objective = compile_step(self._td3_actor_losses, cfg.compile)
@@ -242,6 +249,8 @@ class TDPhaseRunner:
 
     def _sac_losses(self, batch: TensorDictBase) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
         """SAC's three losses per member and the minibatch's priorities (TorchRL's loss writes them)."""
+        if self.fused:
+            return fused_sac_losses(self.loss, self.actor_net, batch)
         out = self.loss(batch)
         losses = {key: member_means(out[key]) for key in ("loss_qvalue", "loss_actor", "loss_alpha")}
         return losses, batch.get(PRIORITY_KEY)
@@ -324,6 +333,7 @@ def build(cfg, env, generators: Sequence[torch.Generator], memory: ReplayMemory)
     networks = make_networks(cfg, env, generators)
     loss = make_loss(cfg, networks, generators)
     optimisers = make_optimisers(cfg, loss)
-    phases = TDPhaseRunner(cfg, loss, optimisers, generators, memory if cfg.er.priority else None)
+    phases = TDPhaseRunner(cfg, loss, optimisers, generators, memory if cfg.er.priority else None,
+                           actor_net=networks.actor_net)
     return Learner(networks, loss, optimisers, memory, phases,
                    TD_TRANSITION_KEYS, monte_carlo=False, n_step=cfg.algo.td.n_step)
