@@ -137,7 +137,9 @@ def fused_sac_available(loss, actor_net: nn.Module) -> bool:
     critic = getattr(loss.qvalue_network, "module", None)
     actor_params = set(map(id, loss.actor_network_params.values(True, True)))
     return (type(loss) is MemberSACLoss and loss.deactivate_vmap and getattr(loss, "_version", 2) == 2
-            and hasattr(getattr(critic, "net", None), "forward_with") and not hasattr(critic.net, "norms")
+            and not loss.skip_done_states
+            and hasattr(getattr(critic, "net", None), "forward_with")
+            and not hasattr(critic.net, "norms")  # DroQ's regularised MLP (dropout, layer norm)
             and actor_params == set(map(id, actor_net.parameters())))
 
 
