@@ -21,7 +21,7 @@ from engine.checkpoint import CHECKPOINT_FILE
 from tests.test_train import ENV, ROOT, run_train
 
 # A short run (episodes of 50 steps, replay memory and recent experience) checkpointed every second episode.
-FAULT_RUN = ["algo=spg", "er=hybrid", "episodes=60", "checkpoint_every=2", "env.options.max_steps=50",
+FAULT_RUN = ["algo=spg", "er=hybrid", "episodes=120", "checkpoint_every=2", "env.options.max_steps=50",
              "algo.minibatch_size=50", "final_window=10", "progress=false", "logger=none"]
 SIGNALS = ("SIGKILL", "SIGTERM", "SIGINT")
 
@@ -359,13 +359,13 @@ def test_ctrl_c_ends_a_run_with_one_line_and_the_same_command_resumes(tmp_path):
     """Point 9: SIGINT stops the run at the end of its episode with a checkpoint and one line;
     point 4: the same command started again while it runs is refused, naming its pid."""
     folder = tmp_path / "run"
-    cmd = [sys.executable, str(ROOT / "train.py"), *TINY, "episodes=400", "checkpoint_every=50",
-           f"hydra.run.dir={folder}"]
+    cmd = [sys.executable, str(ROOT / "train.py"), *TINY, "episodes=100000", "checkpoint_every=50",
+           f"hydra.run.dir={folder}"]  # far longer than the test: it stops on SIGINT
     proc = subprocess.Popen(cmd, cwd=ROOT, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 120
     while time.time() < deadline and not (folder / "metrics.csv").exists():
         time.sleep(0.05)
-    second = run_train(*TINY, "episodes=400", "checkpoint_every=50", f"hydra.run.dir={folder}")  # point 4
+    second = run_train(*TINY, "episodes=100000", "checkpoint_every=50", f"hydra.run.dir={folder}")  # point 4
     assert second.returncode == 2 and f"is in use by another process (pid {proc.pid} on " in second.stderr
     assert proc.poll() is None  # the first goes on
     proc.send_signal(signal.SIGINT)
