@@ -26,13 +26,21 @@ FAULT_RUN = ["algo=spg", "er=hybrid", "episodes=120", "checkpoint_every=2", "env
 SIGNALS = ("SIGKILL", "SIGTERM", "SIGINT")
 
 
+def _sigint_as_in_a_terminal() -> None:
+    """The child's SIGINT at its default, as a command typed in a terminal has it: a test run from a
+    background job of a non-interactive shell inherits SIGINT ignored, and a run leaves an ignored
+    SIGINT alone (engine.processes.StopSignals), so the tests' own SIGINTs would do nothing."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class FaultServer:
     """tests/fault_server.py: forks training sessions with faults injected."""
 
     def __init__(self, log: Path):
         self.log = log
         self.proc = subprocess.Popen([sys.executable, "-m", "tests.fault_server"], cwd=ROOT, env=ENV, text=True,
-                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                     preexec_fn=_sigint_as_in_a_terminal)
 
     def session(self, folder: Path, fault: dict | None = None, kill_after: tuple[float, str] | None = None) -> int:
         command = {"folder": str(folder), "overrides": FAULT_RUN, "fault": fault, "log": str(self.log)}
@@ -361,7 +369,8 @@ def test_ctrl_c_ends_a_run_with_one_line_and_the_same_command_resumes(tmp_path):
     folder = tmp_path / "run"
     cmd = [sys.executable, str(ROOT / "train.py"), *TINY, "episodes=100000", "checkpoint_every=50",
            f"hydra.run.dir={folder}"]  # far longer than the test: it stops on SIGINT
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_sigint_as_in_a_terminal)
     deadline = time.time() + 120
     while time.time() < deadline and not (folder / "metrics.csv").exists():
         time.sleep(0.05)
