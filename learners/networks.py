@@ -118,7 +118,7 @@ class _Tanh(torch.autograd.Function):
 
 class _EagerTanh(torch.autograd.Function):
     """``_Tanh`` outside torch.vmap and torch.compile: a forward with ``ctx``, which torch calls
-    without binding its arguments by signature (about 0.1 ms a call)."""
+    without binding its arguments by signature (a few microseconds a call)."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor) -> torch.Tensor:

@@ -39,7 +39,7 @@ from losses.td import (ACTION_NOISE_KEY, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhN
                        MemberTD3Loss, MemberTQCLoss, SmoothedActor, fused_sac_available, fused_sac_losses, member_means)
 
 FUSED_SAC = True  # SAC's eager step by losses.td.fused_sac_losses (the same bits as TorchRL's SACLoss, faster);
-#                   False: through the loss module (benchmarks/recipe_cost.py --reference compares them)
+#                   False: through the loss module (benchmarks/recipe_cost.py's sac-module recipe)
 
 TD_TRANSITION_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
                       ("next", "terminated"))
