@@ -41,6 +41,8 @@ RECIPES = {  # name: (overrides of the recipe, shown as given)
     "sac-module": ["algo=sac"],  # SAC's step through TorchRL's loss module (the fused step's baseline)
     "sac-nstep3": ["algo=sac", "algo.td.n_step=3"],
     "droq": ["algo=droq"],
+    "bro": ["algo=bro", "er=prioritised"],
+    "bro-256": ["algo=bro", "er=prioritised", "algo.td.critic_width=256"],
     "tqc": ["algo=tqc"],
     "crossq": ["algo=crossq"],
     "td3": ["algo=td3"],

@@ -13,6 +13,7 @@ from typing import Any
 
 import learners  # torch-free: each family's keys and option blocks
 from engine.numerics import MODES as NUMERIC_MODES  # torch-free, like this module
+from learners.options import ACTIVATIONS
 from learners.options import ConfigError  # noqa: F401 (raised by every check here; part of this module's interface)
 from learners.options import at_least as _at_least
 from learners.options import build as _build
@@ -22,7 +23,6 @@ from learners.options import positive as _positive
 TRACK_SOURCES = ("fixed", "random", "file")
 COLLECTORS = ("direct", "torchrl")
 LOGGERS = ("csv", "tensorboard", "none")
-ACTIVATIONS = ("tanh", "relu", "elu")
 
 
 def seed_dir(seeds, seed) -> str:

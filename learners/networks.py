@@ -281,10 +281,12 @@ class StackedGaussianPolicyNet(nn.Module):
 
 class StackedLayerNorm(nn.Module):
     """Layer normalisation of ``[R, N, F]`` rows per member: each row's features normalised by their
-    mean and (biased) variance, then scaled and shifted by the member's ``weight`` and ``bias``
-    (``[R, F]``), as ``torch.nn.LayerNorm`` computes. Each row's statistics are its own, and the
-    standard deviation is taken in float64 and rounded (correctly rounded, as
-    ``learners.optim.exact_sqrt``), so it does not depend on the CPU's vector math."""
+    mean and (biased) variance (``torch.nn.functional.layer_norm``, one pass forward and backward),
+    then scaled and shifted by the member's ``weight`` and ``bias`` (``[R, F]``). Each row's
+    statistics are its own, computed the same way whatever the other rows, so a member's values do
+    not depend on the other members; ATen's kernel takes its one square root per row with the
+    correctly rounded ``std::sqrt``, and its vector width is the numerics mode's (fixed at AVX2 in
+    ``fma`` and ``portable``)."""
 
     def __init__(self, members: int, features: int, eps: float = 1e-5):
         super().__init__()
@@ -292,11 +294,15 @@ class StackedLayerNorm(nn.Module):
         self.weight = nn.Parameter(torch.ones(members, features))
         self.bias = nn.Parameter(torch.zeros(members, features))
 
+    def reset_parameters(self, generators: Sequence[torch.Generator | None] = ()) -> None:
+        """Unit scales and zero shifts (nothing is drawn)."""
+        with torch.no_grad():
+            self.weight.fill_(1.0)
+            self.bias.zero_()
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        mean = x.mean(-1, keepdim=True)
-        centred = x - mean
-        std = wide_std(centred.square().mean(-1, keepdim=True), self.eps)
-        return centred / std * self.weight.unsqueeze(1) + self.bias.unsqueeze(1)
+        normalised = nn.functional.layer_norm(x, x.shape[-1:], eps=self.eps)
+        return torch.addcmul(self.bias.unsqueeze(1), normalised, self.weight.unsqueeze(1))
 
 
 class StackedDropout(nn.Module):
@@ -363,6 +369,36 @@ class StackedCriticNet(nn.Module):
         return self.net(inputs[0] if len(inputs) == 1 else torch.cat(inputs, dim=-1))
 
 
+class StackedResidualCriticNet(nn.Module):
+    """A BRO-style Q-network for R members (Nauman et al., 2024, "BroNet"): ``Q(s, a)`` as
+    ``[R, ..., outputs]`` from an embedding Linear -> layer norm -> activation of ``width`` units,
+    then ``blocks`` residual blocks x + LN(Linear(act(LN(Linear(x))))), then a linear output.
+    Layer normalisation keeps the hidden units' scale fixed, so the network can grow wide and take
+    many gradient steps without its values drifting; the residual path keeps it trainable in depth.
+    Rows are padded as in ``StackedMLP``, so a member computes what it computes alone."""
+
+    def __init__(self, members: int, in_features: int, width: int, blocks: int, activation: str = "relu",
+                 outputs: int = 1):
+        super().__init__()
+        if blocks < 1:
+            raise ValueError(f"a residual critic needs at least one block, got {blocks}")
+        self.embed = StackedLinear(members, in_features, width)
+        self.layers = nn.ModuleList(StackedLinear(members, width, width) for _ in range(2 * blocks))
+        self.norms = nn.ModuleList(StackedLayerNorm(members, width) for _ in range(2 * blocks + 1))
+        self.head = StackedLinear(members, width, outputs)
+        self.activation = _STACKED_ACTIVATIONS[activation]
+        self.row_multiple = ALIGN // math.gcd(ALIGN, width)
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        x = inputs[0] if len(inputs) == 1 else torch.cat(inputs, dim=-1)
+        rows, shape = _pad_rows(x, self.row_multiple)
+        h = per_member(self.activation, self.norms[0](self.embed(rows)))
+        for i in range(0, len(self.layers), 2):
+            inner = per_member(self.activation, self.norms[i + 1](self.layers[i](h)))
+            h = h + self.norms[i + 2](self.layers[i + 1](inner))
+        return _unpad_rows(self.head(h), shape)
+
+
 class MemberNormal(torch.distributions.Normal):
     """``torch.distributions.Normal`` over a population's ``[R, ...]`` parameters, with the
     logarithms of ``log_prob`` and ``entropy`` computed per member (``losses.functional.per_member``),
@@ -381,9 +417,10 @@ _LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
 
 def reset_parameters(net: nn.Module, generators: Sequence[torch.Generator | None]) -> nn.Module:
     """Initialise every ``StackedLinear`` of ``net`` in registration order, member by member
-    from its own generator (so a member's weights depend on its generator alone)."""
+    from its own generator (so a member's weights depend on its generator alone), and every
+    ``StackedLayerNorm`` to unit scale and zero shift."""
     for layer in net.modules():
-        if isinstance(layer, StackedLinear):
+        if isinstance(layer, (StackedLinear, StackedLayerNorm)):
             layer.reset_parameters(generators)
     return net
 

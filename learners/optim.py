@@ -1,7 +1,7 @@
 """Adam for a population's stacked parameters, with little per-step overhead.
 
-The update is ``torch.optim.Adam``'s (its multi-tensor, non-capturable path, no weight
-decay, no amsgrad), operation for operation, except that the square root of the second
+The update is ``torch.optim.Adam``'s (its multi-tensor, non-capturable path, no amsgrad;
+with ``weight_decay``, ``torch.optim.AdamW``'s decoupled decay), operation for operation, except that the square root of the second
 moment is correctly rounded: torch's float32 ``sqrt`` on CPU calls MKL's vector math, whose
 result differs in the last bit from CPU to CPU (it starts from the CPU's approximate
 reciprocal square root), so it is taken in float64 and rounded to float32, which gives the
@@ -38,9 +38,10 @@ class MemberAdam:
     """Adam over parameters whose first dimension is the population's members."""
 
     def __init__(self, params: Iterable[torch.nn.Parameter], lr: float, betas: tuple[float, float] = (0.9, 0.999),
-                 eps: float = 1e-8, member_dims: Iterable[int] | None = None):
+                 eps: float = 1e-8, member_dims: Iterable[int] | None = None, weight_decay: float = 0.0):
         """``member_dims``: the members' dimension of each parameter (default: all 0; TorchRL's
-        ensembles of Q-networks have theirs at 1, after the ensemble's)."""
+        ensembles of Q-networks have theirs at 1, after the ensemble's). ``weight_decay``: each
+        step first shrinks the parameters by ``1 - lr * weight_decay`` (AdamW's decoupled decay)."""
         self.params = list(params)
         if not self.params:
             raise ValueError("MemberAdam got no parameters")
@@ -48,6 +49,7 @@ class MemberAdam:
         if len(self.member_dims) != len(self.params):
             raise ValueError(f"got {len(self.member_dims)} member dims for {len(self.params)} parameters")
         self.lr, self.betas, self.eps = float(lr), (float(betas[0]), float(betas[1])), float(eps)
+        self.weight_decay = float(weight_decay)
         self.steps = 0
         self.exp_avg = [torch.zeros_like(p, memory_format=torch.preserve_format) for p in self.params]
         self.exp_avg_sq = [torch.zeros_like(p, memory_format=torch.preserve_format) for p in self.params]
@@ -61,6 +63,8 @@ class MemberAdam:
         grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in self.params]
         beta1, beta2 = self.betas
         self.steps += 1
+        if self.weight_decay:
+            torch._foreach_mul_(self.params, 1 - self.lr * self.weight_decay)
         torch._foreach_lerp_(self.exp_avg, grads, 1 - beta1)
         torch._foreach_mul_(self.exp_avg_sq, beta2)
         torch._foreach_addcmul_(self.exp_avg_sq, grads, grads, 1 - beta2)
@@ -77,6 +81,13 @@ class MemberAdam:
         for m, v, dim in zip(self.exp_avg, self.exp_avg_sq, self.member_dims):
             m.select(dim, member).zero_()
             v.select(dim, member).zero_()
+
+    @torch.no_grad()
+    def restart(self) -> None:
+        """Forget every member's moments and the step count, as a new optimiser would."""
+        self.steps = 0
+        for t in (*self.exp_avg, *self.exp_avg_sq):
+            t.zero_()
 
     def state_dict(self) -> dict:
         return {"steps": self.steps, "exp_avg": [m.clone() for m in self.exp_avg],

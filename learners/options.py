@@ -16,6 +16,9 @@ from dataclasses import MISSING, fields
 from typing import Any, get_type_hints
 
 
+ACTIVATIONS = ("tanh", "relu", "elu")  # the hidden activations the networks offer (learners.networks, learners.solo)
+
+
 class ConfigError(ValueError):
     """A configuration value or combination that cannot be run."""
 

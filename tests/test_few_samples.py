@@ -1,9 +1,13 @@
-"""Options of the off-policy learners for few samples: n-step TD targets (``algo.td.n_step``) and
-DroQ's Q-networks (``algo.td.critic_dropout``, ``algo.td.critic_layer_norm``; ``algo=droq``).
+"""Options of the off-policy learners for few samples: n-step TD targets (``algo.td.n_step``),
+DroQ's Q-networks (``algo.td.critic_dropout``, ``algo.td.critic_layer_norm``; ``algo=droq``) and
+BRO's (``algo.td.critic_blocks`` and the rest of ``algo=bro``: residual layer-normalised
+Q-networks, weight decay, periodic resets).
 
 Checked: the n-step transitions against sums written out by hand, TorchRL's TD target with them,
-layer normalisation against ``torch.nn.LayerNorm``, dropout's masks and scaling, and whole runs:
-a member equals its solo run, an interrupted run resumes exactly, one step is the old learner.
+layer normalisation against ``torch.nn.LayerNorm``, dropout's masks and scaling, the residual
+network against its formula, a reset against fresh networks drawn from the same generator states,
+and whole runs: a member equals its solo run, an interrupted run resumes exactly, one step is the
+old learner, a reset changes a run from its episode on and not before.
 """
 
 import re
@@ -15,12 +19,15 @@ from tensordict import TensorDict
 from collectors import STEPS_KEY, n_step_transitions
 from engine.config import ConfigError
 from engine.runner import train_population
-from learners.networks import StackedDropout, StackedLayerNorm
+from engine.setup import make_env, make_generators, make_learner
+from learners.base import MetricTotals
+from learners.networks import StackedDropout, StackedLayerNorm, StackedLinear, StackedResidualCriticNet, reset_parameters
 from tests.test_config import load
 from tests.test_offpolicy import A, B, FAST, training, transitions
 from tests.test_resilience import interrupted_after
 
 DROQ = ["algo.td.critic_dropout=0.1", "algo.td.critic_layer_norm=true"]
+BRO = ["algo=bro", "algo.td.critic_width=32", "algo.td.critic_blocks=1"]  # small and quick
 
 
 def episode_batch(rewards, done_at=()):
@@ -139,6 +146,87 @@ def test_the_options_change_the_run_and_their_defaults_do_not(tmp_path):
     assert (tmp_path / "nstep" / "metrics.csv").read_bytes() != plain
 
 
+def test_the_residual_critic_is_its_formula_per_member():
+    torch.manual_seed(0)
+    net = StackedResidualCriticNet(2, 8, 16, blocks=2, activation="relu")
+    reset_parameters(net, [torch.Generator().manual_seed(s) for s in (1, 2)])
+    with torch.no_grad():  # scales and shifts away from 1 and 0, so that they count
+        for norm in net.norms:
+            norm.weight.uniform_(0.5, 1.5)
+            norm.bias.uniform_(-0.5, 0.5)
+    obs, act = torch.randn(2, 5, 6), torch.randn(2, 5, 2)
+    out = net(obs, act)
+    for r in range(2):
+        def lin(layer, x):
+            return x @ layer.weight[r].T + layer.bias[r]
+
+        def ln(i, x):
+            n = net.norms[i]
+            return torch.nn.functional.layer_norm(x, (16,), n.weight[r], n.bias[r], eps=1e-5)
+
+        h = torch.relu(ln(0, lin(net.embed, torch.cat([obs[r], act[r]], -1))))
+        for b in range(2):
+            h = h + ln(2 + 2 * b, lin(net.layers[2 * b + 1], torch.relu(ln(1 + 2 * b, lin(net.layers[2 * b], h)))))
+        torch.testing.assert_close(out[r], lin(net.head, h), rtol=1e-5, atol=1e-5)
+    alone = StackedResidualCriticNet(1, 8, 16, blocks=2, activation="relu")
+    alone.load_state_dict({k: v[1:] for k, v in net.state_dict().items()})
+    assert torch.equal(alone(obs[1:], act[1:]), out[1:])  # a member computes what it computes alone
+
+
+def test_a_reset_draws_the_networks_anew_as_at_the_start_and_restarts_the_optimisers():
+    bro = ("algo.td.critic_width=32", "algo.td.critic_blocks=1")
+    cfg, t = training("bro", *bro, "algo.td.reset_every=7")
+    t.phases.updates = lambda e: (0, 3)
+    t.phases.run(transitions(2, 300), 16, MetricTotals(), 1)  # trains: moments, temperature, targets move
+    states = [g.get_state() for g in t.phases.generators]
+    t.phases.run(transitions(2, 300), 16, MetricTotals(), 7)  # resets, then takes its 3 steps
+    # a learner built from the generators as they stood, taking the same 3 steps
+    generators = make_generators((A, B))
+    for g, state in zip(generators, states):
+        g.set_state(state)
+    fresh = make_learner(load("algo=bro", "er=memory", f"seeds=[{A},{B}]", *bro), make_env(cfg, (A, B)), generators)
+    fresh.phases.updates = lambda e: (0, 3)
+    fresh.phases.run(transitions(2, 300), 16, MetricTotals(), 7)
+    for ours, theirs in ((t.loss.actor_network_params, fresh.loss.actor_network_params),
+                         (t.loss.qvalue_network_params, fresh.loss.qvalue_network_params),
+                         (t.loss.target_qvalue_network_params, fresh.loss.target_qvalue_network_params)):
+        for key, value in theirs.items(True, True):
+            assert torch.equal(ours[key], value), key
+    assert torch.equal(t.loss.log_alpha, fresh.loss.log_alpha)
+    assert t.optimisers.critic.steps == t.optimisers.actor.steps == 3
+    for a, b in zip(t.optimisers.critic.exp_avg_sq + t.optimisers.actor.exp_avg,
+                    fresh.optimisers.critic.exp_avg_sq + fresh.optimisers.actor.exp_avg):
+        assert torch.equal(a, b)
+
+
+def test_a_reset_changes_a_run_from_its_episode_on(tmp_path):
+    run = [*BRO, "er=memory", *FAST, "episodes=6", "algo.td.updates_per_step=0.1", f"seed={A}"]
+    train_population(load(*run), tmp_path / "plain")
+    train_population(load(*run, "algo.td.reset_every=4"), tmp_path / "reset")
+    plain, reset = ((tmp_path / name / "metrics.csv").read_text().splitlines() for name in ("plain", "reset"))
+    assert plain[:5] == reset[:5]  # the header and episodes 0-3
+    assert plain[5] != reset[5]  # episode 4 trains on reset networks
+
+
+def test_bro_members_equal_their_solo_runs_and_resume_exactly_across_a_reset(tmp_path):
+    run = [*BRO, "er=prioritised", *FAST, "episodes=5", "algo.td.updates_per_step=0.1", "algo.td.reset_every=3"]
+    train_population(load(*run, f"seed={B}"), tmp_path / "solo")
+    train_population(load(*run, f"seeds=[{B},{A}]"), tmp_path / "pair")
+    with interrupted_after(3):
+        train_population(load(*run, f"seeds=[{B},{A}]", "checkpoint_every=2"), tmp_path / "resumed")
+    train_population(load(*run, f"seeds=[{B},{A}]", "checkpoint_every=2"), tmp_path / "resumed")
+    solo = (tmp_path / "solo" / "metrics.csv").read_bytes()
+    for folder in ("pair", "resumed"):
+        assert (tmp_path / folder / f"seed{B}" / "metrics.csv").read_bytes() == solo, folder
+
+
+def test_weight_decay_shrinks_only_the_q_networks(tmp_path):
+    _, t = training("bro", "algo.td.critic_width=32", "algo.td.critic_blocks=1")
+    assert t.optimisers.critic.weight_decay == pytest.approx(1e-4) and t.optimisers.actor.weight_decay == 0
+    assert isinstance(t.networks.qvalue_nets[0], StackedResidualCriticNet)
+    assert isinstance(t.networks.qvalue_nets[0].embed, StackedLinear)
+
+
 @pytest.mark.parametrize("override, message", [
     (["algo=sac", "algo.td.n_step=0"], "n_step must be >= 1"),
     (["algo=sac", "algo.td.n_step=1.5"], "n_step must be an integer"),
@@ -146,6 +234,12 @@ def test_the_options_change_the_run_and_their_defaults_do_not(tmp_path):
     (["algo=sac", "algo.td.critic_layer_norm=3"], "critic_layer_norm must be"),
     (["algo=crossq", "+algo.td.critic_layer_norm=true"], "batch-normalised"),
     (["algo=sac", "algo.td.critic_dropout=0.01", "compile=true"], "not supported with algo.td.critic_dropout"),
+    (["algo=bro", "algo.td.critic_dropout=0.01"], "residual Q-network, layer-normalised throughout"),
+    (["algo=sac", "algo.td.critic_width=64"], "need algo.td.critic_blocks >= 1"),
+    (["algo=bro", "algo.td.critic_activation=gelu"], "critic_activation must be one of tanh, relu, elu"),
+    (["algo=bro", "algo.td.reset_every=-1"], "reset_every must be >= 0"),
+    (["algo=bro", "algo.td.critic_weight_decay=-0.1"], "critic_weight_decay must be >= 0"),
+    (["algo=crossq", "+algo.td.critic_blocks=2"], "algo.td.critic_blocks: 0"),
 ])
 def test_bad_settings_are_refused_with_a_reason(override, message):
     with pytest.raises(ConfigError, match=re.escape(message)):

@@ -137,22 +137,24 @@ def test_exact_sqrt_is_the_correctly_rounded_root():
     assert np.array_equal(root.numpy(), np.sqrt(x.numpy()))
 
 
-def test_member_adam_is_torch_adam_with_a_correctly_rounded_sqrt_and_restores(monkeypatch):
+@pytest.mark.parametrize("weight_decay", [0.0, 0.05])
+def test_member_adam_is_torch_adam_with_a_correctly_rounded_sqrt_and_restores(monkeypatch, weight_decay):
+    """... and with weight decay, torch's AdamW (decoupled decay; AdamW at 0 is Adam)."""
     from learners.optim import exact_sqrt
 
     torch.set_num_threads(1)
     monkeypatch.setattr(torch, "_foreach_sqrt", exact_sqrt)  # torch's Adam, its root correctly rounded
     nets = [population(SEEDS)[1] for _ in range(3)]
     obs, act, ret = (torch.stack(parts) for parts in zip(*[data(s) for s in SEEDS]))
-    ours = MemberAdam(nets[0].parameters(), lr=5e-4)
-    theirs = torch.optim.Adam(nets[1].parameters(), lr=5e-4, foreach=True)
+    ours = MemberAdam(nets[0].parameters(), lr=5e-4, weight_decay=weight_decay)
+    theirs = torch.optim.AdamW(nets[1].parameters(), lr=5e-4, weight_decay=weight_decay, foreach=True)
     for step in range(12):
         for net, opt in ((nets[0], ours), (nets[1], theirs)):
             opt.zero_grad()
             (ret - net(obs, act)).pow(2).flatten(1).mean(1).sum().backward()
             opt.step()
         if step == 5:  # a copy restored from the state at step 6 goes on identically
-            restored = MemberAdam(nets[2].parameters(), lr=5e-4)
+            restored = MemberAdam(nets[2].parameters(), lr=5e-4, weight_decay=weight_decay)
             nets[2].load_state_dict(nets[0].state_dict())
             restored.load_state_dict(ours.state_dict())
         elif step > 5:

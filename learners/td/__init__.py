@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from learners.options import ConfigError, at_least, choice, positive
+from learners.options import ACTIVATIONS, ConfigError, at_least, choice, positive
 
 LOSSES = ("sac", "tqc", "crossq", "td3")
 ENTROPY_LOSSES = ("sac", "tqc", "crossq")  # a tanh-Gaussian actor and a learned entropy temperature (the sac: block)
@@ -31,6 +31,12 @@ class TDOptions:
     n_step: int = 1  # TD targets over n environment steps (collectors.returns.n_step_transitions)
     critic_dropout: float = 0.0  # DroQ: dropout of the Q-networks' hidden units (each member's own masks)
     critic_layer_norm: bool = False  # DroQ: layer normalisation of the Q-networks' hidden units
+    critic_blocks: int = 0  # BRO: residual blocks of a layer-normalised Q-network (0: the MLP of network.critic_hidden)
+    critic_width: int | None = None  # BRO: its hidden units (None: network.critic_hidden[0])
+    critic_activation: str | None = None  # BRO: its activation (None: network.activation)
+    critic_weight_decay: float = 0.0  # decoupled weight decay of the Q-networks (AdamW's)
+    reset_every: int = 0  # re-initialise every network, temperature and optimiser every this-many episodes
+    #                       (0: never); the replay memory is kept
 
     def __post_init__(self) -> None:
         positive("algo.td.updates_per_step", self.updates_per_step)
@@ -41,6 +47,21 @@ class TDOptions:
         at_least("algo.td.n_step", self.n_step, 1)
         if not 0 <= self.critic_dropout < 1:
             raise ConfigError(f"algo.td.critic_dropout must be in [0, 1), got {self.critic_dropout}")
+        at_least("algo.td.critic_blocks", self.critic_blocks, 0)
+        if self.critic_width is not None:
+            at_least("algo.td.critic_width", self.critic_width, 1)
+        if self.critic_activation is not None:
+            choice("algo.td.critic_activation", self.critic_activation, ACTIVATIONS)
+        at_least("algo.td.critic_weight_decay", self.critic_weight_decay, 0)
+        at_least("algo.td.reset_every", self.reset_every, 0)
+        if self.critic_blocks and (self.critic_dropout or self.critic_layer_norm):
+            raise ConfigError("algo.td.critic_blocks > 0 makes a residual Q-network, layer-normalised throughout "
+                              "and without dropout; set algo.td.critic_dropout: 0.0 and algo.td.critic_layer_norm: "
+                              f"false (got {self.critic_dropout} and {self.critic_layer_norm})")
+        if not self.critic_blocks and (self.critic_width is not None or self.critic_activation is not None):
+            raise ConfigError("algo.td.critic_width and algo.td.critic_activation shape the residual Q-network; "
+                              "they need algo.td.critic_blocks >= 1 (the MLP takes network.critic_hidden and "
+                              "network.activation)")
 
     def updates_before(self, episode: int, steps: int) -> int:
         """Gradient steps taken in all, up to the start of episode ``episode`` (``episode`` episodes of
@@ -124,9 +145,9 @@ def check(algo) -> None:
         raise ConfigError(f"algo {algo.name}: loss {algo.loss} updates target networks by algo.td.tau; "
                           "give a value in (0, 1]")
     td = algo.td or {}
-    if algo.loss == "crossq" and (td.get("critic_dropout") or td.get("critic_layer_norm")):
-        raise ConfigError(f"algo {algo.name}: loss crossq's Q-networks are batch-normalised; "
-                          "set algo.td.critic_dropout: 0.0 and algo.td.critic_layer_norm: false")
+    if algo.loss == "crossq" and (td.get("critic_dropout") or td.get("critic_layer_norm") or td.get("critic_blocks")):
+        raise ConfigError(f"algo {algo.name}: loss crossq's Q-networks are batch-normalised; set "
+                          "algo.td.critic_dropout: 0.0, algo.td.critic_layer_norm: false and algo.td.critic_blocks: 0")
     given = td.get("loss_function")
     if algo.loss == "tqc" and given is not None and given != "smooth_l1":
         raise ConfigError(f"algo {algo.name}: loss tqc trains its critics with the quantile Huber loss; set "

@@ -18,6 +18,7 @@ run folders, checkpoints, divergence, populations); what differs is built here:
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -32,7 +33,8 @@ from torchrl.objectives import SoftUpdate
 from collectors import ReplayMemory, sample_minibatch
 from learners.base import Learner, MetricTotals, Optimisers, diverged_members, freeze_member, prioritised_minibatch
 from learners.compiling import compile_step
-from learners.networks import BlockSampler, StackedBNCriticNet, StackedCriticNet, StackedMLP, reset_parameters
+from learners.networks import (BlockSampler, StackedBNCriticNet, StackedCriticNet, StackedMLP, StackedResidualCriticNet,
+                               reset_parameters)
 from learners.optim import MemberAdam
 from learners.td import ENTROPY_LOSSES
 from losses.td import (ACTION_NOISE_KEY, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhNormal, MemberCrossQLoss, MemberSACLoss,
@@ -95,6 +97,10 @@ def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
         if algo.loss == "crossq":  # batch-normalised
             q = StackedBNCriticNet(members, obs_dim + action_dim, net.critic_hidden, net.activation,
                                    momentum=algo.crossq.batch_norm_momentum).to(device)
+        elif algo.td.critic_blocks:  # BRO's residual, layer-normalised Q-network
+            q = StackedResidualCriticNet(members, obs_dim + action_dim, algo.td.critic_width or net.critic_hidden[0],
+                                         algo.td.critic_blocks, algo.td.critic_activation or net.activation,
+                                         outputs=outputs).to(device)
         else:
             q = StackedCriticNet(members, obs_dim + action_dim, net.critic_hidden, net.activation, outputs=outputs,
                                  dropout=algo.td.critic_dropout, layer_norm=algo.td.critic_layer_norm,
@@ -194,7 +200,8 @@ def make_optimisers(cfg, loss) -> Optimisers:
     critic = [p for p in loss.qvalue_network_params.values(True, True) if p.requires_grad]  # not batch-norm statistics
     return Optimisers(
         actor=MemberAdam(actor, lr=algo.actor_lr, eps=algo.adam_eps),
-        critic=MemberAdam(critic, lr=algo.critic_lr, eps=algo.adam_eps, member_dims=[1] * len(critic)))
+        critic=MemberAdam(critic, lr=algo.critic_lr, eps=algo.adam_eps, member_dims=[1] * len(critic),
+                          weight_decay=algo.td.critic_weight_decay))
 
 
 class TDPhaseRunner:
@@ -202,11 +209,13 @@ class TDPhaseRunner:
     interface (``active``, ``freeze``, the metrics' names)."""
 
     def __init__(self, cfg, loss, optimisers: Optimisers, generators: Sequence[torch.Generator],
-                 memory=None, actor_net: nn.Module | None = None):
+                 memory=None, actor_net: nn.Module | None = None, qvalue_nets: Sequence[nn.Module] = ()):
         """``memory``: the replay memory when its sampler is prioritised (else None). Each step's
         objective is compiled when ``cfg.compile`` (``learners.compiling``). SAC's eager step
         computes on plain tensors (``losses.td.fused_sac_losses``: TorchRL's numbers, bit for bit)
-        when ``FUSED_SAC`` and the actor network (``actor_net``) and Q-networks allow it."""
+        when ``FUSED_SAC`` and the actor network (``actor_net``) and Q-networks allow it.
+        ``td.reset_every`` re-initialises the networks as they were built: the actor network (the
+        loss's own) and the Q-networks ``qvalue_nets`` (whose fresh weights the loss's copies take)."""
         self.loss, self.optimisers, self.generators = loss, optimisers, list(generators)
         self.kind, self.td = cfg.algo.loss, cfg.algo.td
         self.steps = cfg.env.episode_steps
@@ -218,7 +227,9 @@ class TDPhaseRunner:
         self.critic_metrics = ("loss_qvalue",)
         self.entropy = self.kind in ENTROPY_LOSSES  # SAC's step (TQC's loss is a SACLoss)
         self.actor_metrics = ("loss_actor", "loss_alpha", "alpha") if self.entropy else ("loss_actor",)
-        self.actor_net = actor_net
+        self.actor_net, self.qvalue_nets = actor_net, list(qvalue_nets)
+        if self.td.reset_every and (actor_net is None or not self.qvalue_nets):
+            raise ValueError("td.reset_every needs the actor network and the Q-networks as built")
         self.fused = FUSED_SAC and actor_net is not None and not cfg.compile and fused_sac_available(loss, actor_net)
         self._sac_objective = compile_step(self._sac_losses, cfg.compile)
         self._critic_objective = compile_step(self._td3_critic_losses, cfg.compile)
@@ -231,6 +242,8 @@ class TDPhaseRunner:
 
     def run(self, data: TensorDictBase, minibatch_size: int, totals: MetricTotals, episode: int = 0) -> dict[int, str]:
         done, todo = self.updates(episode)
+        if self.td.reset_every and episode > 0 and episode % self.td.reset_every == 0:
+            self.reset_networks()
         for step in range(done, done + todo):
             if self.sampler is not None:
                 batch, index = prioritised_minibatch(data, minibatch_size, self.generators, self.sampler)
@@ -312,6 +325,30 @@ class TDPhaseRunner:
         for optimiser in optimisers:
             optimiser.step()
 
+    @torch.no_grad()
+    def reset_networks(self) -> None:
+        """BRO's periodic reset: every member's actor, Q-networks, target networks and temperature
+        as at the start (new weights drawn from each member's generator in the order they were first
+        drawn: actor, then the Q-networks one by one), and both optimisers restarted; the replay
+        memory stays. Frozen members stay frozen (zero)."""
+        reset_parameters(self.actor_net, self.generators)  # the loss's actor parameters themselves
+        online = self.loss.qvalue_network_params
+        for i, q in enumerate(self.qvalue_nets):
+            reset_parameters(q, self.generators)
+            for name, value in q.named_parameters():
+                online.get(("module", *name.split(".")))[i].copy_(value)
+        pairs = [("qvalue_network_params", "target_qvalue_network_params"),
+                 ("actor_network_params", "target_actor_network_params")]
+        for source, target in pairs:
+            if hasattr(self.loss, target):
+                getattr(self.loss, target).update_(getattr(self.loss, source).detach())
+        if isinstance(getattr(self.loss, "log_alpha", None), torch.Tensor):
+            self.loss.log_alpha.fill_(math.log(float(self.loss.alpha_init)))
+        self.optimisers.actor.restart()
+        self.optimisers.critic.restart()
+        for member in self.active.eq(0).nonzero().flatten().tolist():
+            self.freeze(member)
+
     def freeze(self, member: int) -> None:
         """As ``PhaseRunner.freeze``, target networks included."""
         self.active[member] = 0.0
@@ -334,6 +371,6 @@ def build(cfg, env, generators: Sequence[torch.Generator], memory: ReplayMemory)
     loss = make_loss(cfg, networks, generators)
     optimisers = make_optimisers(cfg, loss)
     phases = TDPhaseRunner(cfg, loss, optimisers, generators, memory if cfg.er.priority else None,
-                           actor_net=networks.actor_net)
+                           actor_net=networks.actor_net, qvalue_nets=networks.qvalue_nets)
     return Learner(networks, loss, optimisers, memory, phases,
                    TD_TRANSITION_KEYS, monte_carlo=False, n_step=cfg.algo.td.n_step)
