@@ -14,7 +14,7 @@ CPU minutes per member for a whole run, and the hours a population of R needs on
 numbers depend on the machine and the hour (this one's speed drifts by 2x): plan with the ratios
 between recipes, measured in one process. ``sac-module`` is SAC with its gradient step through
 TorchRL's loss module instead of the fused step (``losses.td.fused_sac_losses``, the same bits):
-its row against ``sac``'s is what the fused step saves.
+its row against ``sac``'s is what the fused step saves (``bro-module`` against ``bro`` likewise).
 """
 
 from __future__ import annotations
@@ -43,13 +43,14 @@ RECIPES = {  # name: (overrides of the recipe, shown as given)
     "droq": ["algo=droq"],
     "bro": ["algo=bro", "er=prioritised"],
     "bro-256": ["algo=bro", "er=prioritised", "algo.td.critic_width=256"],
+    "bro-module": ["algo=bro", "er=prioritised"],  # BRO's step through TorchRL's loss module
     "tqc": ["algo=tqc"],
     "crossq": ["algo=crossq"],
     "td3": ["algo=td3"],
 }
 
 
-UNFUSED = {"sac-module"}  # recipes measured with learners.td.learner.FUSED_SAC off
+UNFUSED = {"sac-module", "bro-module"}  # recipes measured with learners.td.learner.FUSED_SAC off
 
 
 def _timed(recipe: list[str], members: int, steps: int, episode_steps: int) -> dict:

@@ -301,8 +301,13 @@ class StackedLayerNorm(nn.Module):
             self.bias.zero_()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        normalised = nn.functional.layer_norm(x, x.shape[-1:], eps=self.eps)
-        return torch.addcmul(self.bias.unsqueeze(1), normalised, self.weight.unsqueeze(1))
+        return stacked_layer_norm(x, self.weight, self.bias, self.eps)
+
+
+def stacked_layer_norm(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, eps: float = 1e-5) -> torch.Tensor:
+    """``StackedLayerNorm``'s computation with the given parameters (``[S, F]`` for inputs ``[S, N, F]``)."""
+    normalised = nn.functional.layer_norm(x, x.shape[-1:], eps=eps)
+    return torch.addcmul(bias.unsqueeze(1), normalised, weight.unsqueeze(1))
 
 
 class StackedDropout(nn.Module):
@@ -391,12 +396,29 @@ class StackedResidualCriticNet(nn.Module):
 
     def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
         x = inputs[0] if len(inputs) == 1 else torch.cat(inputs, dim=-1)
+        # the layers' current tensors (TorchRL's losses swap plain tensors in for the parameters)
+        parameters = {f"{name}.{kind}": getattr(layer, kind) for name, layer in self.named_modules()
+                      if isinstance(layer, (StackedLinear, StackedLayerNorm)) for kind in ("weight", "bias")}
+        return self.forward_named(x, parameters)
+
+    def forward_named(self, x: torch.Tensor, parameters: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``forward`` of the concatenated inputs with other parameters, by this module's names,
+        whose leading dimension may hold any number of stacked networks (``[S, ...]``, ``x``
+        ``[S, ..., in]``): what one network of this shape computes for each, in one pass."""
+        eps = self.norms[0].eps
         rows, shape = _pad_rows(x, self.row_multiple)
-        h = per_member(self.activation, self.norms[0](self.embed(rows)))
+
+        def linear(name: str, h: torch.Tensor) -> torch.Tensor:
+            return stacked_linear(h, parameters[f"{name}.weight"], parameters[f"{name}.bias"])
+
+        def norm(i: int, h: torch.Tensor) -> torch.Tensor:
+            return stacked_layer_norm(h, parameters[f"norms.{i}.weight"], parameters[f"norms.{i}.bias"], eps)
+
+        h = per_member(self.activation, norm(0, linear("embed", rows)))
         for i in range(0, len(self.layers), 2):
-            inner = per_member(self.activation, self.norms[i + 1](self.layers[i](h)))
-            h = h + self.norms[i + 2](self.layers[i + 1](inner))
-        return _unpad_rows(self.head(h), shape)
+            inner = per_member(self.activation, norm(i + 1, linear(f"layers.{i}", h)))
+            h = h + norm(i + 2, linear(f"layers.{i + 1}", inner))
+        return _unpad_rows(linear("head", h), shape)
 
 
 class MemberNormal(torch.distributions.Normal):

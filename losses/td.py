@@ -132,14 +132,15 @@ class MemberSACLoss(MemberTemperature, SACLoss):
 
 def fused_sac_available(loss, actor_net: nn.Module) -> bool:
     """Whether ``fused_sac_losses`` computes ``loss``'s step: SAC (not TQC or CrossQ) eagerly, with
-    Q-networks that are plain stacked MLPs (no dropout or layer norm) and the actor network the
-    loss's own."""
+    Q-networks that are plain stacked MLPs (no dropout or layer norm) or BRO's residual networks,
+    and the actor network the loss's own."""
     critic = getattr(loss.qvalue_network, "module", None)
     actor_params = set(map(id, loss.actor_network_params.values(True, True)))
+    stackable = (hasattr(critic, "forward_named")  # BRO's residual Q-network
+                 or (hasattr(getattr(critic, "net", None), "forward_with")
+                     and not hasattr(critic.net, "norms")))  # not DroQ's regularised MLP (dropout, layer norm)
     return (type(loss) is MemberSACLoss and loss.deactivate_vmap and getattr(loss, "_version", 2) == 2
-            and not loss.skip_done_states
-            and hasattr(getattr(critic, "net", None), "forward_with")
-            and not hasattr(critic.net, "norms")  # DroQ's regularised MLP (dropout, layer norm)
+            and not loss.skip_done_states and stackable
             and actor_params == set(map(id, actor_net.parameters())))
 
 
@@ -147,12 +148,16 @@ def _stacked_values(loss, inputs: torch.Tensor, params: TensorDictBase) -> torch
     """Every Q-network's values ``[Q, R, B, 1]`` for inputs ``[R, B, obs + action]`` and stacked
     parameters ``[Q, R, ...]``, in one pass over ``Q * R`` networks (each computes alone, as in
     TorchRL's loop over the Q-networks)."""
-    mlp = loss.qvalue_network.module.net
-    layers = params["module", "net", "layers"]
-    q, members = layers["0", "weight"].shape[:2]
-    pairs = [(layers[str(i), "weight"].flatten(0, 1), layers[str(i), "bias"].flatten(0, 1)) for i in range(len(mlp.layers))]
+    critic = loss.qvalue_network.module
+    named = {name: value.flatten(0, 1) for name, value in params["module"].flatten_keys(".").items()}
+    q, members = next(iter(params["module"].values(True, True))).shape[:2]
     x = inputs.expand(q, *inputs.shape).reshape(q * members, *inputs.shape[1:])
-    return mlp.forward_with(x, pairs).reshape(q, members, *inputs.shape[1:-1], -1)
+    if hasattr(critic, "forward_named"):  # BRO's residual Q-network
+        values = critic.forward_named(x, named)
+    else:
+        pairs = [(named[f"net.layers.{i}.weight"], named[f"net.layers.{i}.bias"]) for i in range(len(critic.net.layers))]
+        values = critic.net.forward_with(x, pairs)
+    return values.reshape(q, members, *inputs.shape[1:-1], -1)
 
 
 def fused_sac_losses(loss: "MemberSACLoss", actor_net: nn.Module,

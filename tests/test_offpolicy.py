@@ -254,18 +254,20 @@ def test_td3_preact_penalty_adds_the_mean_square_of_the_pre_tanh_action():
 
 
 @pytest.mark.parametrize("mode", ["fma", "portable"])
-@pytest.mark.parametrize("extra", [[], ["er=prioritised", "algo.td.n_step=3", "algo.td.loss_function=smooth_l1"]])
+@pytest.mark.parametrize("extra", [[], ["er=prioritised", "algo.td.n_step=3", "algo.td.loss_function=smooth_l1"],
+                                   ["algo=bro", "er=prioritised", "algo.td.critic_width=48"]])
 def test_fused_sac_step_is_the_torchrl_loss_bit_for_bit(mode, extra):
     """The fused SAC step (plain tensors, the Q-networks in one stacked pass) gives TorchRL's loss
     module's losses, priorities and gradients bit for bit: with importance weights, n-step
-    discounts, another critic loss, in both numerics that switch after torch loads."""
+    discounts, another critic loss, BRO's residual Q-networks, in both numerics that switch after
+    torch loads."""
     from learners import kernels
 
     cfg, t = training("sac", *extra, seeds=(A, B, 7))
     assert t.phases.fused
     data = transitions(3, 256)
     g = torch.Generator().manual_seed(5)
-    if extra:
+    if "er=prioritised" in extra:
         data.set("priority_weight", torch.rand(3, 256, generator=g))
         data.set("steps_to_next_obs", torch.randint(1, 4, (3, 256, 1), generator=g))
     t.loss.draw(data)
@@ -292,13 +294,16 @@ def test_fused_sac_step_is_the_torchrl_loss_bit_for_bit(mode, extra):
     assert all(a.any() for a in our_grads) and all(torch.equal(a, b) for a, b in zip(our_grads, their_grads))
 
 
-def test_a_run_with_the_fused_sac_step_is_a_run_through_the_loss_module(tmp_path, monkeypatch):
-    """Whole runs (prioritised replay, two members, fifty gradient steps): byte-identical learning
-    curves and weights with and without the fused step."""
+@pytest.mark.parametrize("recipe", [["algo=sac", "algo.td.updates_per_step=0.25", "episodes=2"],
+                                    ["algo=bro", "algo.td.updates_per_step=0.1", "episodes=4", "algo.td.critic_width=32",
+                                     "algo.td.reset_every=3"]])
+def test_a_run_with_the_fused_sac_step_is_a_run_through_the_loss_module(tmp_path, monkeypatch, recipe):
+    """Whole runs (prioritised replay, two members, 50-60 gradient steps; BRO's Q-networks with a
+    reset): byte-identical learning curves and weights with and without the fused step."""
     from learners.td import learner
 
-    cfg = load("algo=sac", "er=prioritised", f"seeds=[{A},{B}]", "episodes=2", "algo.td.warmup_episodes=1",
-               "algo.td.updates_per_step=0.25", "progress=false", "logger=none", "checkpoint_every=0")
+    cfg = load(*recipe, "er=prioritised", f"seeds=[{A},{B}]", "algo.td.warmup_episodes=1",
+               "progress=false", "logger=none", "checkpoint_every=0")
     outputs = {}
     for fused in (True, False):
         monkeypatch.setattr(learner, "FUSED_SAC", fused)
@@ -311,7 +316,7 @@ def test_a_run_with_the_fused_sac_step_is_a_run_through_the_loss_module(tmp_path
 
 def test_fused_sac_step_is_taken_only_where_it_computes_the_loss():
     for algo, extra, fused in [("sac", [], True), ("tqc", [], False), ("crossq", [], False), ("td3", [], False),
-                               ("droq", [], False), ("sac", ["compile=true"], False)]:
+                               ("droq", [], False), ("sac", ["compile=true"], False), ("bro", [], True)]:
         assert training(algo, *extra)[1].phases.fused is fused, (algo, extra)
 
 
