@@ -199,6 +199,22 @@ def test_a_reset_draws_the_networks_anew_as_at_the_start_and_restarts_the_optimi
         assert torch.equal(a, b)
 
 
+@pytest.mark.parametrize("algo", ["td3", "tqc"])
+def test_a_reset_sets_every_target_network_to_its_new_online_network(algo):
+    _, t = training(algo, "algo.td.reset_every=7")
+    t.phases.updates = lambda e: (0, 3)
+    t.phases.run(transitions(2, 300), 16, MetricTotals(), 1)
+    before = t.loss.actor_network_params.clone()
+    t.phases.reset_networks()
+    for online, target in (("actor_network_params", "target_actor_network_params"),
+                           ("qvalue_network_params", "target_qvalue_network_params")):
+        online, target = getattr(t.loss, online), getattr(t.loss, target)
+        for key in target.keys(True, True):
+            assert torch.equal(online[key], target[key]), key
+    assert not any(torch.equal(before[k], v) for k, v in t.loss.actor_network_params.items(True, True) if k[-1] == "weight")
+    assert t.optimisers.actor.steps == t.optimisers.critic.steps == 0
+
+
 def test_a_reset_changes_a_run_from_its_episode_on(tmp_path):
     run = [*BRO, "er=memory", *FAST, "episodes=6", "algo.td.updates_per_step=0.1", f"seed={A}"]
     train_population(load(*run), tmp_path / "plain")
