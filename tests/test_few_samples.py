@@ -199,18 +199,24 @@ def test_a_reset_draws_the_networks_anew_as_at_the_start_and_restarts_the_optimi
         assert torch.equal(a, b)
 
 
-@pytest.mark.parametrize("algo", ["td3", "tqc"])
+@pytest.mark.parametrize("algo", ["td3", "tqc", "crossq"])
 def test_a_reset_sets_every_target_network_to_its_new_online_network(algo):
-    _, t = training(algo, "algo.td.reset_every=7")
+    """... and CrossQ's batch-norm statistics back to their start (it has no target networks)."""
+    _, t = training(algo, ("+" if algo == "crossq" else "") + "algo.td.reset_every=7")
     t.phases.updates = lambda e: (0, 3)
     t.phases.run(transitions(2, 300), 16, MetricTotals(), 1)
     before = t.loss.actor_network_params.clone()
     t.phases.reset_networks()
     for online, target in (("actor_network_params", "target_actor_network_params"),
                            ("qvalue_network_params", "target_qvalue_network_params")):
-        online, target = getattr(t.loss, online), getattr(t.loss, target)
-        for key in target.keys(True, True):
-            assert torch.equal(online[key], target[key]), key
+        if hasattr(t.loss, target):
+            online, target = getattr(t.loss, online), getattr(t.loss, target)
+            for key in target.keys(True, True):
+                assert torch.equal(online[key], target[key]), key
+    statistics = {k: v for k, v in t.loss.qvalue_network_params.items(True, True) if k[-1].startswith("running")}
+    assert (algo == "crossq") == bool(statistics)
+    for key, value in statistics.items():
+        assert torch.equal(value, torch.zeros_like(value) if key[-1] == "running_mean" else torch.ones_like(value)), key
     assert not any(torch.equal(before[k], v) for k, v in t.loss.actor_network_params.items(True, True) if k[-1] == "weight")
     assert t.optimisers.actor.steps == t.optimisers.critic.steps == 0
 

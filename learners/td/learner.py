@@ -335,7 +335,7 @@ class TDPhaseRunner:
         online = self.loss.qvalue_network_params
         for i, q in enumerate(self.qvalue_nets):
             reset_parameters(q, self.generators)
-            for name, value in q.named_parameters():
+            for name, value in q.state_dict().items():  # batch-norm statistics (CrossQ) too: never run, as built
                 online.get(("module", *name.split(".")))[i].copy_(value)
         pairs = [("qvalue_network_params", "target_qvalue_network_params"),
                  ("actor_network_params", "target_actor_network_params")]
