@@ -44,6 +44,8 @@ RECIPES = {  # name: (overrides of the recipe, shown as given)
     "bro": ["algo=bro", "er=prioritised"],
     "bro-256": ["algo=bro", "er=prioritised", "algo.td.critic_width=256"],
     "bro-module": ["algo=bro", "er=prioritised"],  # BRO's step through TorchRL's loss module
+    "redq": ["algo=redq", "er=prioritised"],  # the published ensemble: 10 Q-networks, 20 updates per step
+    "redq-5": ["algo=redq", "er=prioritised", "algo.redq.critics=5"],
     "tqc": ["algo=tqc"],
     "crossq": ["algo=crossq"],
     "td3": ["algo=td3"],

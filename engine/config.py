@@ -98,7 +98,7 @@ def _check_device(device: str) -> None:
 class AlgoConfig:
     """One algorithm (``conf/algo/*.yaml``) of one learner family (``learners``): the paper's
     (``loss: ppo|spg``, a critic phase then an actor phase per episode on Monte-Carlo returns) or
-    TorchRL's off-policy losses (``loss: sac|tqc|crossq|td3``, bootstrapped TD targets, options in ``td:``).
+    TorchRL's off-policy losses (``loss: sac|tqc|crossq|redq|td3``, bootstrapped TD targets, options in ``td:``).
     The family decides which of the optional keys and blocks are required (``KEYS``, ``BLOCKS``)."""
 
     name: str
@@ -113,10 +113,11 @@ class AlgoConfig:
     joint_log_prob: bool | None = None
     ppo: dict | None = None  # options of the PPO losses (loss: ppo only)
     spg: dict | None = None  # options of the SPG losses (loss: spg only)
-    td: dict | None = None  # the off-policy schedule and targets (loss: sac, tqc, crossq or td3)
-    sac: dict | None = None  # options of TorchRL's SACLoss (loss: sac, and tqc, crossq: built like it)
+    td: dict | None = None  # the off-policy schedule and targets (loss: sac, tqc, crossq, redq or td3)
+    sac: dict | None = None  # options of TorchRL's SACLoss (loss: sac, and tqc, crossq, redq: built like it)
     tqc: dict | None = None  # options of TorchRL's TQCLoss (loss: tqc only)
     crossq: dict | None = None  # options of TorchRL's CrossQLoss (loss: crossq only)
+    redq: dict | None = None  # options of TorchRL's REDQLoss (loss: redq only)
     td3: dict | None = None  # options of TorchRL's TD3Loss (loss: td3 only)
 
     def __post_init__(self) -> None:

@@ -75,7 +75,7 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
 
 def make_policy(loss: str, network: dict, obs_size: int, state: dict) -> Policy:
     """The deterministic policy of an actor's saved weights (``actor.pt``) for ``algo.loss``."""
-    if loss in ("sac", "tqc", "crossq", "td3"):
+    if loss in ("sac", "tqc", "crossq", "redq", "td3"):
         from learners.td.learner import make_actor_net
         from learners.networks import load_member_state_dict
 

@@ -1,5 +1,5 @@
-"""TorchRL's off-policy losses (``SACLoss``, ``TQCLoss``, ``CrossQLoss``, ``TD3Loss``) for a population
-of stacked members.
+"""TorchRL's off-policy losses (``SACLoss``, ``TQCLoss``, ``CrossQLoss``, ``REDQLoss``, ``TD3Loss``) for
+a population of stacked members.
 
 The losses are TorchRL's own; what a population needs on top is small:
 
@@ -30,11 +30,12 @@ from torch import nn
 from torch.distributions.utils import _sum_rightmost
 from torchrl.modules import TanhNormal
 from torchrl.envs.utils import ExplorationType, set_exploration_type
-from torchrl.objectives import CrossQLoss, SACLoss, TD3Loss, TQCLoss
+from torchrl.objectives import CrossQLoss, REDQLoss, SACLoss, TD3Loss, TQCLoss
 from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value.functional import td0_return_estimate
 
 from losses.common import PRIORITY_KEY  # noqa: F401  (TorchRL's SAC writes each transition's |TD error| there)
+from losses.common import PRIORITY_WEIGHT_KEY
 
 ACTION_NOISE_KEY = "action_noise"  # SAC: N(0, I) behind the reparameterised action (root: the actor
 #                                    loss's, under "next": the target's)
@@ -130,18 +131,26 @@ class MemberSACLoss(MemberTemperature, SACLoss):
         return self._with_target_alpha(super()._compute_target_v2, tensordict)
 
 
+def _stackable_critic(loss) -> bool:
+    """Whether ``loss``'s Q-networks compute on plain stacked tensors (``_stacked_values``): plain
+    stacked MLPs (no dropout or layer norm) or BRO's residual networks."""
+    critic = getattr(loss.qvalue_network, "module", None)
+    return (hasattr(critic, "forward_named")  # BRO's residual Q-network
+            or (hasattr(getattr(critic, "net", None), "forward_with")
+                and not hasattr(critic.net, "norms")))  # not DroQ's regularised MLP (dropout, layer norm)
+
+
+def _owns_actor(loss, actor_net: nn.Module) -> bool:
+    """Whether ``actor_net``'s parameters are the ones ``loss`` trains."""
+    return set(map(id, loss.actor_network_params.values(True, True))) == set(map(id, actor_net.parameters()))
+
+
 def fused_sac_available(loss, actor_net: nn.Module) -> bool:
     """Whether ``fused_sac_losses`` computes ``loss``'s step: SAC (not TQC or CrossQ) eagerly, with
     Q-networks that are plain stacked MLPs (no dropout or layer norm) or BRO's residual networks,
     and the actor network the loss's own."""
-    critic = getattr(loss.qvalue_network, "module", None)
-    actor_params = set(map(id, loss.actor_network_params.values(True, True)))
-    stackable = (hasattr(critic, "forward_named")  # BRO's residual Q-network
-                 or (hasattr(getattr(critic, "net", None), "forward_with")
-                     and not hasattr(critic.net, "norms")))  # not DroQ's regularised MLP (dropout, layer norm)
     return (type(loss) is MemberSACLoss and loss.deactivate_vmap and getattr(loss, "_version", 2) == 2
-            and not loss.skip_done_states and stackable
-            and actor_params == set(map(id, actor_net.parameters())))
+            and not loss.skip_done_states and _stackable_critic(loss) and _owns_actor(loss, actor_net))
 
 
 def _stacked_values(loss, inputs: torch.Tensor, params: TensorDictBase) -> torch.Tensor:
@@ -160,6 +169,38 @@ def _stacked_values(loss, inputs: torch.Tensor, params: TensorDictBase) -> torch
     return values.reshape(q, members, *inputs.shape[1:-1], -1)
 
 
+def _check_no_masks(batch: TensorDictBase) -> None:
+    for key in (("collector", "mask"), "shifted_valid"):  # TorchRL's loss masks: not written here
+        if key in batch.keys(True):
+            raise ValueError(f"the fused off-policy steps do not apply loss masks ({key!r} in the minibatch)")
+
+
+@torch.no_grad()
+def _soft_td_target(loss, actor_net: nn.Module, batch: TensorDictBase, params: TensorDictBase,
+                    alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The soft TD(0) target ``[R, B]`` as TorchRL's SAC and REDQ losses compute it:
+    ``r + gamma * (min_j Q_j(s', a') - alpha * log pi(a'|s'))`` (``gamma ** steps`` over n-step
+    transitions) with ``a'`` drawn with the noise under ``("next", ACTION_NOISE_KEY)``, the minimum
+    over the Q-networks of ``params`` (``[Q, R, ...]``) and ``alpha`` the temperature ``[R, 1, 1]``;
+    and ``log pi(a'|s')`` ``[R, B]``."""
+    keys, following = loss.tensor_keys, batch.get("next")
+    next_observation = following.get("observation")
+    loc, scale = actor_net(next_observation)
+    next_action, next_log_prob = DrawnTanhNormal(loc, scale, following.get(ACTION_NOISE_KEY),
+                                                 low=-1.0, high=1.0).rsample_and_log_prob()
+    next_values = _stacked_values(loss, torch.cat([next_observation, next_action], -1), params)
+    next_value = (next_values - alpha * next_log_prob.unsqueeze(-1)).min(0)[0]
+    reward = following.get(keys.reward)
+    estimator = loss.value_estimator
+    gamma = estimator.gamma.to(reward.device)
+    steps = batch.get(estimator.tensor_keys.steps_to_next_obs, None)
+    if steps is not None:
+        gamma = gamma ** steps.view_as(reward)
+    target = td0_return_estimate(gamma=gamma, next_state_value=next_value, reward=reward,
+                                 terminated=following.get(keys.terminated)).squeeze(-1)
+    return target, next_log_prob
+
+
 def fused_sac_losses(loss: "MemberSACLoss", actor_net: nn.Module,
                      batch: TensorDictBase) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
     """``MemberSACLoss``'s three losses per member (``member_means`` of ``loss(batch)``) and the
@@ -168,30 +209,13 @@ def fused_sac_losses(loss: "MemberSACLoss", actor_net: nn.Module,
     ``_alpha_loss``, importance weights when the minibatch has them), so the same bits, forward
     and backward (tested), without its TensorDict and parameter-swapping work per call, which
     costs more than the arithmetic at these sizes. Where ``fused_sac_available`` holds."""
+    _check_no_masks(batch)
     keys = loss.tensor_keys
-    for key in (("collector", "mask"), "shifted_valid"):  # TorchRL's loss masks: not written here
-        if key in batch.keys(True):
-            raise ValueError(f"fused_sac_losses does not apply loss masks ({key!r} in the minibatch)")
     weights = batch.get(keys.priority_weight, None) if loss.use_prioritized_weights in (True, "auto") else None
-    observation, following = batch.get("observation"), batch.get("next")
+    observation = batch.get("observation")
     members = observation.shape[0]
-    with torch.no_grad():  # the target, as _compute_target_v2 and the TD(0) estimator compute it
-        next_observation = following.get("observation")
-        loc, scale = actor_net(next_observation)
-        next_action, next_log_prob = DrawnTanhNormal(loc, scale, following.get(ACTION_NOISE_KEY),
-                                                     low=-1.0, high=1.0).rsample_and_log_prob()
-        next_values = _stacked_values(loss, torch.cat([next_observation, next_action], -1),
-                                      loss.target_qvalue_network_params)
-        alpha = loss._alpha.reshape(members, 1, 1)
-        next_value = (next_values - alpha * next_log_prob.unsqueeze(-1)).min(0)[0]
-        reward = following.get(keys.reward)
-        estimator = loss.value_estimator
-        gamma = estimator.gamma.to(reward.device)
-        steps = batch.get(estimator.tensor_keys.steps_to_next_obs, None)
-        if steps is not None:
-            gamma = gamma ** steps.view_as(reward)
-        target = td0_return_estimate(gamma=gamma, next_state_value=next_value, reward=reward,
-                                     terminated=following.get(keys.terminated)).squeeze(-1)
+    target, _ = _soft_td_target(loss, actor_net, batch, loss.target_qvalue_network_params,
+                                loss._alpha.reshape(members, 1, 1))
     predicted = _stacked_values(loss, torch.cat([observation, batch.get("action")], -1),
                                 loss.qvalue_network_params).squeeze(-1)
     td_error = abs(predicted - target)
@@ -207,6 +231,98 @@ def fused_sac_losses(loss: "MemberSACLoss", actor_net: nn.Module,
     losses = {"loss_qvalue": member_means(loss_qvalue), "loss_actor": member_means(loss_actor),
               "loss_alpha": member_means(loss_alpha)}
     return losses, td_error.detach().max(0)[0]
+
+
+class MemberREDQLoss(MemberTemperature, REDQLoss):
+    """``torchrl.objectives.REDQLoss`` (randomised ensembled double Q-learning: an ensemble of
+    Q-networks, each regressed on a target that takes the minimum over a random subset of the
+    target networks; the actor ascends the ensemble's mean) for stacked members: one temperature
+    per member, bounded as TorchRL bounds it (``alpha``), the members' own noise, and each member's
+    own random subset of target networks for each minibatch (``draw``; TorchRL draws one subset
+    from torch's global generator). A population's step is ``redq_losses`` (TorchRL's ``forward``
+    takes one subset for the whole minibatch)."""
+
+    def __init__(self, *args, subset: int, **kwargs):
+        super().__init__(*args, sub_sample_len=subset, **kwargs)
+        self.subset = subset
+        self.subsets: torch.Tensor | None = None  # [subset, R]: each member's target networks, this minibatch
+        self.target_entropy  # TorchRL registers it as a buffer on first use: from the start, so checkpoints load
+
+    def draw(self, tensordict: TensorDictBase) -> None:
+        """Each member's noise (``MemberTemperature.draw``), then its subset of target networks: the
+        first ``subset`` of a random permutation, in increasing order (as TorchRL draws its one)."""
+        super().draw(tensordict)
+        self.subsets = torch.stack([torch.randperm(self.num_qvalue_nets, generator=g, device=g.device)[:self.subset]
+                                    .sort()[0] for g in self.generators], 1)
+
+    @property
+    def _alpha(self) -> torch.Tensor:
+        """Each member's temperature as TorchRL's REDQ uses it (bounded, not trained through), ``[R]``."""
+        with torch.no_grad():
+            return self.log_alpha.clamp(self.min_log_alpha, self.max_log_alpha).exp()
+
+    @property
+    def alpha(self) -> torch.Tensor:
+        return self._alpha
+
+    def forward(self, tensordict: TensorDictBase):
+        raise NotImplementedError("a population's REDQ losses are losses.td.redq_losses (TorchRL's forward "
+                                  "draws one subset of target networks for all members)")
+
+
+def redq_available(loss, actor_net: nn.Module) -> bool:
+    """Whether ``redq_losses`` computes ``loss``'s step (plain or residual Q-networks, eager)."""
+    return isinstance(loss, MemberREDQLoss) and loss.deactivate_vmap and _stackable_critic(loss) \
+        and _owns_actor(loss, actor_net)
+
+
+def redq_losses(loss: MemberREDQLoss, actor_net: nn.Module, batch: TensorDictBase,
+                actor: bool = True) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+    """REDQ's losses per member and the minibatch's priorities, as TorchRL's ``REDQLoss.forward``
+    computes them (tested) for each member with its own subset of target networks
+    (``loss.subsets``, drawn by ``loss.draw``) and its own temperature:
+
+    - ``loss_qvalue``: the mean over the ensemble of each Q-network's distance to the target
+      ``r + gamma * (min_{j in subset} Q'_j(s', a') - alpha * log pi(a'|s'))``;
+    - ``loss_actor`` (when ``actor``): the ensemble's mean of ``alpha * log pi(a|s) - Q_i(s, a)``
+      (the Q-networks detached);
+    - ``loss_alpha`` (when ``actor``): ``-alpha * (log pi + target entropy)`` over the actor's and
+      the target's draws, with TorchRL's bounds on alpha (its gradient passes the bounds).
+
+    Two departures from TorchRL's, both for prioritised replay only: the losses are weighted by the
+    minibatch's importance weights (as ``SACLoss`` weights them; ``REDQLoss`` ignores them), and the
+    priority is the largest absolute TD error over the ensemble (SAC's; ``REDQLoss`` writes squared
+    errors)."""
+    _check_no_masks(batch)
+    weights = batch.get(PRIORITY_WEIGHT_KEY, None)
+    observation = batch.get("observation")
+    members = observation.shape[0]
+    if loss.subsets is None or loss.subsets.shape[1] != members:
+        raise RuntimeError("redq_losses needs each member's subset of target networks: call loss.draw(batch) first")
+    rows = torch.arange(members, device=loss.subsets.device)
+    chosen = loss.target_qvalue_network_params.apply(lambda value: value[loss.subsets, rows],  # [subset, R, ...]
+                                                     batch_size=[loss.subsets.shape[0]])
+    alpha = loss._alpha.reshape(members, 1)
+    target, next_log_prob = _soft_td_target(loss, actor_net, batch, chosen, alpha.unsqueeze(-1))
+    predicted = _stacked_values(loss, torch.cat([observation, batch.get("action")], -1),
+                                loss.qvalue_network_params).squeeze(-1)  # [Q, R, B]
+    td_error = abs(predicted - target)
+    loss_qvalue = distance_loss(predicted, target.expand_as(predicted), loss_function=loss.loss_function).mean(0)
+    losses = {"loss_qvalue": loss_qvalue}
+    if actor:
+        loc, scale = actor_net(observation)
+        action, log_prob = DrawnTanhNormal(loc, scale, batch.get(ACTION_NOISE_KEY),
+                                           low=-1.0, high=1.0).rsample_and_log_prob()
+        values = _stacked_values(loss, torch.cat([observation, action], -1),
+                                 loss.qvalue_network_params.detach()).squeeze(-1)
+        losses["loss_actor"] = -(values - alpha * log_prob).mean(0)
+        log_alpha = loss.log_alpha.reshape(members, 1)
+        bounded = log_alpha - log_alpha.detach() + log_alpha.detach().clamp(loss.min_log_alpha, loss.max_log_alpha)
+        entropy_gap = torch.stack([log_prob.detach(), next_log_prob]) + loss.target_entropy
+        losses["loss_alpha"] = (-bounded.exp() * entropy_gap).mean(0)
+    if weights is not None:
+        losses = {key: value * weights for key, value in losses.items()}
+    return {key: member_means(value) for key, value in losses.items()}, td_error.detach().max(0)[0]
 
 
 class _QuantileHuber(torch.autograd.Function):

@@ -9,7 +9,7 @@ from hydra.errors import MissingConfigException
 from engine.config import ConfigError, RunConfig
 
 CONF = Path(__file__).resolve().parent.parent / "conf"
-BEYOND_ALGOS, BEYOND_ERS = ("sac", "td3", "tqc", "crossq", "droq", "bro"), ("prioritised",)  # not the paper's (tests/test_offpolicy.py)
+BEYOND_ALGOS, BEYOND_ERS = ("sac", "td3", "tqc", "crossq", "droq", "bro", "redq"), ("prioritised",)  # not the paper's (tests/test_offpolicy.py)
 ALGOS = sorted(p.stem for p in (CONF / "algo").glob("*.yaml") if p.stem not in BEYOND_ALGOS)
 ERS = sorted(p.stem for p in (CONF / "er").glob("*.yaml") if p.stem not in BEYOND_ERS)
 

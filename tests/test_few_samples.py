@@ -1,13 +1,15 @@
 """Options of the off-policy learners for few samples: n-step TD targets (``algo.td.n_step``),
 DroQ's Q-networks (``algo.td.critic_dropout``, ``algo.td.critic_layer_norm``; ``algo=droq``) and
 BRO's (``algo.td.critic_blocks`` and the rest of ``algo=bro``: residual layer-normalised
-Q-networks, weight decay, periodic resets).
+Q-networks, weight decay, periodic resets) and REDQ (``algo=redq``: TorchRL's ``REDQLoss`` for
+stacked members, each with its own random subsets of target networks).
 
 Checked: the n-step transitions against sums written out by hand, TorchRL's TD target with them,
 layer normalisation against ``torch.nn.LayerNorm``, dropout's masks and scaling, the residual
 network against its formula, a reset against fresh networks drawn from the same generator states,
 and whole runs: a member equals its solo run, an interrupted run resumes exactly, one step is the
-old learner, a reset changes a run from its episode on and not before.
+old learner, a reset changes a run from its episode on and not before; REDQ's step against
+TorchRL's ``REDQLoss`` (values and gradients) and its actor schedule.
 """
 
 import re
@@ -289,3 +291,132 @@ def test_the_budget_table_reads_a_run_s_final_performance_at_shorter_budgets(tmp
     assert rows[A, 2][7] == "" and rows[A, 4][7] != ""  # the evaluation belongs to the run's own end
     out = capsys.readouterr().out
     assert f"| {A} | " in out and f"| {B} | " in out and "2 episodes: " in out and "4 episodes: " in out
+
+
+# ---------------------------------------------------------------------------- REDQ
+REDQ = ["algo=redq", "algo.redq.critics=3", "algo.redq.subset=2", "algo.redq.policy_delay=2"]  # small and quick
+
+
+@pytest.mark.parametrize("bounds", [None, (0.1, 10.0)])
+def test_redq_of_a_population_of_one_equals_torchrl_redq_loss(bounds):
+    """``redq_losses`` for one member gives TorchRL's ``REDQLoss`` (values and every gradient) on the
+    same networks, the same subset of target networks and the same N(0, I) draws; with TorchRL's
+    bounds on the temperature, a temperature below them is raised in every term and the
+    temperature's gradient passes the bound."""
+    from torch.distributions.utils import _standard_normal
+    from torchrl.objectives import REDQLoss, SoftUpdate
+
+    from losses.td import ACTION_NOISE_KEY, redq_losses
+    from tests.test_offpolicy import _plain_actor
+
+    extra = [f"algo.redq.min_alpha={bounds[0]}", f"algo.redq.max_alpha={bounds[1]}"] if bounds else []
+    cfg, t = training("redq", "algo.redq.critics=4", *extra, seeds=(A,))
+    low, high = bounds or (1e-30, 1e30)
+    plain = REDQLoss(_plain_actor(t), t.networks.qvalues, num_qvalue_nets=4, sub_sample_len=2, loss_function="l2",
+                     alpha_init=1.0, min_alpha=low, max_alpha=high, target_entropy=-2.0, deactivate_vmap=True)
+    plain.make_value_estimator(gamma=cfg.gamma)
+    SoftUpdate(plain, tau=0.005)
+    plain.qvalue_network_params.data.copy_(t.loss.qvalue_network_params.data)
+    plain.target_qvalue_network_params.data.copy_(t.loss.target_qvalue_network_params.data)
+    if bounds:  # a temperature below the lower bound
+        with torch.no_grad():
+            plain.log_alpha.fill_(-4.0)
+            t.loss.log_alpha.fill_(-4.0)
+    data = transitions(1, 64)
+    torch.manual_seed(1)  # TorchRL draws its subset, then the actor's and the target's noise in one tensor
+    subset = torch.randperm(4)[:2].sort()[0]
+    noise = _standard_normal((2, 1, 64, 2), dtype=torch.float32, device="cpu")
+    mine = data.clone().update({ACTION_NOISE_KEY: noise[0], ("next", ACTION_NOISE_KEY): noise[1]})
+    t.loss.subsets = subset.view(2, 1)
+    ours_params = [*t.loss.actor_network_params.values(True, True), t.loss.log_alpha,
+                   *t.loss.qvalue_network_params.values(True, True)]
+    their_params = [*plain.actor_network_params.values(True, True), plain.log_alpha,
+                    *plain.qvalue_network_params.values(True, True)]
+    actor_count = len(list(t.networks.actor_net.parameters()))
+    for term in ("loss_qvalue", "loss_actor", "loss_alpha"):
+        torch.manual_seed(1)
+        theirs = plain(data.clone())[term]
+        ours = redq_losses(t.loss, t.networks.actor_net, mine)[0][term]
+        torch.testing.assert_close(ours[0], theirs, rtol=1e-6, atol=1e-6)
+        our_grads = torch.autograd.grad(ours.sum(), ours_params, allow_unused=True)
+        their_grads = torch.autograd.grad(theirs, their_params, allow_unused=True)
+        for a, b in zip(our_grads, their_grads):
+            if b is None or not b.any():
+                assert a is None or not a.any()
+            else:
+                torch.testing.assert_close(a.reshape(b.shape), b, rtol=1e-5, atol=1e-7)  # log_alpha: [1] and []
+        reached = [g is not None and g.any() for g in our_grads]
+        owners = {"loss_qvalue": [False] * (actor_count + 1) + [True] * (len(reached) - actor_count - 1),
+                  "loss_actor": [True] * actor_count + [False] * (len(reached) - actor_count),
+                  "loss_alpha": [False] * actor_count + [True] + [False] * (len(reached) - actor_count - 1)}
+        assert reached == owners[term], term
+    if bounds:
+        torch.testing.assert_close(t.loss.alpha, torch.tensor([0.1]))  # exp(log 0.1)
+
+
+def test_redq_members_draw_their_own_subsets_and_equal_their_solo_runs(tmp_path):
+    """Each member's subset of target networks comes from its generator (members differ); a member
+    equals its solo run and an interrupted population resumes exactly (prioritised replay)."""
+    _, t = training("redq", "algo.redq.critics=10")
+    batch = transitions(2, 8)
+    drawn = []
+    for _ in range(20):
+        t.loss.draw(batch)
+        drawn.append(t.loss.subsets.clone())
+    subsets = torch.stack(drawn)  # [draws, subset, R]
+    assert subsets.shape == (20, 2, 2) and not torch.equal(subsets[..., 0], subsets[..., 1])
+    assert (subsets[:, 0] < subsets[:, 1]).all()  # distinct networks, in increasing order
+    run = [*REDQ, "er=prioritised", *FAST, "episodes=5", "algo.td.updates_per_step=0.1"]
+    train_population(load(*run, f"seed={B}"), tmp_path / "solo")
+    train_population(load(*run, f"seeds=[{B},{A}]"), tmp_path / "pair")
+    with interrupted_after(3):
+        train_population(load(*run, f"seeds=[{B},{A}]", "checkpoint_every=2"), tmp_path / "resumed")
+    train_population(load(*run, f"seeds=[{B},{A}]", "checkpoint_every=2"), tmp_path / "resumed")
+    solo = (tmp_path / "solo" / "metrics.csv").read_bytes()
+    for folder in ("pair", "resumed"):
+        assert (tmp_path / folder / f"seed{B}" / "metrics.csv").read_bytes() == solo, folder
+
+
+def test_redq_steps_the_actor_once_every_policy_delay_critic_steps():
+    _, t = training("redq", *REDQ[1:-1], "algo.redq.policy_delay=3")
+    steps = {"actor": 0, "critic": 0}
+    for name in steps:
+        optimiser = getattr(t.optimisers, name)
+        original = optimiser.step
+
+        def counted(original=original, name=name):
+            steps[name] += 1
+            original()
+        optimiser.step = counted
+    actor_before = [p.detach().clone() for p in t.networks.actor_net.parameters()]
+    t.phases.updates = lambda episode: (0, 7)
+    totals = MetricTotals()
+    t.phases.run(transitions(2, 300), 16, totals, episode=5)
+    assert steps == {"critic": 7, "actor": 2}  # after critic steps 3 and 6
+    assert all(not torch.equal(a, b) for a, b in zip(actor_before, t.networks.actor_net.parameters()))
+    assert {"critic/loss_qvalue", "actor/loss_actor", "actor/loss_alpha", "actor/alpha"} <= set(totals.means(2)[0])
+
+
+@pytest.mark.parametrize("override, message", [
+    (["algo=redq", "algo.redq.subset=10"], "subset must be below algo.redq.critics (10)"),
+    (["algo=redq", "algo.redq.critics=1"], "critics must be >= 2"),
+    (["algo=redq", "algo.redq.policy_delay=0"], "policy_delay must be >= 1"),
+    (["algo=redq", "algo.redq.min_alpha=2.0", "algo.redq.max_alpha=1.0"], "min_alpha (2.0) is above"),
+    (["algo=redq", "algo.td.critic_dropout=0.01"], "loss redq's step computes plain or residual Q-networks"),
+    (["algo=sac", "+algo.redq.critics=4"], "a 'redq:' block does not apply to loss sac"),
+])
+def test_bad_redq_settings_are_refused_with_a_reason(override, message):
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        load(*override)
+
+
+def test_redq_refuses_to_compile_with_a_reason():
+    with pytest.raises(ValueError, match=re.escape("loss redq runs eagerly (compile=false)")):
+        training("redq", "compile=true")
+
+
+def test_redq_takes_one_actor_step_per_environment_step_by_default():
+    assert training("redq")[1].phases.policy_delay == 20
+    assert training("redq", "algo.td.updates_per_step=5.0")[1].phases.policy_delay == 5
+    assert training("redq", "algo.td.updates_per_step=0.3")[1].phases.policy_delay == 1
+    assert training("redq", "algo.redq.policy_delay=7")[1].phases.policy_delay == 7

@@ -465,7 +465,7 @@ def test_bad_offpolicy_settings_are_refused_with_a_reason(override, message):
 
 
 # ------------------------------------------------------------------------ whole runs
-@pytest.mark.parametrize("algo, er", [("td3", "prioritised")])  # SAC through train.py: tests/test_readme.py
+@pytest.mark.parametrize("algo, er", [("td3", "prioritised"), ("redq", "memory")])  # SAC through train.py: tests/test_readme.py
 def test_train_py_trains_two_episodes(tmp_path, algo, er):
     result = run_train(f"algo={algo}", f"er={er}", "seed=3", "episodes=2", "algo.td.warmup_episodes=1",
                        "algo.td.updates_per_step=0.05", "progress=false", f"hydra.run.dir={tmp_path}")

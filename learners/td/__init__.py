@@ -1,4 +1,4 @@
-"""TorchRL's off-policy learners (``loss: sac|tqc|crossq|td3``): bootstrapped TD targets, gradient steps
+"""TorchRL's off-policy learners (``loss: sac|tqc|crossq|redq|td3``): bootstrapped TD targets, gradient steps
 paid per environment step, target networks, a replay memory.
 
 The family's torch-free half: its losses, option blocks (validated before torch loads) and
@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 from learners.options import ACTIVATIONS, ConfigError, at_least, choice, positive
 
-LOSSES = ("sac", "tqc", "crossq", "td3")
-ENTROPY_LOSSES = ("sac", "tqc", "crossq")  # a tanh-Gaussian actor and a learned entropy temperature (the sac: block)
-DESCRIPTION = "TorchRL's off-policy losses (loss sac, tqc, crossq or td3)"
+LOSSES = ("sac", "tqc", "crossq", "redq", "td3")
+ENTROPY_LOSSES = ("sac", "tqc", "crossq", "redq")  # a tanh-Gaussian actor and a learned entropy temperature (the sac: block)
+DESCRIPTION = "TorchRL's off-policy losses (loss sac, tqc, crossq, redq or td3)"
 OFF_POLICY = True  # trains on a replay memory only: er=memory or er=prioritised
 KEYS = ()  # its schedule is in the td: block
 LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
@@ -22,7 +22,7 @@ LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
 
 @dataclass(frozen=True)
 class TDOptions:
-    """The off-policy schedule of ``loss: sac|tqc|crossq|td3`` (``conf/algo/sac.yaml`` explains each key)."""
+    """The off-policy schedule of ``loss: sac|tqc|crossq|redq|td3`` (``conf/algo/sac.yaml`` explains each key)."""
 
     updates_per_step: float
     warmup_episodes: int
@@ -131,8 +131,39 @@ class CrossQOptions:
             raise ConfigError(f"algo.crossq.batch_norm_momentum must be in (0, 1], got {self.batch_norm_momentum}")
 
 
+@dataclass(frozen=True)
+class REDQOptions:
+    """``algo.redq`` (TorchRL's ``REDQLoss``): the ensemble, the target's random subset, the actor's
+    schedule and the temperature's bounds."""
+
+    critics: int  # Q-networks in the ensemble
+    subset: int  # target networks whose minimum makes each member's target, drawn anew per minibatch
+    policy_delay: int | None  # one actor (and temperature) step every this-many critic steps (None: one per
+    #                           environment step, updates_per_step rounded; ``actor_every``)
+    min_alpha: float | None = None  # TorchRL's bounds on the temperature (None: unbounded)
+    max_alpha: float | None = None
+
+    def __post_init__(self) -> None:
+        at_least("algo.redq.critics", self.critics, 2)
+        at_least("algo.redq.subset", self.subset, 1)
+        if self.subset >= self.critics:
+            raise ConfigError(f"algo.redq.subset must be below algo.redq.critics ({self.critics}), got {self.subset}: "
+                              "the target takes the minimum over a random subset of the ensemble")
+        if self.policy_delay is not None:
+            at_least("algo.redq.policy_delay", self.policy_delay, 1)
+        for key in ("min_alpha", "max_alpha"):
+            if getattr(self, key) is not None:
+                positive(f"algo.redq.{key}", getattr(self, key))
+        if self.min_alpha is not None and self.max_alpha is not None and self.min_alpha > self.max_alpha:
+            raise ConfigError(f"algo.redq.min_alpha ({self.min_alpha}) is above algo.redq.max_alpha ({self.max_alpha})")
+
+    def actor_every(self, updates_per_step: float) -> int:
+        """Critic steps per actor step: ``policy_delay``, or one actor step per environment step."""
+        return self.policy_delay if self.policy_delay is not None else max(1, round(updates_per_step))
+
+
 BLOCKS = {"td": (LOSSES, TDOptions), "sac": (ENTROPY_LOSSES, SACOptions), "tqc": (("tqc",), TQCOptions),
-          "crossq": (("crossq",), CrossQOptions), "td3": (("td3",), TD3Options)}
+          "crossq": (("crossq",), CrossQOptions), "redq": (("redq",), REDQOptions), "td3": (("td3",), TD3Options)}
 
 
 def check(algo) -> None:
@@ -148,6 +179,9 @@ def check(algo) -> None:
     if algo.loss == "crossq" and (td.get("critic_dropout") or td.get("critic_layer_norm") or td.get("critic_blocks")):
         raise ConfigError(f"algo {algo.name}: loss crossq's Q-networks are batch-normalised; set "
                           "algo.td.critic_dropout: 0.0, algo.td.critic_layer_norm: false and algo.td.critic_blocks: 0")
+    if algo.loss == "redq" and (td.get("critic_dropout") or td.get("critic_layer_norm")):
+        raise ConfigError(f"algo {algo.name}: loss redq's step computes plain or residual Q-networks (algo.td.critic_blocks); "
+                          "set algo.td.critic_dropout: 0.0 and algo.td.critic_layer_norm: false")
     given = td.get("loss_function")
     if algo.loss == "tqc" and given is not None and given != "smooth_l1":
         raise ConfigError(f"algo {algo.name}: loss tqc trains its critics with the quantile Huber loss; set "

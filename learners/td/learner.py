@@ -37,8 +37,9 @@ from learners.networks import (BlockSampler, StackedBNCriticNet, StackedCriticNe
                                reset_parameters)
 from learners.optim import MemberAdam
 from learners.td import ENTROPY_LOSSES
-from losses.td import (ACTION_NOISE_KEY, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhNormal, MemberCrossQLoss, MemberSACLoss,
-                       MemberTD3Loss, MemberTQCLoss, SmoothedActor, fused_sac_available, fused_sac_losses, member_means)
+from losses.td import (ACTION_NOISE_KEY, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhNormal, MemberCrossQLoss, MemberREDQLoss,
+                       MemberSACLoss, MemberTD3Loss, MemberTQCLoss, SmoothedActor, fused_sac_available, fused_sac_losses,
+                       member_means, redq_available, redq_losses)
 
 FUSED_SAC = True  # SAC's eager step by losses.td.fused_sac_losses (the same bits as TorchRL's SACLoss, faster);
 #                   False: through the loss module (benchmarks/recipe_cost.py's sac-module recipe)
@@ -92,7 +93,10 @@ def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
         actor = TensorDictModule(SmoothedActor(actor_net), ["observation", SMOOTHING_KEY], ["action"])
     reset_parameters(actor_net, generators)
     qvalue_nets = []
-    critics, outputs = (algo.tqc.critics, algo.tqc.quantiles) if algo.loss == "tqc" else (2, 1)
+    if algo.loss == "tqc":
+        critics, outputs = algo.tqc.critics, algo.tqc.quantiles
+    else:
+        critics, outputs = (algo.redq.critics if algo.loss == "redq" else 2), 1
     for _ in range(critics):
         if algo.loss == "crossq":  # batch-normalised
             q = StackedBNCriticNet(members, obs_dim + action_dim, net.critic_hidden, net.activation,
@@ -179,6 +183,12 @@ def make_loss(cfg, networks: Networks, generators: Sequence[torch.Generator]):
         elif algo.loss == "crossq":
             common["deactivate_vmap"] = True  # its batch norm updates running statistics in place
             loss = MemberCrossQLoss(networks.actor, networks.qvalues, loss_function=td.loss_function, **common)
+        elif algo.loss == "redq":  # computed by losses.td.redq_losses (eager only)
+            redq = algo.redq
+            common["deactivate_vmap"] = True
+            loss = MemberREDQLoss(networks.actor, networks.qvalues, loss_function=td.loss_function, subset=redq.subset,
+                                  min_alpha=redq.min_alpha if redq.min_alpha is not None else 0.0,
+                                  max_alpha=redq.max_alpha if redq.max_alpha is not None else math.inf, **common)
         else:  # its critic loss is the quantile Huber loss (td.loss_function smooth_l1, checked)
             loss = MemberTQCLoss(networks.actor, networks.qvalues,
                                  top_quantiles_to_drop_per_net=algo.tqc.drop_per_critic, **common)
@@ -220,6 +230,8 @@ class TDPhaseRunner:
         self.kind, self.td = cfg.algo.loss, cfg.algo.td
         self.steps = cfg.env.episode_steps
         self.policy_delay = getattr(cfg.algo, self.kind).policy_delay if self.kind in ("td3", "crossq") else 1
+        if self.kind == "redq":
+            self.policy_delay = cfg.algo.redq.actor_every(self.td.updates_per_step)
         self.preact_penalty = cfg.algo.td3.preact_penalty if self.kind == "td3" else 0.0
         self.updater = SoftUpdate(loss, tau=self.td.tau) if self.td.tau is not None else None  # crossq: no targets
         self.sampler = memory.sampler if memory is not None else None  # prioritised replay, or None
@@ -231,6 +243,9 @@ class TDPhaseRunner:
         if self.td.reset_every and (actor_net is None or not self.qvalue_nets):
             raise ValueError("td.reset_every needs the actor network and the Q-networks as built")
         self.fused = FUSED_SAC and actor_net is not None and not cfg.compile and fused_sac_available(loss, actor_net)
+        if self.kind == "redq" and (cfg.compile or actor_net is None or not redq_available(loss, actor_net)):
+            raise ValueError("loss redq runs eagerly (compile=false) on the learner's own actor network and plain or "
+                             "residual Q-networks (losses.td.redq_losses)")
         self._sac_objective = compile_step(self._sac_losses, cfg.compile)
         self._critic_objective = compile_step(self._td3_critic_losses, cfg.compile)
         self._actor_objective = compile_step(self._td3_actor_losses, cfg.compile)
@@ -252,6 +267,8 @@ class TDPhaseRunner:
             self.loss.draw(batch)  # the loss's noise, from each member's generator
             if self.kind == "crossq":
                 priority = self._crossq_step(batch, step, totals)
+            elif self.kind == "redq":
+                priority = self._redq_step(batch, step, totals)
             elif self.entropy:
                 priority = self._sac_step(batch, totals)
             else:
@@ -275,6 +292,22 @@ class TDPhaseRunner:
         totals.add("critic", {"loss_qvalue": losses["loss_qvalue"]})
         totals.add("actor", {"loss_actor": losses["loss_actor"], "loss_alpha": losses["loss_alpha"],
                              "alpha": self.loss.alpha})
+        return priority
+
+    def _redq_step(self, batch: TensorDictBase, step: int, totals: MetricTotals) -> torch.Tensor:
+        """A critic step of the ensemble; every ``policy_delay`` steps the same pass also gives the
+        actor's and the temperature's losses (REDQ's one actor step per environment step at
+        ``policy_delay = updates_per_step``)."""
+        actor = (step + 1) % self.policy_delay == 0
+        losses, priority = redq_losses(self.loss, self.actor_net, batch, actor=actor)
+        if actor:
+            self._minimise(sum(losses.values()), self.optimisers.critic, self.optimisers.actor)
+            totals.add("actor", {"loss_actor": losses["loss_actor"], "loss_alpha": losses["loss_alpha"],
+                                 "alpha": self.loss.alpha})
+        else:
+            self._minimise(losses["loss_qvalue"], self.optimisers.critic)
+        self.updater.step()
+        totals.add("critic", {"loss_qvalue": losses["loss_qvalue"]})
         return priority
 
     def _td3_critic_losses(self, batch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
@@ -365,7 +398,7 @@ class TDPhaseRunner:
 
 
 def build(cfg, env, generators: Sequence[torch.Generator], memory: ReplayMemory) -> Learner:
-    """Networks, loss, optimisers and update phase of ``cfg.algo`` (loss sac, tqc, crossq or td3) for one
+    """Networks, loss, optimisers and update phase of ``cfg.algo`` (loss sac, tqc, crossq, redq or td3) for one
     member per generator."""
     networks = make_networks(cfg, env, generators)
     loss = make_loss(cfg, networks, generators)
