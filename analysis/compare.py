@@ -1,6 +1,7 @@
 """Two reports of the same grid, paired run by run: what a change of code or numerics moved.
 
     python -m analysis.compare NEW/runs.csv OLD/runs.csv [--markdown OUT.md]
+    python -m analysis.compare NEW/runs.csv OLD/runs.csv --cells bro/prioritised sac/prioritised
 
 Runs are paired by (replay mode, algorithm, track seed); each pair's difference is the new
 run's final performance minus the old one's. Printed: how many pairs, in how many the new run
@@ -9,7 +10,8 @@ pairs, how many runs collapsed (final below ``--collapse``, 20) in each, and per
 difference against the cell's combined standard error (how far each cell's mean moved, in the
 units a reader of Table 1 compares in). A change meant to keep results must show identical
 pairs; a change of rounding shows differences centred on zero (the task's chaos), and a real
-change, a shift.
+change, a shift. ``--cells NEW OLD`` (each ``algo/er``) pairs two different cells by track
+instead: one learner against another on the same tracks.
 """
 
 from __future__ import annotations
@@ -34,6 +36,19 @@ def read_runs(path: Path) -> dict[tuple[str, str, int], float]:
         raise SystemExit(f"compare: {path} is not a report's runs.csv (columns {sorted(needed)} expected)")
     return {(r["er"], r["algo"], int(r["seed"])): float(r["final_mean"]) for r in rows
             if r["status"] == "completed" and r["final_mean"] not in ("", None)}
+
+
+def select_cell(runs: dict, cell: str, as_cell: str) -> dict:
+    """The runs of ``cell`` (``algo/er``) keyed as ``as_cell``'s, so that two cells pair by track."""
+    try:
+        (algo, er), (as_algo, as_er) = cell.split("/"), as_cell.split("/")
+    except ValueError:
+        raise SystemExit(f"compare: a cell is algo/er, e.g. bro/prioritised (got {cell!r} and {as_cell!r})") from None
+    chosen = {(as_er, as_algo, seed): value for (e, a, seed), value in runs.items() if (e, a) == (er, algo)}
+    if not chosen:
+        cells = sorted({f"{a}/{e}" for e, a, _ in runs})
+        raise SystemExit(f"compare: no completed run of cell {cell} (the report has {', '.join(cells) or 'none'})")
+    return chosen
 
 
 def _interval(values: list[float], reps: int = 10000, seed: int = 0) -> tuple[float, float]:
@@ -89,8 +104,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("old", type=Path, help="the old report's runs.csv")
     parser.add_argument("--collapse", type=float, default=20.0)
     parser.add_argument("--markdown", type=Path, help="also write the comparison to this file")
+    parser.add_argument("--cells", nargs=2, metavar=("NEW", "OLD"),
+                        help="pair cell NEW of the new report with cell OLD of the old one by track (algo/er each)")
     args = parser.parse_args(argv)
-    text = compare(read_runs(args.new), read_runs(args.old), args.collapse)
+    new, old = read_runs(args.new), read_runs(args.old)
+    heading = ""
+    if args.cells:
+        new, old = select_cell(new, args.cells[0], args.cells[1]), select_cell(old, args.cells[1], args.cells[1])
+        heading = f"New: {args.cells[0]}; old: {args.cells[1]} (the table's cell), paired by track\n"
+    text = heading + compare(new, old, args.collapse)
     print(text, end="")
     if args.markdown:
         args.markdown.write_text(text)

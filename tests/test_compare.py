@@ -52,3 +52,18 @@ def test_a_file_that_is_not_a_runs_csv_is_refused_clearly(tmp_path):
         read_runs(tmp_path / "missing.csv")
     with pytest.raises(SystemExit, match="no run in common"):
         compare({("memory", "spg", 1): 1.0}, {("memory", "spg", 2): 1.0})
+
+
+def test_two_different_cells_pair_by_track(tmp_path, capsys):
+    rows = [("prioritised", "bro", s, "completed", 100.0 + s) for s in (1, 2, 3)] \
+        + [("prioritised", "sac", s, "completed", 101.0 + 2 * s) for s in (1, 2, 3, 4)]
+    runs = write(tmp_path / "runs.csv", rows)
+    assert main([str(runs), str(runs), "--cells", "bro/prioritised", "sac/prioritised"]) == 0
+    text = capsys.readouterr().out
+    assert text.startswith("New: bro/prioritised; old: sac/prioritised (the table's cell), paired by track\n"
+                           "3 runs paired (3 new, 4 old completed runs): the new run is lower in 3")
+    assert "| sac/prioritised | 3 | 102.0 | 105.0 | -3.0 |" in text
+    with pytest.raises(SystemExit, match="no completed run of cell tqc/memory"):
+        main([str(runs), str(runs), "--cells", "tqc/memory", "sac/prioritised"])
+    with pytest.raises(SystemExit, match="a cell is algo/er"):
+        main([str(runs), str(runs), "--cells", "bro", "sac/prioritised"])
