@@ -14,12 +14,14 @@ TorchRL's ``REDQLoss`` (values and gradients) and its actor schedule.
 
 import re
 
+import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
 
 from collectors import STEPS_KEY, n_step_transitions
 from engine.config import ConfigError
+from engine.evaluation import make_policy
 from engine.runner import train_population
 from engine.setup import make_env, make_generators, make_learner
 from learners.base import MetricTotals
@@ -375,6 +377,10 @@ def test_redq_members_draw_their_own_subsets_and_equal_their_solo_runs(tmp_path)
     solo = (tmp_path / "solo" / "metrics.csv").read_bytes()
     for folder in ("pair", "resumed"):
         assert (tmp_path / folder / f"seed{B}" / "metrics.csv").read_bytes() == solo, folder
+    cfg = load(*run)
+    policy = make_policy("redq", {"actor_hidden": cfg.network.actor_hidden, "activation": cfg.network.activation}, 6,
+                         torch.load(tmp_path / "solo" / "actor.pt"))  # evaluate.py's policy of the run
+    assert policy(np.zeros(6)).shape == (2,)
 
 
 def test_redq_steps_the_actor_once_every_policy_delay_critic_steps():
