@@ -321,6 +321,9 @@ class RunConfig:
         if self.algo.loss == "crossq" and self.compile:
             raise ConfigError(f"algo {self.algo.name}: compile=true is not supported for crossq (its batch "
                               "normalisation updates running statistics in place); use compile=false")
+        if self.algo.loss == "redq" and self.compile:
+            raise ConfigError(f"algo {self.algo.name}: compile=true is not supported for redq (each member draws its "
+                              "own subset of target networks; its step runs eagerly); use compile=false")
         if self.compile and self.algo.td is not None and self.algo.td.critic_dropout:
             raise ConfigError(f"algo {self.algo.name}: compile=true is not supported with algo.td.critic_dropout "
                               "(each member draws its dropout masks from its own generator); use compile=false")

@@ -417,8 +417,8 @@ def test_bad_redq_settings_are_refused_with_a_reason(override, message):
 
 
 def test_redq_refuses_to_compile_with_a_reason():
-    with pytest.raises(ValueError, match=re.escape("loss redq runs eagerly (compile=false)")):
-        training("redq", "compile=true")
+    with pytest.raises(ConfigError, match=re.escape("compile=true is not supported for redq")):
+        load("algo=redq", "compile=true")
 
 
 def test_redq_takes_one_actor_step_per_environment_step_by_default():
