@@ -235,7 +235,13 @@ def test_a_reset_changes_a_run_from_its_episode_on(tmp_path):
 
 
 def test_bro_members_equal_their_solo_runs_and_resume_exactly_across_a_reset(tmp_path):
-    run = [*BRO, "er=prioritised", *FAST, "episodes=5", "algo.td.updates_per_step=0.1", "algo.td.reset_every=3"]
+    assert_member_is_solo_and_resumes(tmp_path, [*BRO, "er=prioritised", *FAST, "episodes=5",
+                                                 "algo.td.updates_per_step=0.1", "algo.td.reset_every=3"])
+
+
+def assert_member_is_solo_and_resumes(tmp_path, run: list[str]) -> None:
+    """Member B of a pair computes its solo run, and so does a pair interrupted after episode 3
+    and resumed from its checkpoint (metrics bytes)."""
     train_population(load(*run, f"seed={B}"), tmp_path / "solo")
     train_population(load(*run, f"seeds=[{B},{A}]"), tmp_path / "pair")
     with interrupted_after(3):
@@ -369,14 +375,7 @@ def test_redq_members_draw_their_own_subsets_and_equal_their_solo_runs(tmp_path)
     assert subsets.shape == (20, 2, 2) and not torch.equal(subsets[..., 0], subsets[..., 1])
     assert (subsets[:, 0] < subsets[:, 1]).all()  # distinct networks, in increasing order
     run = [*REDQ, "er=prioritised", *FAST, "episodes=5", "algo.td.updates_per_step=0.1"]
-    train_population(load(*run, f"seed={B}"), tmp_path / "solo")
-    train_population(load(*run, f"seeds=[{B},{A}]"), tmp_path / "pair")
-    with interrupted_after(3):
-        train_population(load(*run, f"seeds=[{B},{A}]", "checkpoint_every=2"), tmp_path / "resumed")
-    train_population(load(*run, f"seeds=[{B},{A}]", "checkpoint_every=2"), tmp_path / "resumed")
-    solo = (tmp_path / "solo" / "metrics.csv").read_bytes()
-    for folder in ("pair", "resumed"):
-        assert (tmp_path / folder / f"seed{B}" / "metrics.csv").read_bytes() == solo, folder
+    assert_member_is_solo_and_resumes(tmp_path, run)
     cfg = load(*run)
     policy = make_policy("redq", {"actor_hidden": cfg.network.actor_hidden, "activation": cfg.network.activation}, 6,
                          torch.load(tmp_path / "solo" / "actor.pt"))  # evaluate.py's policy of the run
