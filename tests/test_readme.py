@@ -124,3 +124,30 @@ def test_every_relative_link_in_the_docs_points_at_a_file():
             if not (page.parent / target.split("#")[0]).exists():
                 dead.append(f"{page.relative_to(ROOT)}: {target}")
     assert not dead, "dead links:\n" + "\n".join(dead)
+
+
+def _sweep_values(override: str) -> list[str]:
+    """``key=a,b`` as ``[key=a, key=b]`` (commas inside brackets or quotes are one value's)."""
+    key, _, value = override.partition("=")
+    if value.startswith(("[", "'", '"', "glob(", "range(")) or "," not in value:
+        return [override]
+    return [f"{key}={v}" for v in value.split(",")]
+
+
+def test_every_documented_sweep_of_the_current_code_composes():
+    """Each ``clean_sweep.py`` line of the README and docs/ that runs the current code (no
+    ``--commit`` of an older one) composes, every swept value: a key misspelt in a documented
+    sweep fails here, not an hour into it. (Running one: tests/test_launchers.py.)"""
+    from engine.config import RunConfig
+
+    checked = 0
+    for args in readme_commands("clean_sweep.py", include_elsewhere=True):
+        if "--commit" in args:
+            continue
+        overrides = [_sweep_values(a) for a in args if "=" in a and not a.startswith("hydra.")]
+        first = [values[0] for values in overrides]
+        for i, values in enumerate(overrides):  # each swept value, the other keys at their first
+            for value in values:
+                RunConfig.compose(*first[:i], value, *first[i + 1:])
+                checked += 1
+    assert checked >= 20
