@@ -243,16 +243,15 @@ class MemberREDQLoss(MemberTemperature, REDQLoss):
     takes one subset for the whole minibatch)."""
 
     def __init__(self, *args, subset: int, **kwargs):
-        super().__init__(*args, sub_sample_len=subset, **kwargs)
-        self.subset = subset
+        super().__init__(*args, sub_sample_len=subset, **kwargs)  # as sub_sample_len (algo.redq checks it)
         self.subsets: torch.Tensor | None = None  # [subset, R]: each member's target networks, this minibatch
         self.target_entropy  # TorchRL registers it as a buffer on first use: from the start, so checkpoints load
 
     def draw(self, tensordict: TensorDictBase) -> None:
         """Each member's noise (``MemberTemperature.draw``), then its subset of target networks: the
-        first ``subset`` of a random permutation, in increasing order (as TorchRL draws its one)."""
+        first ``sub_sample_len`` of a random permutation, in increasing order (as TorchRL draws its one)."""
         super().draw(tensordict)
-        self.subsets = torch.stack([torch.randperm(self.num_qvalue_nets, generator=g, device=g.device)[:self.subset]
+        self.subsets = torch.stack([torch.randperm(self.num_qvalue_nets, generator=g, device=g.device)[:self.sub_sample_len]
                                     .sort()[0] for g in self.generators], 1)
 
     @property
