@@ -11,7 +11,8 @@ E - window .. E - 1, which is what a run of E episodes reports as ``final_mean``
 oracle's score on the run's track (``analysis/data/oracle.csv``, ``oracle_tuning.csv`` for the
 tuning tracks), and per budget the mean fraction
 over the runs with a 95% bootstrap interval over tracks; the deterministic policy's score at the
-end of the run (summary.json's evaluation on its own track) where the run has one.
+end of the run (summary.json's evaluation on its own track) where the run has one, and the mean of
+those scores as fractions of the oracle's, with the same interval.
 """
 
 from __future__ import annotations
@@ -86,6 +87,11 @@ def main(argv: list[str] | None = None) -> int:
             low, high = _interval(fractions)
             summary.append(f"{budget} episodes: {statistics.fmean(fractions):.3f} of the oracle [{low:.3f}, {high:.3f}] "
                            f"over {len(fractions)} tracks")
+    ends = [r["evaluation"] / r["oracle"] for r in rows if r["evaluation"] != "" and r["oracle"] != ""]
+    if ends:
+        low, high = _interval(ends)
+        summary.append(f"deterministic policy at the end: {statistics.fmean(ends):.3f} of the oracle "
+                       f"[{low:.3f}, {high:.3f}] over {len(ends)} tracks")
     print("\n".join(summary))
     if args.table is not None:
         from engine.outputs import write_table

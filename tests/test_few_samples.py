@@ -278,10 +278,13 @@ def test_bad_settings_are_refused_with_a_reason(override, message):
         load(*override)
 
 
-def test_the_budget_table_reads_a_run_s_final_performance_at_shorter_budgets(tmp_path, capsys):
+def test_the_budget_table_reads_a_run_s_final_performance_at_shorter_budgets(tmp_path, capsys, monkeypatch):
     """A run of 4 episodes gives what a run of 2 reports as its final performance (the same first
-    episodes), and its own at 4; the table says so per track."""
+    episodes), and its own at 4; the table says so per track, and with the oracle's scores of the
+    tracks, each budget's and the deterministic policy's mean fraction of them."""
     from analysis import budget
+
+    monkeypatch.setattr(budget, "read_oracles", lambda: {A: 100.0, B: 50.0})
 
     run = ["algo=sac", "er=memory", *FAST, "final_window=2", "eval_seeds=[1]", "eval_episodes=1"]
     train_population(load(*run, "episodes=2", f"seed={A}"), tmp_path / "short")
@@ -299,6 +302,9 @@ def test_the_budget_table_reads_a_run_s_final_performance_at_shorter_budgets(tmp
     assert rows[A, 2][7] == "" and rows[A, 4][7] != ""  # the evaluation belongs to the run's own end
     out = capsys.readouterr().out
     assert f"| {A} | " in out and f"| {B} | " in out and "2 episodes: " in out and "4 episodes: " in out
+    assert float(rows[A, 4][6]) == pytest.approx(float(rows[A, 4][4]) / 100.0, abs=1e-6)
+    ends = [float(rows[A, 4][7]) / 100.0, float(rows[B, 4][7]) / 50.0]
+    assert f"deterministic policy at the end: {sum(ends) / 2:.3f} of the oracle [" in out
 
 
 # ---------------------------------------------------------------------------- REDQ
