@@ -80,19 +80,16 @@ def main(argv: list[str] | None = None) -> int:
                  if b in mine else "" for b in args.budgets]
         end = next((f"{r['evaluation']:.1f}" for r in mine.values() if r["evaluation"] != ""), "")
         print(f"| {track} | " + " | ".join(cells) + f" | {end} |")
-    summary = []
-    for budget in args.budgets:
-        fractions = [r["fraction"] for r in rows if r["budget"] == budget and r["fraction"] != ""]
+    def mean_fraction(label: str, fractions: list[float]) -> None:
         if fractions:
             low, high = _interval(fractions)
-            summary.append(f"{budget} episodes: {statistics.fmean(fractions):.3f} of the oracle [{low:.3f}, {high:.3f}] "
-                           f"over {len(fractions)} tracks")
-    ends = [r["evaluation"] / r["oracle"] for r in rows if r["evaluation"] != "" and r["oracle"] != ""]
-    if ends:
-        low, high = _interval(ends)
-        summary.append(f"deterministic policy at the end: {statistics.fmean(ends):.3f} of the oracle "
-                       f"[{low:.3f}, {high:.3f}] over {len(ends)} tracks")
-    print("\n".join(summary))
+            print(f"{label}: {statistics.fmean(fractions):.3f} of the oracle [{low:.3f}, {high:.3f}] "
+                  f"over {len(fractions)} tracks")
+
+    for budget in args.budgets:
+        mean_fraction(f"{budget} episodes", [r["fraction"] for r in rows if r["budget"] == budget and r["fraction"] != ""])
+    mean_fraction("deterministic policy at the end",
+                  [r["evaluation"] / r["oracle"] for r in rows if r["evaluation"] != "" and r["oracle"] != ""])
     if args.table is not None:
         from engine.outputs import write_table
 
