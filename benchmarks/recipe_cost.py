@@ -44,8 +44,9 @@ RECIPES = {  # name: (overrides of the recipe, shown as given)
     "bro": ["algo=bro", "er=prioritised"],
     "bro-256": ["algo=bro", "er=prioritised", "algo.td.critic_width=256"],
     "bro-module": ["algo=bro", "er=prioritised"],  # BRO's step through TorchRL's loss module
-    "redq": ["algo=redq", "er=prioritised"],  # the published ensemble: 10 Q-networks, 20 updates per step
-    "redq-5": ["algo=redq", "er=prioritised", "algo.redq.critics=5"],
+    "redq": ["algo=redq", "er=prioritised", "algo.td.updates_per_step=20.0"],  # the published: 10 Q-networks, 20 updates
+    "redq-5": ["algo=redq", "er=prioritised", "algo.redq.critics=5", "algo.td.updates_per_step=20.0"],
+    "redq-default": ["algo=redq", "er=prioritised"],  # algo=redq's defaults (tuned: 10 Q-networks, 5 updates per step)
     "tqc": ["algo=tqc"],
     "crossq": ["algo=crossq"],
     "td3": ["algo=td3"],
