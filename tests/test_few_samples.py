@@ -429,6 +429,6 @@ def test_redq_refuses_to_compile_with_a_reason():
 def test_redq_takes_one_actor_step_per_environment_step_by_default():
     assert training("redq")[1].phases.policy_delay == 5  # the default: 5 updates per step
     assert training("redq", "algo.td.updates_per_step=20.0")[1].phases.policy_delay == 20
-    assert training("redq", "algo.td.updates_per_step=5.0")[1].phases.policy_delay == 5
+    assert training("redq", "algo.td.updates_per_step=10.0")[1].phases.policy_delay == 10
     assert training("redq", "algo.td.updates_per_step=0.3")[1].phases.policy_delay == 1
     assert training("redq", "algo.redq.policy_delay=7")[1].phases.policy_delay == 7
