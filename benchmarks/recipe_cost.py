@@ -14,7 +14,8 @@ CPU minutes per member for a whole run, and the hours a population of R needs on
 numbers depend on the machine and the hour (this one's speed drifts by 2x): plan with the ratios
 between recipes, measured in one process. ``sac-module`` is SAC with its gradient step through
 TorchRL's loss module instead of the fused step (``losses.td.fused_sac_losses``, the same bits):
-its row against ``sac``'s is what the fused step saves (``bro-module`` against ``bro`` likewise).
+its row against ``sac``'s is what the fused step saves (``bro-module`` and ``droq-module`` against
+``bro`` and ``droq`` likewise).
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ RECIPES = {  # name: (overrides of the recipe, shown as given)
     "sac-module": ["algo=sac"],  # SAC's step through TorchRL's loss module (the fused step's baseline)
     "sac-nstep3": ["algo=sac", "algo.td.n_step=3"],
     "droq": ["algo=droq"],
+    "droq-module": ["algo=droq"],  # DroQ's step through TorchRL's loss module
     "bro": ["algo=bro", "er=prioritised"],
     "bro-256": ["algo=bro", "er=prioritised", "algo.td.critic_width=256"],
     "bro-module": ["algo=bro", "er=prioritised"],  # BRO's step through TorchRL's loss module
@@ -53,7 +55,7 @@ RECIPES = {  # name: (overrides of the recipe, shown as given)
 }
 
 
-UNFUSED = {"sac-module", "bro-module"}  # recipes measured with learners.td.learner.FUSED_SAC off
+UNFUSED = {"sac-module", "bro-module", "droq-module"}  # recipes measured with learners.td.learner.FUSED_SAC off
 
 
 def _timed(recipe: list[str], members: int, steps: int, episode_steps: int) -> dict:

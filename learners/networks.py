@@ -313,19 +313,35 @@ def stacked_layer_norm(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor
 class StackedDropout(nn.Module):
     """Dropout of ``[R, N, F]`` in training mode: each element kept with probability ``1 - rate`` and
     scaled by ``1 / (1 - rate)``, member r's mask drawn from ``generators[r]`` (``[N, F]`` uniform
-    draws per call), so a member's masks do not depend on the other members. The identity in
-    evaluation mode."""
+    draws per call), so a member's masks do not depend on the other members. As PyTorch's own
+    dropout, the input is multiplied by a mask of zeros and ``1 / (1 - rate)`` (one float product
+    forward and backward; a boolean mask would cost a mixed-type product, ~30x slower on CPU). The
+    identity in evaluation mode."""
 
     def __init__(self, rate: float, generators: Sequence[torch.Generator]):
         super().__init__()
         self.rate, self.generators = rate, list(generators)
 
+    @property
+    def active(self) -> bool:
+        return self.training and self.rate != 0
+
+    def mask(self, shape: Sequence[int], like: torch.Tensor) -> torch.Tensor:
+        """Each member's mask, ``[R, *shape]`` of ``like``'s dtype: ``1 / (1 - rate)`` where an element
+        is kept (its uniform draw at least ``rate``), 0 where it is dropped."""
+        draws = torch.stack([torch.rand(tuple(shape), generator=g, device=like.device, dtype=like.dtype)
+                             for g in self.generators])
+        return (draws >= self.rate).to(like.dtype).mul_(1 / (1 - self.rate))
+
+    @staticmethod
+    def apply_mask(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """``x`` times ``mask`` (which broadcasts against it)."""
+        return x * mask
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if not self.training or self.rate == 0:
+        if not self.active:
             return x
-        keep = torch.stack([torch.rand(x.shape[1:], generator=g, device=x.device, dtype=x.dtype)
-                            for g in self.generators]) >= self.rate
-        return x * keep / (1 - self.rate)
+        return self.apply_mask(x, self.mask(x.shape[1:], x))
 
 
 class _RegularisedMLP(StackedMLP):
@@ -342,14 +358,39 @@ class _RegularisedMLP(StackedMLP):
         self.norms = nn.ModuleList(StackedLayerNorm(members, width) for width in hidden) if layer_norm else None
 
     def forward_rows(self, x: torch.Tensor) -> torch.Tensor:
-        last = len(self.layers) - 1
-        for i, layer in enumerate(self.layers):
-            x = layer(x)
+        norms = None if self.norms is None else [(norm.weight, norm.bias) for norm in self.norms]
+        return self.forward_rows_with(x, [(layer.weight, layer.bias) for layer in self.layers], norms)
+
+    def forward_with(self, x: torch.Tensor, parameters: Sequence[tuple[torch.Tensor, torch.Tensor]],
+                     norms: Sequence[tuple[torch.Tensor, torch.Tensor]] | None = None, copies: int = 1) -> torch.Tensor:
+        """``forward`` with other parameters (see ``forward_rows_with``)."""
+        rows, shape = _pad_rows(x, self.row_multiple)
+        return _unpad_rows(self.forward_rows_with(rows, parameters, norms, copies), shape)
+
+    def forward_rows_with(self, x: torch.Tensor, parameters: Sequence[tuple[torch.Tensor, torch.Tensor]],
+                          norms: Sequence[tuple[torch.Tensor, torch.Tensor]] | None = None,
+                          copies: int = 1) -> torch.Tensor:
+        """``forward_rows`` of ``copies`` sets of the members' networks in one pass: the parameters'
+        leading dimension (and ``x``'s) holds ``copies * R`` networks, set after set (a
+        (weight, bias) pair per layer, and per layer norm in ``norms``: the layer norms' current
+        parameters when ``None``). Each member's dropout masks are drawn as ``copies`` successive
+        calls of ``forward_rows`` would draw them (set 0's for every layer, then set 1's, ...), so
+        the pass computes what those calls do, bit for bit."""
+        if norms is None and self.norms is not None:
+            norms = [(norm.weight, norm.bias) for norm in self.norms]
+        masks = None
+        if self.dropouts is not None and self.dropouts[0].active:
+            drawn = [[dropout.mask(x.shape[1:-1] + (layer[0].shape[-2],), x)
+                      for dropout, layer in zip(self.dropouts, parameters)] for _ in range(copies)]
+            masks = [torch.cat(per_set) if copies > 1 else per_set[0] for per_set in zip(*drawn)]
+        last = len(parameters) - 1
+        for i, (weight, bias) in enumerate(parameters):
+            x = stacked_linear(x, weight, bias)
             if i < last:
-                if self.dropouts is not None:
-                    x = self.dropouts[i](x)
-                if self.norms is not None:
-                    x = self.norms[i](x)
+                if masks is not None:
+                    x = self.dropouts[i].apply_mask(x, masks[i])
+                if norms is not None:
+                    x = stacked_layer_norm(x, *norms[i], self.norms[i].eps)
                 x = per_member(self.activation, x)
         return x
 

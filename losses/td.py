@@ -132,12 +132,10 @@ class MemberSACLoss(MemberTemperature, SACLoss):
 
 
 def _stackable_critic(loss) -> bool:
-    """Whether ``loss``'s Q-networks compute on plain stacked tensors (``_stacked_values``): plain
-    stacked MLPs (no dropout or layer norm) or BRO's residual networks."""
+    """Whether ``loss``'s Q-networks compute on plain stacked tensors (``_stacked_values``): stacked
+    MLPs (plain, or DroQ's with dropout and layer norm) or BRO's residual networks."""
     critic = getattr(loss.qvalue_network, "module", None)
-    return (hasattr(critic, "forward_named")  # BRO's residual Q-network
-            or (hasattr(getattr(critic, "net", None), "forward_with")
-                and not hasattr(critic.net, "norms")))  # not DroQ's regularised MLP (dropout, layer norm)
+    return hasattr(critic, "forward_named") or hasattr(getattr(critic, "net", None), "forward_with")
 
 
 def _owns_actor(loss, actor_net: nn.Module) -> bool:
@@ -147,7 +145,7 @@ def _owns_actor(loss, actor_net: nn.Module) -> bool:
 
 def fused_sac_available(loss, actor_net: nn.Module) -> bool:
     """Whether ``fused_sac_losses`` computes ``loss``'s step: SAC (not TQC or CrossQ) eagerly, with
-    Q-networks that are plain stacked MLPs (no dropout or layer norm) or BRO's residual networks,
+    Q-networks that are stacked MLPs (plain or DroQ's) or BRO's residual networks,
     and the actor network the loss's own."""
     return (type(loss) is MemberSACLoss and loss.deactivate_vmap and getattr(loss, "_version", 2) == 2
             and not loss.skip_done_states and _stackable_critic(loss) and _owns_actor(loss, actor_net))
@@ -156,7 +154,7 @@ def fused_sac_available(loss, actor_net: nn.Module) -> bool:
 def _stacked_values(loss, inputs: torch.Tensor, params: TensorDictBase) -> torch.Tensor:
     """Every Q-network's values ``[Q, R, B, 1]`` for inputs ``[R, B, obs + action]`` and stacked
     parameters ``[Q, R, ...]``, in one pass over ``Q * R`` networks (each computes alone, as in
-    TorchRL's loop over the Q-networks)."""
+    TorchRL's loop over the Q-networks, DroQ's dropout masks drawn in that loop's order)."""
     critic = loss.qvalue_network.module
     named = {name: value.flatten(0, 1) for name, value in params["module"].flatten_keys(".").items()}
     q, members = next(iter(params["module"].values(True, True))).shape[:2]
@@ -165,7 +163,13 @@ def _stacked_values(loss, inputs: torch.Tensor, params: TensorDictBase) -> torch
         values = critic.forward_named(x, named)
     else:
         pairs = [(named[f"net.layers.{i}.weight"], named[f"net.layers.{i}.bias"]) for i in range(len(critic.net.layers))]
-        values = critic.net.forward_with(x, pairs)
+        if getattr(critic.net, "norms", None) is not None or getattr(critic.net, "dropouts", None) is not None:
+            # DroQ's regularised MLP: its dropout masks drawn as TorchRL's loop over the Q-networks draws them
+            norms = None if critic.net.norms is None else [
+                (named[f"net.norms.{i}.weight"], named[f"net.norms.{i}.bias"]) for i in range(len(critic.net.norms))]
+            values = critic.net.forward_with(x, pairs, norms, copies=q)
+        else:
+            values = critic.net.forward_with(x, pairs)
     return values.reshape(q, members, *inputs.shape[1:-1], -1)
 
 

@@ -255,17 +255,21 @@ def test_td3_preact_penalty_adds_the_mean_square_of_the_pre_tanh_action():
 
 @pytest.mark.parametrize("mode", ["fma", "portable"])
 @pytest.mark.parametrize("extra", [[], ["er=prioritised", "algo.td.n_step=3", "algo.td.loss_function=smooth_l1"],
-                                   ["algo=bro", "er=prioritised", "algo.td.critic_width=48"]])
+                                   ["algo=bro", "er=prioritised", "algo.td.critic_width=48"],
+                                   ["algo=droq", "er=prioritised"], ["algo=droq", "algo.td.critic_layer_norm=false"]])
 def test_fused_sac_step_is_the_torchrl_loss_bit_for_bit(mode, extra):
     """The fused SAC step (plain tensors, the Q-networks in one stacked pass) gives TorchRL's loss
     module's losses, priorities and gradients bit for bit: with importance weights, n-step
-    discounts, another critic loss, BRO's residual Q-networks, in both numerics that switch after
-    torch loads."""
+    discounts, another critic loss, BRO's residual Q-networks, DroQ's (dropout masks drawn from the
+    members' generators in the loss module's order; with and without layer norm), in both numerics
+    that switch after torch loads."""
     from learners import kernels
 
     cfg, t = training("sac", *extra, seeds=(A, B, 7))
     assert t.phases.fused
     data = transitions(3, 256)
+    if "algo=droq" in extra:
+        assert t.loss.generators and all(d.active for d in t.loss.qvalue_network.module.net.dropouts)
     g = torch.Generator().manual_seed(5)
     if "er=prioritised" in extra:
         data.set("priority_weight", torch.rand(3, 256, generator=g))
@@ -274,10 +278,15 @@ def test_fused_sac_step_is_the_torchrl_loss_bit_for_bit(mode, extra):
     loss = t.loss
     params = [*loss.actor_network_params.values(True, True), loss.log_alpha, *loss.qvalue_network_params.values(True, True)]
 
+    generators = t.loss.generators
+    drawn_from = [g.get_state() for g in generators]  # DroQ draws its dropout masks in the step
+
     def step(fused):
         t.phases.fused = fused
         for p in params:
             p.grad = None
+        for g, state in zip(generators, drawn_from):
+            g.set_state(state)
         losses, priority = t.phases._sac_losses(data.clone())
         (sum(losses.values()) * torch.tensor([1.0, 2.0, 3.0])).sum().backward()
         return losses, priority, [p.grad.clone() for p in params]
@@ -296,10 +305,11 @@ def test_fused_sac_step_is_the_torchrl_loss_bit_for_bit(mode, extra):
 
 @pytest.mark.parametrize("recipe", [["algo=sac", "algo.td.updates_per_step=0.25", "episodes=2"],
                                     ["algo=bro", "algo.td.updates_per_step=0.1", "episodes=4", "algo.td.critic_width=32",
-                                     "algo.td.reset_every=3"]])
+                                     "algo.td.reset_every=3"],
+                                    ["algo=droq", "algo.td.updates_per_step=0.25", "episodes=2"]])
 def test_a_run_with_the_fused_sac_step_is_a_run_through_the_loss_module(tmp_path, monkeypatch, recipe):
     """Whole runs (prioritised replay, two members, 50-60 gradient steps; BRO's Q-networks with a
-    reset): byte-identical learning curves and weights with and without the fused step."""
+    reset; DroQ's): byte-identical learning curves and weights with and without the fused step."""
     from learners.td import learner
 
     cfg = load(*recipe, "er=prioritised", f"seeds=[{A},{B}]", "algo.td.warmup_episodes=1",
@@ -316,7 +326,7 @@ def test_a_run_with_the_fused_sac_step_is_a_run_through_the_loss_module(tmp_path
 
 def test_fused_sac_step_is_taken_only_where_it_computes_the_loss():
     for algo, extra, fused in [("sac", [], True), ("tqc", [], False), ("crossq", [], False), ("td3", [], False),
-                               ("droq", [], False), ("sac", ["compile=true"], False), ("bro", [], True)]:
+                               ("droq", [], True), ("sac", ["compile=true"], False), ("bro", [], True)]:
         assert training(algo, *extra)[1].phases.fused is fused, (algo, extra)
 
 
