@@ -72,10 +72,11 @@ def test_oracle_convergence_benchmark_prints_its_table():
 
 def test_recipe_cost_benchmark_prints_its_table():
     result = subprocess.run([sys.executable, "-m", "benchmarks.recipe_cost", "--sizes", "1", "--steps", "2",
-                             "--recipes", "sac", "sac-module", "droq"], capture_output=True, text=True, timeout=300, cwd=ROOT)
+                             "--recipes", "sac", "sac-module", "droq", "droq-module"], capture_output=True, text=True,
+                            timeout=300, cwd=ROOT)
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
-    assert len(rows) == 1 + 3
+    assert len(rows) == 1 + 4
     assert "| sac | algo=sac | 1 | 1 | 39200 |" in result.stdout
     assert "| sac-module | algo=sac | 1 | 1 | 39200 |" in result.stdout  # the same run, its step unfused  # before each episode after the 5 of warm-up
     assert "| droq | algo=droq | 1 | 20 | 784000 |" in result.stdout
