@@ -358,8 +358,7 @@ class _RegularisedMLP(StackedMLP):
         self.norms = nn.ModuleList(StackedLayerNorm(members, width) for width in hidden) if layer_norm else None
 
     def forward_rows(self, x: torch.Tensor) -> torch.Tensor:
-        norms = None if self.norms is None else [(norm.weight, norm.bias) for norm in self.norms]
-        return self.forward_rows_with(x, [(layer.weight, layer.bias) for layer in self.layers], norms)
+        return self.forward_rows_with(x, [(layer.weight, layer.bias) for layer in self.layers])
 
     def forward_with(self, x: torch.Tensor, parameters: Sequence[tuple[torch.Tensor, torch.Tensor]],
                      norms: Sequence[tuple[torch.Tensor, torch.Tensor]] | None = None, copies: int = 1) -> torch.Tensor:

@@ -163,7 +163,7 @@ def _stacked_values(loss, inputs: torch.Tensor, params: TensorDictBase) -> torch
         values = critic.forward_named(x, named)
     else:
         pairs = [(named[f"net.layers.{i}.weight"], named[f"net.layers.{i}.bias"]) for i in range(len(critic.net.layers))]
-        if getattr(critic.net, "norms", None) is not None or getattr(critic.net, "dropouts", None) is not None:
+        if hasattr(critic.net, "dropouts"):
             # DroQ's regularised MLP: its dropout masks drawn as TorchRL's loop over the Q-networks draws them
             norms = None if critic.net.norms is None else [
                 (named[f"net.norms.{i}.weight"], named[f"net.norms.{i}.bias"]) for i in range(len(critic.net.norms))]
