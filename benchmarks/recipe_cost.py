@@ -41,10 +41,11 @@ RECIPES = {  # name: (overrides of the recipe, shown as given)
     "sac-per": ["algo=sac", "er=prioritised"],
     "sac-module": ["algo=sac"],  # SAC's step through TorchRL's loss module (the fused step's baseline)
     "sac-nstep3": ["algo=sac", "algo.td.n_step=3"],
-    "droq": ["algo=droq"],
+    "droq": ["algo=droq"],  # algo=droq's defaults (tuned: 5 updates per step)
     "droq-module": ["algo=droq"],  # DroQ's step through TorchRL's loss module
     "droq-per-5": ["algo=droq", "er=prioritised", "algo.td.updates_per_step=5.0"],  # DroQ's tuning grid (docs/tuning.md)
     "droq-per-10": ["algo=droq", "er=prioritised", "algo.td.updates_per_step=10.0"],
+    "droq-per-20": ["algo=droq", "er=prioritised", "algo.td.updates_per_step=20.0"],  # DroQ's published ratio
     "bro": ["algo=bro", "er=prioritised"],
     "bro-256": ["algo=bro", "er=prioritised", "algo.td.critic_width=256"],
     "bro-module": ["algo=bro", "er=prioritised"],  # BRO's step through TorchRL's loss module

@@ -79,4 +79,4 @@ def test_recipe_cost_benchmark_prints_its_table():
     assert len(rows) == 1 + 4
     assert "| sac | algo=sac | 1 | 1 | 39200 |" in result.stdout
     assert "| sac-module | algo=sac | 1 | 1 | 39200 |" in result.stdout  # the same run, its step unfused  # before each episode after the 5 of warm-up
-    assert "| droq | algo=droq | 1 | 20 | 784000 |" in result.stdout
+    assert "| droq | algo=droq | 1 | 5 | 196000 |" in result.stdout
