@@ -8,13 +8,19 @@ simulator's state (cars, tracks, random streams), the episode counter, each memb
 curve and status (frozen members stay frozen), the run's settings and the code version.
 
 Written atomically (``engine.outputs.write_atomic``: a temporary file, fsync, rename), so a crash
-mid-write leaves the previous checkpoint in place and a full disk is reported as such. Loaded with
+mid-write leaves the previous checkpoint in place and a full disk is reported as such. The file
+is sealed: one line, ``racing-rl checkpoint sha256 <digest>``, then torch's zip, the digest that
+of the zip's bytes, so that a flipped bit anywhere (torch does not check its zip's CRCs) is
+refused before anything is loaded (checkpoints from before the seal: their zip's CRCs are
+checked instead). Each member's state records the size and SHA-256 of its ``metrics.csv`` at that
+moment, which a resume checks before it keeps those rows. Loaded with
 ``torch.load(weights_only=True)``: only tensors and plain containers, no code; a file holding
 anything else is refused as possibly hostile, never loaded another way.
 """
 
 from __future__ import annotations
 
+import hashlib
 import io
 import pickle
 import random
@@ -24,11 +30,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from engine.outputs import first_line, write_atomic
+from engine.outputs import first_line, read_own, write_atomic
 from engine.rundir import checkpoints as in_folder  # noqa: F401 (part of this module's interface)
 
 CHECKPOINT_FILE = "checkpoint.pt"  # a population's; each part of a split one has checkpoint-<first seed>.pt
 VERSION = 3  # 2: the simulator's whole state; 3: populations (every member, their generators)
+SEAL = b"racing-rl checkpoint sha256 "  # then 64 hexadecimal digits and a newline, then torch's zip
 
 
 class CheckpointError(RuntimeError):
@@ -60,25 +67,55 @@ def arrays_from_tensors(state: dict) -> dict:
 
 
 def save(path: Path, payload: dict) -> None:
-    """Atomically replace ``path`` with ``payload``."""
-    save_tensors(path, {"version": VERSION, **payload})
+    """Atomically replace ``path`` with ``payload``, sealed with its SHA-256."""
+    buffer = io.BytesIO()
+    torch.save({"version": VERSION, **payload}, buffer)
+    data = buffer.getvalue()
+    write_atomic(Path(path), SEAL + hashlib.sha256(data).hexdigest().encode() + b"\n" + data)
 
 
 def save_tensors(path: Path, obj) -> None:
-    """``torch.save`` ``obj`` to ``path`` atomically (weights, checkpoints)."""
+    """``torch.save`` ``obj`` to ``path`` atomically (weights: plain torch files, for any reader)."""
     buffer = io.BytesIO()
     torch.save(obj, buffer)
     write_atomic(Path(path), buffer.getvalue())
 
 
-def load_tensors(path: Path, what: str = "file"):
+def unsealed(path: Path, data: bytes) -> bytes:
+    """The torch zip inside a sealed checkpoint, its digest checked; an older checkpoint's zip, its
+    CRCs checked. ``ValueError`` saying what differs."""
+    if data.startswith(SEAL):
+        head, _, body = data.partition(b"\n")
+        if hashlib.sha256(body).hexdigest().encode() != head[len(SEAL):]:
+            raise ValueError(f"{path} differs from the file that was written (its content no longer matches the "
+                             "SHA-256 sealed in it): damaged")
+        return body
+    if not data.startswith(b"PK\x03\x04"):  # neither sealed nor an older checkpoint's bare zip
+        raise ValueError(f"{path} is not a readable checkpoint (it starts with neither a checkpoint's seal line nor a "
+                         "torch zip: damaged, or another file)")
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as archive:
+            bad = archive.testzip()
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError, RuntimeError, zipfile.LargeZipFile) as err:
+        raise ValueError(f"{path} is not a readable checkpoint ({first_line(err)})") from None
+    if bad is not None:
+        raise ValueError(f"{path} differs from the file that was written (the CRC of its part {bad} does not match): "
+                         "damaged")
+    return data
+
+
+def load_tensors(path: Path, what: str = "file", sealed: bool = False):
     """``torch.load(path, weights_only=True)``; ``ValueError`` with one clear sentence if the file is
-    empty, truncated, not torch's, or holds more than tensors and plain containers."""
+    empty, truncated, not torch's, or holds more than tensors and plain containers. ``sealed``: a
+    checkpoint, whose seal (``unsealed``) is checked first."""
     path = Path(path)
     try:
-        if path.stat().st_size == 0:
+        data = read_own(path)
+        if len(data) == 0:
             raise ValueError(f"{path} is empty (0 bytes)")
-        return torch.load(path, weights_only=True, map_location="cpu")
+        if sealed:
+            data = unsealed(path, data)
+        return torch.load(io.BytesIO(data), weights_only=True, map_location="cpu")
     except ValueError:
         raise
     except pickle.UnpicklingError as err:
@@ -105,7 +142,7 @@ def load(path: Path) -> dict:
     if not path.exists():
         raise CheckpointError(f"no checkpoint at {path}")
     try:
-        payload = load_tensors(path, "checkpoint")
+        payload = load_tensors(path, "checkpoint", sealed=True)
     except ValueError as err:
         raise CheckpointError(f"{err}; move it away (or pass overwrite=true) to start the run afresh") from None
     if not isinstance(payload, dict) or payload.get("version") != VERSION:

@@ -18,6 +18,7 @@ SUMMARY_FILE = "summary.json"
 EPISODE_COLUMNS = ("episode", "total_reward", "crashes", "final_checkpoint")
 
 
+RECORDABLE_FILES = (METRICS_FILE, "actor.pt", "critic.pt", "model.zip")  # what a summary's "files" may name
 FINAL_STATUSES = ("completed", "diverged", "incomplete")  # a run that ended ("incomplete": an SB3 baseline's, short)
 SUMMARY_KEYS = ("algo", "er", "seed", "status", "final_mean", "episodes", "settings")
 
@@ -59,64 +60,118 @@ def metric_columns(source) -> list[str]:
 
 
 class MetricsWriter:
-    """metrics.csv, one row per episode, flushed as written; plus an optional TorchRL logger."""
+    """metrics.csv, one row per episode, each appended whole or not at all; plus an optional TorchRL logger."""
 
-    def __init__(self, out_dir: Path, columns: list[str], logger_kind: str = "none", keep_rows: int = 0):
+    def __init__(self, out_dir: Path, columns: list[str], logger_kind: str = "none", keep_rows: int = 0,
+                 expect: dict | None = None):
         """``keep_rows``: continue after the first this-many rows of an existing metrics.csv
-        (a resumed run: rows after its checkpoint are dropped and written again)."""
+        (a resumed run: rows after its checkpoint are dropped and written again); ``expect``: the
+        size and SHA-256 of those rows and the header as the checkpoint recorded them (``record``),
+        checked before they are kept."""
         self.path = out_dir / METRICS_FILE
         self.columns = columns
-        kept = self._kept_rows(keep_rows)
+        kept = self._kept_rows(keep_rows, expect)
         text = io.StringIO(newline="")
         csv.DictWriter(text, fieldnames=columns).writeheader()
-        text.writelines(kept)
-        write_atomic(self.path, text.getvalue().encode())  # a crash now leaves the old file whole
-        self.file = open(self.path, "a", newline="")  # then rows are appended: a crash cuts the last one at most
-        self.writer = csv.DictWriter(self.file, fieldnames=columns, extrasaction="raise")
+        write_atomic(self.path, text.getvalue().encode() + kept)  # a crash now leaves the old file whole
+        # then rows are appended, each in one write; one that does not fit is cut off again
+        self.fd = open_new_or_own(self.path, os.O_WRONLY | os.O_APPEND)
+        self.size = os.fstat(self.fd).st_size
         self.logger = make_torchrl_logger(logger_kind, out_dir)
 
-    def _kept_rows(self, count: int) -> list[str]:
-        if count == 0:
-            return []
-        try:
-            with open(self.path, newline="") as f:  # keep the csv module's line endings
-                lines = f.read().splitlines(keepends=True)
-        except FileNotFoundError:
-            lines = []
-        except (OSError, UnicodeDecodeError) as err:
-            raise RunFolderError(f"{self.path} cannot be read ({first_line(err)}); the run cannot continue from "
-                                 "its checkpoint: pass overwrite=true to start it afresh") from None
-        if len(lines) < count + 1 or lines[0].rstrip("\r\n") != ",".join(self.columns):
-            found = "is missing" if not lines else f"holds {max(0, len(lines) - 1)} rows"
-            raise RunFolderError(f"{self.path} {found}, but the run's checkpoint counts {count} episode rows: "
-                                 "the run cannot continue exactly; pass overwrite=true to start it afresh")
-        return lines[1:count + 1]
+    def _kept_rows(self, count: int, expect: dict | None) -> bytes:
+        return kept_rows(self.path, count, expect, ",".join(self.columns))
+
+
+    def record(self) -> dict:
+        """Size and SHA-256 of the file as it is on the disk now (a checkpoint keeps it: ``expect``)."""
+        self.sync()
+        return bytes_record(read_own(self.path))
 
     def write(self, row: dict[str, Any]) -> None:
         line = {key: _format(row.get(key)) for key in self.columns}
-        try:
-            self.writer.writerow(line)
-            self.file.flush()
-        except OSError as err:
-            if err.errno in (errno.ENOSPC, errno.EDQUOT):
-                raise DiskFull(self.path, len(",".join(map(str, line.values()))) + 1) from None
-            raise
+        text = io.StringIO(newline="")
+        csv.DictWriter(text, fieldnames=self.columns, extrasaction="raise").writerow(line)
+        self.append(text.getvalue().encode())
         if self.logger is not None:
             step = int(row["episode"])
             for key, value in row.items():
                 if key != "episode" and value is not None:
                     self.logger.log_scalar(f"train/{key}", float(value), step=step)
 
+    def append(self, data: bytes) -> None:
+        """Append ``data`` in one write; if it does not all reach the file, the file is cut back to
+        where it was (a full disk raises ``DiskFull``)."""
+        try:
+            written = os.write(self.fd, data)
+            if written != len(data):
+                raise OSError(errno.ENOSPC, "no space left for the whole row")
+        except OSError as err:
+            try:
+                os.ftruncate(self.fd, self.size)
+            except OSError:
+                pass
+            if err.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise DiskFull(self.path, len(data)) from None
+            raise
+        self.size += len(data)
+
     def sync(self) -> None:
         """Flush the rows to the disk (before a checkpoint that counts them)."""
-        self.file.flush()
-        os.fsync(self.file.fileno())
+        os.fsync(self.fd)
 
     def close(self) -> None:
-        try:
-            self.file.close()
-        except OSError:  # a full disk: the rows that reached the file are what a resume keeps
-            pass
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+
+
+def kept_rows(path: Path, count: int, expect: dict | None, header: str | None = None) -> bytes:
+    """The first ``count`` rows of metrics.csv at ``path`` (bytes, the header left out), checked against
+    what a checkpoint recorded of them (``expect``: size and SHA-256 with the header; None for
+    checkpoints from before that record) and, if given, the header; ``RunFolderError`` otherwise."""
+    if count == 0:
+        return b""
+    try:
+        data = read_own(path)
+    except FileNotFoundError:
+        data = b""
+    except OSError as err:
+        raise RunFolderError(f"{path} cannot be read ({first_line(err)}); the run cannot continue from "
+                             "its checkpoint: pass overwrite=true to start it afresh") from None
+    lines = data.splitlines(keepends=True)
+    if len(lines) < count + 1 or (header is not None and lines[0].rstrip(b"\r\n") != header.encode()):
+        found = "is missing" if not lines else f"holds {max(0, len(lines) - 1)} rows"
+        raise RunFolderError(f"{path} {found}, but the run's checkpoint counts {count} episode rows: "
+                             "the run cannot continue exactly; pass overwrite=true to start it afresh")
+    if expect is not None and bytes_record(b"".join(lines[:count + 1])) != expect:
+        raise RunFolderError(f"{path}: its first {count} row{'s' if count != 1 else ''} differ from those its checkpoint recorded (their "
+                             "SHA-256): edited or damaged since; the run cannot continue exactly: pass overwrite=true "
+                             "to start it afresh")
+    return b"".join(lines[1:count + 1])
+
+
+def bytes_record(data: bytes) -> dict:
+    return {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+
+
+def open_new_or_own(path: Path, flags: int, mode: int = 0o644) -> int:
+    """``os.open`` that never follows a symbolic link at ``path`` (``RunFolderError``: a run writes
+    only its own files, never through a link to another)."""
+    try:
+        return os.open(path, flags | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0), mode)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            raise RunFolderError(f"{path} is a symbolic link; a run writes only its own files, never through a link: "
+                                 "remove the link") from None
+        raise
+
+
+def read_own(path: Path) -> bytes:
+    """The bytes of a run's own file (``RunFolderError`` if it is a symbolic link)."""
+    fd = open_new_or_own(path, os.O_RDONLY)
+    with os.fdopen(fd, "rb") as f:
+        return f.read()
 
 
 def _format(value: Any) -> Any:
@@ -163,14 +218,17 @@ def write_atomic(path: Path, data: bytes) -> None:
     free = free_bytes(path.parent)
     if free is not None and free < len(data):
         raise DiskFull(path, len(data))
+    if tmp.is_symlink():  # a link where the temporary goes: removed (the link only), never written through
+        tmp.unlink()
     try:
-        with open(tmp, "wb") as f:
+        with os.fdopen(open_new_or_own(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC), "wb") as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        os.replace(tmp, path)  # a link at ``path`` itself is replaced, not followed
     except OSError as err:
-        tmp.unlink(missing_ok=True)
+        if not tmp.is_symlink():
+            tmp.unlink(missing_ok=True)
         if err.errno in (errno.ENOSPC, errno.EDQUOT):
             raise DiskFull(path, len(data)) from None
         raise
@@ -187,6 +245,28 @@ def write_atomic(path: Path, data: bytes) -> None:
 def write_json_atomic(path: Path, data: dict) -> None:
     """Write ``data`` as JSON atomically (``write_atomic``)."""
     write_atomic(path, (json.dumps(data, indent=2, sort_keys=False) + "\n").encode())
+
+
+DIGEST_KEY = "sha256"  # a summary's digest of its own content (``seal``)
+
+
+def content_digest(summary: dict) -> str:
+    """SHA-256 of a summary's content as JSON reads it back (keys sorted, its own digest left out)."""
+    plain = json.loads(json.dumps({k: v for k, v in summary.items() if k != DIGEST_KEY}))
+    return hashlib.sha256(json.dumps(plain, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def seal(summary: dict) -> dict:
+    """``summary`` with the digest of its own content as its last key: a summary edited or damaged
+    after it was written no longer matches it (``read_summary`` checks)."""
+    return {**{k: v for k, v in summary.items() if k != DIGEST_KEY}, DIGEST_KEY: content_digest(summary)}
+
+
+def write_summary(folder: Path, summary: dict) -> dict:
+    """Write a run's sealed summary.json atomically; returns it as written."""
+    sealed = seal(summary)
+    write_json_atomic(Path(folder) / SUMMARY_FILE, sealed)
+    return sealed
 
 
 def file_record(folder: Path, names: tuple[str, ...]) -> dict:
@@ -222,4 +302,23 @@ def read_summary(out_dir: Path) -> dict | None:
         raise RunFolderError(f"{path} lacks {missing}: not a summary written by train.py")
     if not isinstance(summary["settings"], (dict, type(None))) or not isinstance(summary["status"], str):
         raise RunFolderError(f"{path} has a malformed status or settings: not a summary written by train.py")
+    if DIGEST_KEY in summary and summary[DIGEST_KEY] != content_digest(summary):
+        raise RunFolderError(f"{path} differs from the summary that was written (its content no longer matches the "
+                             "SHA-256 it records): edited or damaged")
+    problem = _files_problem(summary.get("files", {}))
+    if problem:
+        raise RunFolderError(f"{path} has a malformed \"files\" record ({problem}): not a summary written by train.py")
     return summary
+
+
+def _files_problem(record) -> str | None:
+    """What is malformed in a summary's "files" record (None: nothing): {name: {"bytes", "sha256"}}."""
+    if not isinstance(record, dict):
+        return f"a JSON {type(record).__name__}, not an object"
+    for name, entry in record.items():
+        if name not in RECORDABLE_FILES:
+            return f"it names {name!r}, not a file a run writes"
+        if (not isinstance(entry, dict) or not isinstance(entry.get("bytes"), int) or isinstance(entry["bytes"], bool)
+                or not isinstance(entry.get("sha256"), str) or len(entry["sha256"]) != 64):
+            return f"its entry for {name} is {json.dumps(entry)[:80]}, not a size and a SHA-256"
+    return None

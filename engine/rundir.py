@@ -30,8 +30,8 @@ import socket
 from dataclasses import dataclass
 from pathlib import Path
 
-from engine.outputs import (FINAL_STATUSES, METRICS_FILE, SUMMARY_FILE, RunFolderError, file_record, first_line,
-                            read_summary)
+from engine.outputs import (DIGEST_KEY, FINAL_STATUSES, METRICS_FILE, SUMMARY_FILE, RunFolderError, file_record,
+                            first_line, open_new_or_own, read_summary)
 
 WEIGHT_FILES = ("actor.pt", "critic.pt")
 RECORDED_FILES = (METRICS_FILE, *WEIGHT_FILES)  # what a summary's "files" record covers
@@ -71,6 +71,19 @@ def refusal(found: FolderState, settings: dict | None, solo: bool = True) -> str
     return None
 
 
+def _run_files(folder: Path) -> list[Path]:
+    """Every file a run writes in its folder, present or not (checkpoints: those present)."""
+    names = (SUMMARY_FILE, *RECORDED_FILES, "model.zip", LOCK_FILE)
+    return [folder / name for name in names] + sorted(folder.glob("checkpoint*.pt"))
+
+
+def linked_file(folder: Path) -> str | None:
+    """The problem of a symbolic link where a run keeps one of its files (None: there is none)."""
+    links = [path for path in _run_files(Path(folder)) if path.is_symlink()]
+    return (f"{links[0]} is a symbolic link where a run keeps its own file (a run never reads or writes through a "
+            "link): remove the link") if links else None
+
+
 def checkpoints(folder: Path) -> list[Path]:
     """The checkpoints in a folder: ``checkpoint.pt`` and those of a split population's parts."""
     return sorted(p for p in Path(folder).glob("checkpoint*.pt") if p.is_file())
@@ -79,6 +92,9 @@ def checkpoints(folder: Path) -> list[Path]:
 def state(folder: Path) -> FolderState:
     """The folder's state (see the module's docstring); reads only small files, never torch."""
     folder = Path(folder)
+    link = linked_file(folder)
+    if link:
+        return FolderState("damaged", folder, problem=link)
     try:
         summary = read_summary(folder)
     except RunFolderError as err:
@@ -87,7 +103,7 @@ def state(folder: Path) -> FolderState:
         if summary["status"] not in FINAL_STATUSES:
             return FolderState("damaged", folder, problem=f"{folder / SUMMARY_FILE} records status "
                                f"{summary['status']!r}, not a finished run")
-        problem = _mismatch(folder, summary)
+        problem = _unverifiable(summary) or _mismatch(folder, summary)
         if problem is not None:
             return FolderState("damaged", folder, summary, problem)
         return FolderState("finished", folder, summary)
@@ -98,6 +114,40 @@ def state(folder: Path) -> FolderState:
         return FolderState("damaged", folder, problem=f"it holds {' and '.join(weights)} but no {SUMMARY_FILE} "
                            "and no checkpoint (a finished run whose summary is lost?)")
     return FolderState("empty", folder)
+
+
+LEGACY_FILE = Path(__file__).with_name("legacy_summaries.txt")
+_legacy: dict[str, str] | None = None
+
+
+def legacy_era(commit) -> str | None:
+    """For a commit of the project from before summaries were sealed: "files" (its summaries record
+    neither their files nor their own digest) or "digest" (they record their files, not their own
+    digest); None for any other commit (``engine/legacy_summaries.txt``)."""
+    global _legacy
+    if _legacy is None:
+        _legacy = {}
+        for line in LEGACY_FILE.read_text().splitlines():
+            if line.strip() and not line.startswith("#"):
+                full, era = line.split()
+                _legacy[full] = era
+    return _legacy.get(commit) if isinstance(commit, str) else None
+
+
+def _unverifiable(summary: dict) -> str | None:
+    """Why a summary cannot be checked (None: it can): one without its "files" record or its own
+    digest counts as written by an earlier version only if its recorded commit is one of those
+    versions; otherwise it was edited or damaged."""
+    code = summary.get("code")
+    commit = code.get("commit") if isinstance(code, dict) else None
+    era = legacy_era(commit)
+    if "files" not in summary and era != "files":
+        return (f"{SUMMARY_FILE} records no \"files\" (the sizes and SHA-256 of its metrics and weights) and its "
+                f"commit ({str(commit)[:12]}) is not one from before summaries recorded them: edited or damaged")
+    if DIGEST_KEY not in summary and era is None:
+        return (f"{SUMMARY_FILE} records no SHA-256 of its own content and its commit ({str(commit)[:12]}) is not one "
+                "from before summaries recorded it: edited or damaged")
+    return None
 
 
 def _mismatch(folder: Path, summary: dict) -> str | None:
@@ -136,9 +186,11 @@ def clear(folder: Path) -> None:
 
 
 def remove_temporaries(folder: Path) -> None:
-    """Temporary files a killed writer left behind (``engine.outputs.write_atomic``'s ``*.tmp``)."""
-    for path in Path(folder).glob("*.tmp"):
-        if path.is_file():
+    """Temporary files a killed writer left behind (``engine.outputs.write_atomic``'s ``<name>.tmp``,
+    for the files a run writes only: a user's own ``*.tmp`` stays)."""
+    folder = Path(folder)
+    for path in [*folder.glob("checkpoint*.pt.tmp"), *(folder / f"{p.name}.tmp" for p in _run_files(folder))]:
+        if path.is_file() or path.is_symlink():
             path.unlink(missing_ok=True)
 
 
@@ -172,7 +224,7 @@ def _acquire(folder: Path) -> None:
     path = folder / LOCK_FILE
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = open_new_or_own(path, os.O_RDWR | os.O_CREAT)  # never through a link (RunFolderError)
     except OSError as err:  # a path that cannot be a run folder: checked before anything runs
         raise RunFolderError(f"cannot use {folder} as a run folder ({first_line(err)})") from None
     try:

@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 
 from engine import rundir
-from engine.outputs import EPISODE_COLUMNS, MetricsWriter, file_record, write_atomic, write_json_atomic
+from engine.outputs import EPISODE_COLUMNS, MetricsWriter, file_record, write_atomic, write_summary
 
 ALGOS = ("sac", "ppo")
 # The hyperparameters recorded in summary.json, as the SB3 model holds them after construction.
@@ -164,5 +164,4 @@ def _train(algo: str, seed: int, episodes: int, folder: Path, final_window: int,
         "numerics": numerics.in_effect(), "compile": {"requested": False, "enabled": False, "reason": None},
         "settings": settings, "files": file_record(folder, ("metrics.csv", "model.zip")),
     }
-    write_json_atomic(folder / "summary.json", summary)
-    return summary
+    return write_summary(folder, summary)

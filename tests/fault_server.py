@@ -71,8 +71,7 @@ def arm(fault: dict) -> None:
             if not now():
                 return real_write(self, row)
             if number == signal.SIGKILL:
-                self.file.write("".join(f"{row.get(k)}," for k in self.columns)[:25])
-                self.file.flush()
+                os.write(self.fd, "".join(f"{row.get(k)}," for k in self.columns)[:25].encode())
             os.kill(os.getpid(), number)
             return real_write(self, row)
 

@@ -14,6 +14,14 @@ CODE = {"commit": "a" * 40, "dirty": False, "origin": "git", "source": "01234567
 PORTABLE = {"mode": "portable", "kernels": "AVX2", "mkl_branch": "COMPATIBLE"}
 
 
+def write_summary(folder, data):
+    """A summary as train.py writes it: its files' record and its own digest."""
+    from engine.outputs import RECORDABLE_FILES, file_record, seal
+
+    data = {**{k: v for k, v in data.items() if k != "sha256"}, "files": file_record(folder, RECORDABLE_FILES)}
+    (folder / "summary.json").write_text(json.dumps(seal(data)))
+
+
 def fake_run(root, algo, er, seed, final=None, status="completed", summary=True, episodes=3, code=CODE,
              numerics=PORTABLE, compiled=None):
     folder = root / algo / er / f"seed{seed}"
@@ -21,14 +29,14 @@ def fake_run(root, algo, er, seed, final=None, status="completed", summary=True,
     rows = ["episode,total_reward"] + [f"{i},{(final or 0.0) + i - 1}" for i in range(episodes)]
     (folder / "metrics.csv").write_text("\n".join(rows) + "\n")
     if summary is True:
-        (folder / "summary.json").write_text(json.dumps(
-            {"algo": algo, "er": er, "seed": seed, "final_mean": final, "status": status, "episodes": episodes,
-             "code": code, **({"numerics": numerics} if numerics else {"software": {"cpu": "AVX2"}}),
-             **({"compile": {"requested": compiled, "enabled": compiled, "reason": None}} if compiled is not None
-                else {}), "settings": {}}))
         if status == "completed":  # a finished run's weights (engine.rundir checks they are there)
             for name in ("model.zip",) if algo.startswith("sb3_") else ("actor.pt", "critic.pt"):
                 (folder / name).write_bytes(b"weights")
+        write_summary(folder, {
+            "algo": algo, "er": er, "seed": seed, "final_mean": final, "status": status, "episodes": episodes,
+            "code": code, **({"numerics": numerics} if numerics else {"software": {"cpu": "AVX2"}}),
+            **({"compile": {"requested": compiled, "enabled": compiled, "reason": None}} if compiled is not None
+               else {}), "settings": {}})
     elif summary:
         (folder / "summary.json").write_text(summary)
     return folder
@@ -62,7 +70,8 @@ def test_report_lists_partial_damaged_and_diverged_runs(tmp_path, capsys):
     assert report.main([str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "1 diverged run(s)" in out and "1 partial run(s)" in out and "3 damaged run(s)" in out
-    assert "summary.json is not JSON" in out and "holds a JSON list" in out and "actor.pt is empty" in out
+    assert "summary.json is not JSON" in out and "holds a JSON list" in out
+    assert "actor.pt is not the file its summary records (0 bytes where 7 were written)" in out
     assert "no completed run with a loadable policy" in out or "matplotlib" in out
     table = (tmp_path / "report" / "table.md").read_text()
     assert "95.0 ± 5.0 (n=2)" in table and "paper 94.4 ± 3.8" in table
@@ -264,7 +273,7 @@ def test_beyond_the_paper_and_generalisation_tables_by_hand(tmp_path, capsys):
             data["cpu_time_s"] = cpu
         if evaluation:
             data["evaluation"] = evaluation
-        (folder / "summary.json").write_text(json.dumps(data))
+        write_summary(folder, data)
 
     for i, seed in enumerate(PAPER_SEEDS):
         best = fake_run(tmp_path / "fixed", "spg_p_multi", "memory", seed, 120.0 + i)
@@ -279,7 +288,7 @@ def test_beyond_the_paper_and_generalisation_tables_by_hand(tmp_path, capsys):
     fake_run(tmp_path / "fixed", "td3", "memory", PAPER_SEEDS[0], 3.0)  # one collapsed run (final < 20)
     older = json.loads((extra / "summary.json").read_text())  # resumed, by code that kept one session's wall time
     older.update({"resumed_at": 30, "time/rollout_s": 20.0, "time/train_s": 280.0})
-    (extra / "summary.json").write_text(json.dumps(older))
+    write_summary(extra, older)
     assert report.main([str(tmp_path), "--no-figures"]) == 0
     beyond = (tmp_path / "report" / "beyond.md").read_text()
     assert "| SAC, memory | 5 | 132.0 ± 0.7 | 132.0 [" in beyond

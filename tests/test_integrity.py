@@ -1,0 +1,219 @@
+"""Every byte a run resumes from or is reported from is verified (issue 50; docs/guarantees.md):
+sealed summaries, verified checkpoints and rows, nothing outside the folder touched, sizes bounded
+before work. Each test names the hostile case it holds against."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from engine import rundir
+from engine.outputs import DIGEST_KEY, RunFolderError, read_summary, seal
+from tests.test_run_folders import TINY, train
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory) -> Path:
+    """A finished tiny run, copied by the tests that damage it."""
+    folder = tmp_path_factory.mktemp("finished") / "run"
+    train([*TINY], folder)
+    return folder
+
+
+def _copy(folder: Path, to: Path) -> Path:
+    import shutil
+
+    shutil.copytree(folder, to)
+    return to
+
+
+def _edit_summary(folder: Path, change, reseal: bool = False) -> None:
+    path = folder / "summary.json"
+    summary = json.loads(path.read_text())
+    change(summary)
+    path.write_text(json.dumps(seal(summary) if reseal else summary, indent=2))
+
+
+def test_a_summary_is_sealed_and_an_edited_one_is_damaged(finished, tmp_path):
+    summary = json.loads((finished / "summary.json").read_text())
+    assert list(summary)[-1] == DIGEST_KEY and rundir.state(finished).kind == "finished"
+    folder = _copy(finished, tmp_path / "edited")
+    _edit_summary(folder, lambda s: s.update(final_mean=s["final_mean"] + 1.0))
+    found = rundir.state(folder)
+    assert found.kind == "damaged" and "no longer matches the SHA-256 it records" in found.problem
+
+
+@pytest.mark.parametrize("files", [{"metrics.csv": "x"}, "x", {"metrics.csv": {"bytes": "1", "sha256": "0" * 64}},
+                                   {"../elsewhere": {"bytes": 1, "sha256": "0" * 64}}])
+def test_a_malformed_files_record_is_damage_everywhere_not_a_traceback(finished, tmp_path, files, capsys):
+    """A summary whose "files" entry is malformed gave AttributeError in train, evaluate, score and report."""
+    import evaluate
+    import report
+    from engine.config import ConfigError
+    from engine.evaluation import load_policy
+
+    folder = _copy(finished, tmp_path / "sweep" / "run")
+    _edit_summary(folder, lambda s: s.update(files=files), reseal=True)
+    with pytest.raises(RunFolderError, match='malformed "files" record'):
+        read_summary(folder)
+    assert rundir.state(folder).kind == "damaged"
+    with pytest.raises(ConfigError, match='is damaged: .*malformed "files" record'):
+        train([*TINY], folder)
+    with pytest.raises(RunFolderError, match="is damaged"):
+        load_policy(folder)
+    assert evaluate.main([str(folder), "--episodes", "1"]) == 2
+    assert report.main([str(tmp_path / "sweep"), "--no-figures"]) == 0
+    assert "1 damaged run(s)" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("key, legacy", [("files", "9683e1933be8ab1224c9af2cce4fe5dbb339a2cb"),
+                                         (DIGEST_KEY, "540683bb8b41bdf8a9f41accfa8275d7f1083bac")])
+def test_a_summary_without_its_records_is_damaged_unless_its_commit_predates_them(finished, tmp_path, key, legacy):
+    """A summary without "files" was taken for an old-style one: an edited run reported as completed."""
+    folder = _copy(finished, tmp_path / "run")
+    def strip(summary):  # as an earlier version wrote it, but from a commit of today's
+        summary["code"]["commit"] = "f" * 40
+        for k in {key, DIGEST_KEY}:
+            summary.pop(k)
+
+    _edit_summary(folder, strip)
+    found = rundir.state(folder)
+    assert found.kind == "damaged" and "is not one from before summaries recorded" in found.problem
+    _edit_summary(folder, lambda s: s["code"].update(commit=legacy))  # a commit of the era without that record
+    assert rundir.state(folder).kind == "finished"
+
+
+def test_the_committed_archives_summaries_are_all_verifiable():
+    """Every summary of the committed results (docs/results) still reads: the legacy commits cover them."""
+    import tarfile
+
+    from engine.rundir import _unverifiable
+
+    archives = sorted(Path(__file__).resolve().parent.parent.glob("docs/results/**/*.tar.xz"))
+    assert archives
+    seen = 0
+    for archive in archives:
+        with tarfile.open(archive) as tar:
+            for member in tar:
+                if member.name.endswith("summary.json"):
+                    summary = json.load(tar.extractfile(member))
+                    assert _unverifiable(summary) is None, (archive, member.name)
+                    seen += 1
+    assert seen > 700
+
+
+def _checkpointed(folder: Path, episodes_done: int = 2) -> None:
+    """A run stopped right after its ``episodes_done``-th episode, with a checkpoint of it."""
+    from tests.test_resilience import interrupted_after
+
+    with interrupted_after(episodes_done - 1):
+        train([*TINY, "episodes=4", "checkpoint_every=1"], folder)
+    assert (folder / "checkpoint.pt").exists()
+
+
+def test_a_flipped_bit_anywhere_in_a_checkpoint_is_refused_before_it_is_used(tmp_path):
+    """A bit flipped inside a tensor of checkpoint.pt resumed silently into other numbers."""
+    import random
+
+    from engine.config import ConfigError
+    from engine.checkpoint import CheckpointError
+
+    reference = tmp_path / "reference"
+    train([*TINY, "episodes=4", "checkpoint_every=1"], reference)
+    folder = tmp_path / "run"
+    _checkpointed(folder)
+    good = (folder / "checkpoint.pt").read_bytes()
+    rng = random.Random(50)
+    for offset in [0, 30, 70, *(rng.randrange(len(good)) for _ in range(6)), len(good) - 1]:
+        flipped = bytearray(good)
+        flipped[offset] ^= 1 << rng.randrange(8)
+        (folder / "checkpoint.pt").write_bytes(bytes(flipped))
+        with pytest.raises((CheckpointError, ConfigError), match="checkpoint.pt") as refused:
+            train([*TINY, "episodes=4", "checkpoint_every=1"], folder)
+        assert "damaged" in str(refused.value) or "not a readable" in str(refused.value), (offset, refused.value)
+        assert (folder / "checkpoint.pt").read_bytes() == bytes(flipped)  # left as it was
+    (folder / "checkpoint.pt").write_bytes(good)
+    train([*TINY, "episodes=4", "checkpoint_every=1"], folder)  # the intact checkpoint resumes exactly
+    assert (folder / "metrics.csv").read_bytes() == (reference / "metrics.csv").read_bytes()
+
+
+def test_an_edited_row_before_the_checkpoint_is_refused_and_hydra_is_left_alone(tmp_path):
+    """A row of metrics.csv edited in a resumable folder survived the resume and was sealed into the summary."""
+    from engine.outputs import RunFolderError
+
+    folder = tmp_path / "run"
+    _checkpointed(folder)
+    path = folder / "metrics.csv"
+    rows = path.read_text().splitlines(keepends=True)
+    rows[1] = rows[1].replace(rows[1].split(",")[1], str(float(rows[1].split(",")[1]) + 1.0), 1)
+    path.write_text("".join(rows))
+    with pytest.raises(RunFolderError, match="its first 1 row differ from those its checkpoint recorded"):
+        train([*TINY, "episodes=4", "checkpoint_every=1"], folder)
+    assert path.read_text() == "".join(rows)
+
+
+def test_a_checkpoint_beside_a_garbage_summary_is_not_resumed_over(tmp_path):
+    from engine.config import ConfigError
+
+    folder = tmp_path / "run"
+    _checkpointed(folder)
+    (folder / "summary.json").write_text("garbage")
+    with pytest.raises(ConfigError, match="is damaged: .*summary.json is not JSON"):
+        train([*TINY, "episodes=4", "checkpoint_every=1"], folder)
+    assert (folder / "summary.json").read_text() == "garbage"
+
+
+@pytest.mark.parametrize("name", [".lock", "metrics.csv", "summary.json", "actor.pt", "checkpoint.pt"])
+def test_a_link_where_a_run_file_goes_is_refused_and_never_written_through(tmp_path, name):
+    """A .lock that was a symbolic link: the file it pointed to was truncated and overwritten."""
+    from engine.config import ConfigError
+
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious\n")
+    folder = tmp_path / "run"
+    folder.mkdir()
+    (folder / name).symlink_to(victim)
+    with pytest.raises((ConfigError, RunFolderError), match="symbolic link"):
+        train([*TINY], folder)
+    assert victim.read_text() == "precious\n"
+    assert rundir.state(folder).kind == "damaged"
+
+
+def test_a_users_own_temporary_file_is_left_alone(tmp_path):
+    folder = tmp_path / "run"
+    folder.mkdir()
+    (folder / "notes.tmp").write_text("mine")
+    (folder / "metrics.csv.tmp").write_text("a killed writer's")
+    train([*TINY], folder)
+    assert (folder / "notes.tmp").read_text() == "mine" and not (folder / "metrics.csv.tmp").exists()
+
+
+def test_a_row_that_does_not_fit_on_the_disk_is_cut_off_whole(tmp_path, monkeypatch):
+    """The disk full while a row was appended cut the row at a 4,096-byte boundary."""
+    import os
+
+    from engine.outputs import DiskFull, MetricsWriter
+
+    columns = ["episode", "total_reward", *(f"c{i}" for i in range(400))]
+    writer = MetricsWriter(tmp_path, columns)
+    row = {"episode": 0, "total_reward": 1.5, **{f"c{i}": 0.123456789 for i in range(400)}}
+    writer.write(row)
+    before = (tmp_path / "metrics.csv").read_bytes()
+    real_write = os.write
+
+    def full(fd, data):  # the first 4,096 bytes fit, then the disk is full
+        if fd == writer.fd and len(data) > 4096:
+            real_write(fd, data[:4096])
+            return 4096
+        return real_write(fd, data)
+
+    monkeypatch.setattr(os, "write", full)
+    with pytest.raises(DiskFull, match="no space left"):
+        writer.write({**row, "episode": 1})
+    assert (tmp_path / "metrics.csv").read_bytes() == before
+    monkeypatch.setattr(os, "write", real_write)
+    writer.write({**row, "episode": 1})
+    writer.close()
+    assert (tmp_path / "metrics.csv").read_text().count("\n") == 3
