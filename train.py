@@ -16,13 +16,36 @@ when stopped by SIGINT or SIGTERM (one line: where it was saved; the same comman
 from __future__ import annotations
 
 import os
+import signal
 import sys
 from pathlib import Path
+
+
+def _stopped_early(number, frame) -> None:
+    """SIGINT or SIGTERM before a run trains (while it loads, checks and prepares): one line, not a
+    traceback; nothing of the run was written yet (``engine.processes.StopSignals`` takes over
+    while it trains)."""
+    name = signal.Signals(number).name
+    if _trained:
+        print(f"Stopped by {name} after training ended (its results are written)", file=sys.stderr)
+    else:
+        print(f"Stopped by {name} before training started; nothing was written: the same command starts the run",
+              file=sys.stderr)
+    raise SystemExit(130 if number == signal.SIGINT else 143)
+
+
+_trained = False  # set once train_population has returned
+_stopped_early.racing_replaceable = True  # engine.processes.replaceable, without importing it first
+if __name__ == "__main__":  # first of all: the imports below take seconds
+    for _number, _default in ((signal.SIGINT, signal.default_int_handler), (signal.SIGTERM, signal.SIG_DFL)):
+        if signal.getsignal(_number) is _default:  # an ignored signal stays ignored
+            signal.signal(_number, _stopped_early)
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from engine import numerics
 from engine.config import ConfigError, RunConfig, config_mapping, register_resolvers
@@ -37,9 +60,11 @@ class RunRefused(Exception):
     sweep goes on (``hydra_plugins/racing_launcher/sweeper.py`` lists every such job at the end)."""
 
 
-def _end(message: str, status: int, prefix: str = "Refusing to run: ") -> None:
-    """Print the one line and end: the process's exit status, or a failed job in a sweep."""
-    print(f"{prefix}{message}", file=sys.stderr)
+def _end(message: str, status: int, prefix: str = "Refusing to run: ", quiet: bool = False) -> None:
+    """Print the one line (unless ``quiet``: the sweep's own line counts it) and end: the process's
+    exit status, or a failed job in a sweep."""
+    if not quiet:
+        print(f"{prefix}{message}", file=sys.stderr)
     if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
         raise RunRefused(f"{prefix}{message}")
     raise SystemExit(status)
@@ -60,10 +85,10 @@ def save_hydra_record(cfg: DictConfig, out_dir: Path) -> None:
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> float | list | None:
-    settings = config_mapping(cfg)
     try:
+        settings = config_mapping(cfg)
         run_cfg = RunConfig.from_mapping(settings)
-    except ConfigError as err:
+    except (ConfigError, OmegaConfBaseException) as err:  # e.g. seed=${oops}: an interpolation to nothing
         _end(str(err), 2, prefix="Invalid configuration: ")
     try:
         numerics.apply(run_cfg.numerics)  # before torch loads: it reads the kernel settings then
@@ -75,19 +100,34 @@ def main(cfg: DictConfig) -> float | list | None:
     from engine.version import describe
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
+    stop_file = None
+    if HydraConfig.get().mode == RunMode.MULTIRUN:  # a sweep asked to stop starts no job, and stops its runs
+        from engine.processes import STOP_FILE, read_stop_file
+
+        stop_file = Path(HydraConfig.get().sweep.dir) / STOP_FILE
+        asked = read_stop_file(stop_file)
+        if asked is not None:
+            _end(f"the sweep was stopped by {asked} before this job started; the same command starts it", 2,
+                 prefix="Not started: ", quiet=True)
     skipped: list[tuple[Path, dict]] = []
     try:
         summaries = train_population(run_cfg, out_dir, settings, skipped=skipped,
-                                     on_start=lambda: save_hydra_record(cfg, out_dir))
+                                     on_start=lambda: save_hydra_record(cfg, out_dir), stop_file=stop_file)
     except DiskFull as err:
         _end(str(err), 1, prefix="Stopped: ")
     except (ConfigError, CheckpointError, RunFolderError, numerics.NumericsError) as err:
         _end(str(err), 2)
     except RunStopped as stopped:
+        if stop_file is not None:  # a job stopped by a signal stops its sweep: no further job starts
+            from engine.processes import write_stop_file
+
+            write_stop_file(stop_file, "SIGINT" if "SIGINT" in str(stopped) else "SIGTERM")
         _end(str(stopped), 130 if "SIGINT" in str(stopped) else 143, prefix="")
     except OSError as err:  # a file the run could not write, named by the system's error
         _end(f"{err.strerror or err} ({err.filename or out_dir}); the folder keeps its last good files", 1,
              prefix="Stopped: ")
+    global _trained
+    _trained = True
     for folder, summary in skipped:
         print(f"{folder}: already {summary['status']} (final_mean {summary['final_mean']}, "
               f"{describe(summary.get('code'))}); skipped", file=sys.stderr)
@@ -109,5 +149,35 @@ def _finished_line(cfg: RunConfig, out_dir: Path, summary: dict) -> str:
             f"{summary['episodes']} episodes, {score}{tail}; results in {folder}")
 
 
+class _HydraFormattingNotice:
+    """stderr without Hydra's notice that it could not shorten an error's traceback (printed
+    before the error is re-raised, which ``_run`` then reports in one line)."""
+
+    def __init__(self, stream):
+        self.stream = stream
+
+    def write(self, text: str) -> int:
+        if text.startswith("An error occurred during Hydra's exception formatting"):
+            return len(text)
+        return self.stream.write(text)
+
+    def __getattr__(self, name):
+        return getattr(self.stream, name)
+
+
+def _run() -> None:
+    """``main()``; a configuration Hydra cannot even resolve (``seed=${oops}``, which its run folder's
+    name interpolates) ends in one line and exit status 2, as other invalid configurations do."""
+    stderr, sys.stderr = sys.stderr, _HydraFormattingNotice(sys.stderr)
+    try:
+        main()
+    except OmegaConfBaseException as err:
+        lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+        print(f"Invalid configuration: {lines[0] if lines else type(err).__name__}", file=stderr)
+        raise SystemExit(2) from None
+    finally:
+        sys.stderr = stderr
+
+
 if __name__ == "__main__":
-    main()
+    _run()

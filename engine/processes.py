@@ -15,6 +15,7 @@ import os
 import signal
 import threading
 import time
+from pathlib import Path
 
 
 _watching: set[int] = set()  # the parents this process already watches
@@ -86,30 +87,123 @@ class RunStopped(KeyboardInterrupt):
     """A run stopped by SIGINT or SIGTERM; the message is the one line to show (where it was saved)."""
 
 
+STOP_FILE = ".stop"  # in a sweep's folder: the sweep was asked to stop (its content: the signal's name)
+
+
+def replaceable(handler):
+    """``handler`` as a signal handler that ``StopSignals`` may stand in for while a run trains (the
+    early handler of train.py, a sweep's)."""
+    def handle(number, frame):
+        return handler(number, frame)
+
+    handle.racing_replaceable = True
+    return handle
+
+
+def _is_ours_to_replace(handler) -> bool:
+    return handler in (signal.default_int_handler, signal.SIG_DFL) or getattr(handler, "racing_replaceable", False)
+
+
 class StopSignals:
     """For the block: the first SIGINT or SIGTERM asks the run to stop at the end of its episode
     (``requested`` names the signal); a second one stops it at once (``KeyboardInterrupt``).
 
-    Installed only in the main thread and only over Python's default handlers: a launcher that
-    handles the signals itself (submitit's requeue on SLURM) keeps its own."""
+    A stop asked for elsewhere counts as the first signal: ``shared`` (a ``multiprocessing`` value
+    holding a signal's number, set by the process that started this one: a split population's
+    parent) and ``stop_file`` (a sweep's ``.stop``, written when the sweep was asked to stop).
 
-    def __init__(self):
-        self.requested: str | None = None
+    Installed only in the main thread and only over Python's default handlers (or those marked
+    ``replaceable``): a launcher that handles the signals itself (submitit's requeue on SLURM)
+    keeps its own."""
+
+    def __init__(self, shared=None, stop_file: Path | None = None):
+        self.received: str | None = None  # the first signal this process received
+        self.passed_on: str | None = None  # a stop asked for elsewhere
+        self.shared, self.stop_file = shared, stop_file
         self._previous: dict = {}
 
+    @property
+    def requested(self) -> str | None:
+        """The name of the signal that asked the run to stop (None: none did)."""
+        if self.received is None and self.passed_on is None:
+            if self.shared is not None and self.shared.value:
+                self.passed_on = signal.Signals(self.shared.value).name
+            elif self.stop_file is not None:
+                self.passed_on = read_stop_file(self.stop_file)
+        return self.received or self.passed_on
+
     def _handle(self, number, frame) -> None:
-        if self.requested is not None:
+        if self.received is not None:  # the second signal this process received (a stop passed on counts not)
             raise KeyboardInterrupt
-        self.requested = signal.Signals(number).name
+        self.received = signal.Signals(number).name
 
     def __enter__(self) -> "StopSignals":
         if threading.current_thread() is threading.main_thread():
-            defaults = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: signal.SIG_DFL}
-            for number, default in defaults.items():
-                if signal.getsignal(number) is default:
+            for number in (signal.SIGINT, signal.SIGTERM):
+                if _is_ours_to_replace(signal.getsignal(number)):
                     self._previous[number] = signal.signal(number, self._handle)
         return self
 
     def __exit__(self, *exc) -> None:
         for number, handler in self._previous.items():
             signal.signal(number, handler)
+
+
+def read_stop_file(path: Path) -> str | None:
+    """The signal named by a sweep's stop file (None: there is none)."""
+    try:
+        text = Path(path).read_text().strip()
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+    except OSError:
+        return "SIGTERM"
+    return text if text in ("SIGINT", "SIGTERM") else "SIGTERM"
+
+
+def write_stop_file(path: Path, name: str) -> None:
+    """Ask every job of a sweep to stop (``StopSignals``'s ``stop_file``), never through a link."""
+    path = Path(path)
+    try:
+        if path.is_symlink():
+            path.unlink()
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0), 0o644)
+        with os.fdopen(fd, "w") as f:
+            f.write(name + "\n")
+    except OSError:
+        pass
+
+
+def stop_at_once(pids: list[int]) -> None:
+    """Stop these runs at once: two SIGINTs each (a run's second signal; apart, so neither is lost
+    in the other), whatever they received before."""
+    for _ in range(2):
+        for pid in pids:
+            try:
+                os.kill(pid, signal.SIGINT)
+            except ProcessLookupError:
+                pass
+        time.sleep(0.2)
+
+
+def descendants(pid: int | None = None) -> list[int]:
+    """The processes started by ``pid`` (default: this one) and theirs, from /proc (Linux; [] elsewhere)."""
+    pid = os.getpid() if pid is None else pid
+    children: dict[int, list[int]] = {}
+    try:
+        entries = os.listdir("/proc")
+    except OSError:
+        return []
+    for entry in entries:
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    fields = f.read().rsplit(")", 1)[1].split()
+                children.setdefault(int(fields[1]), []).append(int(entry))
+            except (OSError, IndexError, ValueError):
+                continue
+    found, queue = [], [pid]
+    while queue:
+        for child in children.get(queue.pop(), []):
+            found.append(child)
+            queue.append(child)
+    return found

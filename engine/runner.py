@@ -25,9 +25,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import signal
 import time
 import warnings
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,9 +38,10 @@ from tensordict import TensorDictBase
 from collectors import add_monte_carlo_returns, n_step_transitions
 from engine import checkpoint, numerics, setup
 from engine import rundir
-from engine.processes import RunStopped, StopSignals, exit_with_parent, keep_freed_memory, spawn_context
+from engine.processes import (RunStopped, StopSignals, descendants, exit_with_parent, keep_freed_memory,
+                              spawn_context, stop_at_once)
 from engine.config import ConfigError, RunConfig
-from engine.outputs import SUMMARY_FILE, MetricsWriter, file_record, metric_columns, write_json_atomic
+from engine.outputs import METRICS_FILE, MetricsWriter, file_record, kept_rows, metric_columns, write_summary
 from engine.progress import Progress
 from engine.version import code_version, software_versions
 from learners import compiling
@@ -87,9 +89,11 @@ class Member:
     status: str = "running"  # then "completed" or "diverged"
     failure: dict | None = None
     metrics: MetricsWriter | None = None
+    rows: dict | None = None  # size and SHA-256 of metrics.csv as the last checkpoint counted it
 
     def state(self) -> dict:
-        return {"seed": self.seed, "rewards": list(self.rewards), "status": self.status, "failure": self.failure}
+        return {"seed": self.seed, "rewards": list(self.rewards), "status": self.status, "failure": self.failure,
+                "metrics": self.metrics.record() if self.metrics is not None else None}
 
 
 def train(cfg: RunConfig, out_dir: Path, settings: dict | None = None) -> dict:
@@ -100,7 +104,7 @@ def train(cfg: RunConfig, out_dir: Path, settings: dict | None = None) -> dict:
 
 
 def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None,
-                     skipped: list | None = None, on_start=None) -> list[dict]:
+                     skipped: list | None = None, on_start=None, stop_file: Path | None = None) -> list[dict]:
     """Train one run per seed of ``cfg.members`` together; returns their summaries (in that order).
 
     ``settings`` (the config as a plain mapping) is stored in each summary.json (as the
@@ -112,14 +116,16 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
     The run holds its folders' locks (``engine.rundir.lock``) throughout; every refusal (another
     process on the folder, a damaged folder, a finished run or checkpoint of other settings) comes
     before anything is written, and ``on_start()`` (if given) is called once the run is sure to
-    train. SIGINT or SIGTERM stops it at the end of the episode with a checkpoint (``RunStopped``).
+    train. SIGINT or SIGTERM stops it at the end of the episode with a checkpoint (``RunStopped``),
+    as does ``stop_file`` appearing (a sweep's, ``engine.processes.STOP_FILE``); a population split
+    over processes passes the stop on to every part, and ends when they all have.
     """
     numerics.apply(cfg.numerics)  # torch has loaded: a check that it runs the mode asked for
     keep_freed_memory()  # reuse freed tensors' memory (speed only)
     cfg, compiled = _compile_mode(cfg)
     out_dir = Path(out_dir)
     folders = [out_dir, *(member_folder(cfg, out_dir, s) for s in cfg.members)]
-    with rundir.lock(folders), StopSignals() as stop:  # refused at once if another process has a folder
+    with rundir.lock(folders), StopSignals(stop_file=stop_file) as stop:  # refused at once if a folder is in use
         return _train_locked(cfg, out_dir, folders, settings, skipped, on_start, compiled, stop)
 
 
@@ -130,6 +136,10 @@ def _train_locked(cfg: RunConfig, out_dir: Path, folders: list[Path], settings: 
     settings = run_settings(settings) if settings is not None else None
     member_settings = {s: cfg.member_settings(settings, s) if settings is not None else None for s in cfg.members}
 
+    for folder in folders:  # links where run files go: refused, even with overwrite (never followed)
+        problem = rundir.linked_file(folder)
+        if problem:
+            raise rundir.RunFolderError(f"{folder} cannot be used: {problem}")
     if cfg.overwrite:  # start afresh: no checkpoint is continued
         for path in checkpoint.in_folder(out_dir):
             path.unlink()
@@ -137,6 +147,14 @@ def _train_locked(cfg: RunConfig, out_dir: Path, folders: list[Path], settings: 
         rundir.remove_temporaries(folder)  # a killed writer's; never a finished file
     parts = _resumed_parts(out_dir, settings)  # each continues as the population it was
     resumed = {seed for _, seeds, _ in parts for seed in seeds}
+    for seed in sorted(resumed):  # a checkpoint beside a damaged summary (or a link) is not resumed over
+        found = rundir.state(member_folder(cfg, out_dir, seed))
+        if found.kind == "damaged":
+            raise ConfigError(found.refusal())
+    for _, _, payload in parts:  # the rows each checkpoint counts are those it recorded (before anything is written)
+        for state in payload["member_states"]:
+            kept_rows(member_folder(cfg, out_dir, state["seed"]) / METRICS_FILE, len(state["rewards"]),
+                      state.get("metrics"))
     done: dict[int, dict] = {}
     for seed in cfg.members:
         if seed in resumed:
@@ -160,14 +178,80 @@ def _train_locked(cfg: RunConfig, out_dir: Path, folders: list[Path], settings: 
         path, seeds, payload = parts[0]
         summaries = _train(cfg, out_dir, seeds, member_settings, settings, payload, path, start, compiled, stop)
     else:  # one process per part, ``cfg.processes`` at a time
-        # spawn: torch does not survive fork with threads running
-        with ProcessPoolExecutor(min(cfg.processes, len(parts)), mp_context=spawn_context()) as pool:
-            futures = [pool.submit(_train_part, cfg, out_dir, seeds, member_settings, settings, path, compiled)
-                       for path, seeds, _ in parts]
-            summaries = [summary for future in futures for summary in future.result()]
+        summaries = _train_parts(cfg, out_dir, parts, member_settings, settings, compiled, stop)
     for summary in summaries:
         done[summary["seed"]] = summary
     return [done[s] for s in cfg.members]
+
+
+def _train_parts(cfg: RunConfig, out_dir: Path, parts: list, member_settings: dict, settings: dict | None,
+                 compiled: dict, stop: StopSignals) -> list[dict]:
+    """Each part in a process of its own, ``cfg.processes`` at a time (spawned: torch does not survive
+    fork with threads running). A stop asked of this process, or of any part (a signal sent to it
+    alone), is passed on to every part; each saves its checkpoint at its episode's end, parts not yet
+    started do not start, and ``RunStopped`` then says where each was saved."""
+    context = spawn_context()
+    shared = context.Value("i", 0, lock=False)  # the number of the signal that stopped the population (0: none)
+    stopped: list[str] = []
+    results: dict[int, list[dict]] = {}
+    with ProcessPoolExecutor(min(cfg.processes, len(parts)), mp_context=context, initializer=_part_initializer,
+                             initargs=(shared,)) as pool:
+        futures = {pool.submit(_train_part, cfg, out_dir, seeds, member_settings, settings, path, compiled): i
+                   for i, (path, seeds, _) in enumerate(parts)}
+        pending = set(futures)
+        try:
+            while pending:
+                done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
+                for future in done:
+                    error = future.exception()
+                    if isinstance(error, RunStopped):
+                        stopped.append(str(error))
+                        if not shared.value:  # a part stopped by a signal of its own: the others follow
+                            shared.value = _signal_number(str(error))
+                    elif error is not None:
+                        shared.value = shared.value or signal.SIGTERM  # the others stop, the error is raised
+                        wait(pending)
+                        raise error
+                    else:
+                        results[futures[future]] = future.result()
+                if stop.requested is not None and not shared.value:
+                    shared.value = signal.Signals[stop.requested].value
+        except KeyboardInterrupt:  # a second signal to this process: every part stops at once
+            stop_at_once(descendants())
+            wait(pending)
+            for future in pending:
+                if isinstance(future.exception(), RunStopped):
+                    stopped.append(str(future.exception()))
+        if stopped or shared.value:
+            name = signal.Signals(shared.value).name if shared.value else stop.requested or "SIGINT"
+            raise RunStopped(_parts_stopped(name, stopped))
+    return [summary for i in sorted(results) for summary in results[i]]
+
+
+def _signal_number(message: str) -> int:
+    return signal.SIGINT if "SIGINT" in message else signal.SIGTERM
+
+
+def _parts_stopped(name: str, lines: list[str]) -> str:
+    """One line for a split population's stop: where each part saved."""
+    import re
+
+    saved = [re.search(r"saved at episode (\d+) \((.*)\)", line) for line in lines]
+    where = [f"{Path(m.group(2)).name} at episode {m.group(1)}" for m in saved if m]
+    if not where:
+        return f"Stopped by {name} before any part saved a checkpoint: the same command starts the run afresh"
+    folder = Path(next(m for m in saved if m).group(2)).parent
+    unsaved = len(lines) - len(where)
+    return (f"Stopped by {name}; saved {', '.join(where)} in {folder}"
+            f"{f' ({unsaved} part(s) had saved nothing yet)' if unsaved else ''}: the same command resumes from there")
+
+
+def _part_initializer(shared) -> None:
+    global _SHARED_STOP
+    _SHARED_STOP = shared
+
+
+_SHARED_STOP = None  # in a part's process: the population's stop (``_train_parts``)
 
 
 def split_members(seeds: tuple[int, ...], parts: int, at_least: int = 1) -> list[tuple[int, ...]]:
@@ -206,7 +290,10 @@ def _train_part(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_se
     torch.set_num_threads(cfg.threads)
     start = time.perf_counter()
     payload = checkpoint.load(path) if path.exists() else None
-    with StopSignals() as stop:
+    with StopSignals(shared=_SHARED_STOP) as stop:
+        if stop.requested is not None:  # the population was stopped before this part began
+            raise RunStopped(f"Stopped by {stop.requested} before part {seeds[0]} started; "
+                             f"not started: the same command starts it")
         return _train(cfg, out_dir, seeds, member_settings, settings, payload, path, start, compiled, stop)
 
 
@@ -262,7 +349,8 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
     collector = setup.make_episode_collector(cfg, env, learner.sampler, episodes=cfg.episodes - first)
     columns = metric_columns(phases)
     for member in members:
-        member.metrics = MetricsWriter(member.folder, columns, cfg.logger, keep_rows=len(member.rewards))
+        member.metrics = MetricsWriter(member.folder, columns, cfg.logger, keep_rows=len(member.rewards),
+                                       expect=member.rows)
 
     progress = _progress(cfg, seeds, initial=first)
     episodes = iter(collector)
@@ -296,8 +384,6 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             done = episode + 1
             stopping = stop.requested is not None and done < cfg.episodes
             if cfg.checkpoint_every and done < cfg.episodes and (done % cfg.checkpoint_every == 0 or stopping):
-                for member in members:
-                    member.metrics.sync()  # the rows the checkpoint counts are on the disk before it
                 so_far = {**({} if earlier_wall is None else {"wall_s": earlier_wall + time.perf_counter() - start}),
                           **({} if earlier_cpu is None else {"cpu_s": earlier_cpu + time.process_time() - cpu_start})}
                 checkpoint.save(checkpoint_path, _payload(done, {**timing, **so_far, **compile_time()}, settings,
@@ -351,8 +437,7 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             "compile": compiled, "settings": member.settings,
             "files": file_record(member.folder, rundir.RECORDED_FILES),  # what this summary stands for
         }
-        write_json_atomic(member.folder / SUMMARY_FILE, summary)
-        summaries.append(summary)
+        summaries.append(write_summary(member.folder, summary))
     checkpoint_path.unlink(missing_ok=True)  # the runs are finished: summaries and weights remain
     return summaries
 
@@ -406,6 +491,7 @@ def _restore(payload: dict, parts: dict, env, generators: list[torch.Generator],
             if state["seed"] != member.seed:
                 raise ValueError(f"member {member.seed} found {state['seed']}")
             member.rewards, member.status, member.failure = list(state["rewards"]), state["status"], state["failure"]
+            member.rows = state.get("metrics")  # None in checkpoints from before rows were recorded
         checkpoint.restore_rng(payload["rng"])
         return int(payload["episodes_done"]), dict(payload["timing"])
     except (KeyError, RuntimeError, ValueError, TypeError) as err:

@@ -12,10 +12,19 @@ checked here (that needs torch); its job refuses it alone.
 When the jobs have run, those that failed (refused, stopped, or raised) are listed one line each
 with their message, after the others have finished; the command then exits with status 1. (The
 SLURM launcher reports its failures itself, the same way.)
+
+SIGINT or SIGTERM to the sweep's process (Ctrl-C, ``timeout``, a scheduler) stops the sweep as it
+stops a run: the sweep's folder gets a stop file (``engine.processes.STOP_FILE``) that every
+running job sees at its episode's end (it saves its checkpoint and stops) and every job not yet
+started sees before it starts (it does not start); the sweep then ends with one line and exit
+status 130 or 143, and no process of it is left. A second signal stops the running jobs at once
+(they resume from their last checkpoints). The same command resumes the sweep.
 """
 
 from __future__ import annotations
 
+import os
+import signal
 import sys
 from pathlib import Path
 from typing import Any
@@ -24,6 +33,7 @@ from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.utils import JobStatus, filter_overrides
 from omegaconf import OmegaConf, open_dict
+from omegaconf.errors import OmegaConfBaseException
 
 
 class SweepRefused(SystemExit):
@@ -32,6 +42,44 @@ class SweepRefused(SystemExit):
 
 class SweepJobsFailed(SystemExit):
     """Some jobs of the sweep failed (listed); the others' results are in their folders."""
+
+
+class SweepStopped(SystemExit):
+    """The sweep was stopped by a signal; its jobs saved their checkpoints (one line said so)."""
+
+
+class _SweepSignals:
+    """For the sweep: the first SIGINT or SIGTERM writes the stop file; a second one is passed on to
+    every process the sweep started (their runs stop at once). Runs that train in this process
+    (Hydra's basic launcher) stand in for these handlers while they train (``replaceable``)."""
+
+    def __init__(self, stop_file: Path):
+        self.stop_file = stop_file
+        self.requested: str | None = None
+        self._previous: dict = {}
+
+    def _handle(self, number, frame) -> None:
+        from engine.processes import descendants, stop_at_once, write_stop_file
+
+        name = signal.Signals(number).name
+        if self.requested is None:
+            self.requested = name
+            write_stop_file(self.stop_file, name)
+            return
+        stop_at_once(descendants())
+
+    def __enter__(self) -> "_SweepSignals":
+        from engine.processes import replaceable
+
+        handler = replaceable(self._handle)
+        for number in (signal.SIGINT, signal.SIGTERM):
+            if signal.getsignal(number) is not signal.SIG_IGN:
+                self._previous[number] = signal.signal(number, handler)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for number, handler in self._previous.items():
+            signal.signal(number, handler)
 
 
 class CheckedSweeper(BasicSweeper):
@@ -47,19 +95,35 @@ class CheckedSweeper(BasicSweeper):
                   "(nothing was written):", file=sys.stderr)
             print("\n".join(f"  {line}" for line in problems), file=sys.stderr)
             raise SweepRefused(2)
+        from engine.processes import STOP_FILE, read_stop_file
+
         sweep_dir = Path(str(self.config.hydra.sweep.dir))
         sweep_dir.mkdir(parents=True, exist_ok=True)
         OmegaConf.save(self.config, sweep_dir / "multirun.yaml")
-        returns, failed, first = [], [], 0
-        while not self.is_done():
-            batch = self.get_job_batch()
-            results = self.launcher.launch(batch, initial_job_idx=first)
-            for index, (job, result) in enumerate(zip(batch, results), start=first):
-                if result.status == JobStatus.FAILED:
-                    failed.append(f"job #{index} ({' '.join(filter_overrides(job))}): "
-                                  f"{_message(result._return_value)}")
-            first += len(batch)
-            returns.append(results)
+        stop_file = sweep_dir / STOP_FILE
+        if stop_file.exists() or stop_file.is_symlink():
+            stop_file.unlink()  # an earlier sweep's: this one starts anew
+        returns, failed, first, finished = [], [], 0, 0
+        with _SweepSignals(stop_file):
+            while not self.is_done() and read_stop_file(stop_file) is None:
+                batch = self.get_job_batch()
+                results = self.launcher.launch(batch, initial_job_idx=first)
+                for index, (job, result) in enumerate(zip(batch, results), start=first):
+                    if result.status == JobStatus.FAILED:
+                        failed.append(f"job #{index} ({' '.join(filter_overrides(job))}): "
+                                      f"{_message(result._return_value)}")
+                    else:
+                        finished += 1
+                first += len(batch)
+                returns.append(results)
+        stopped = read_stop_file(stop_file)
+        stop_file.unlink(missing_ok=True)  # every job has ended: the next sweep starts anew
+        if stopped is not None:
+            saved = sum("saved at episode" in line for line in failed)
+            print(f"Sweep stopped by {stopped}: {finished} of {len(jobs)} jobs finished, {saved} stopped with a "
+                  f"checkpoint, {len(jobs) - finished - saved} not started or not saved: the same command resumes it",
+                  file=sys.stderr)
+            raise SweepStopped(130 if stopped == "SIGINT" else 143)
         if failed:
             print(f"{len(failed)} of {len(jobs)} jobs did not finish; the others' results are in their folders "
                   "(the same command skips those and retries these):", file=sys.stderr)
@@ -69,6 +133,12 @@ class CheckedSweeper(BasicSweeper):
 
     def validate_batch_is_legal(self, batch) -> None:
         """Done for the whole sweep at once, before it starts (``check_jobs``)."""
+
+
+def _first_line(error: Any) -> str:
+    """The first line of a composition error (Hydra's list the config search path after it)."""
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    return (lines[0] if lines else type(error).__name__)[:300]
 
 
 def _message(error: Any) -> str:
@@ -90,7 +160,7 @@ def check_jobs(loader, master, jobs: list[list[str]]) -> list[str]:
         try:
             cfg = loader.load_sweep_config(master, job)
         except Exception as err:  # Hydra's composition errors (unknown keys, groups, syntax)
-            problems.append(f"{label}: {_message(err)}")
+            problems.append(f"{label}: {_first_line(err)}")
             continue
         try:
             subdir = str(OmegaConf.select(cfg, "hydra.sweep.subdir"))
@@ -101,12 +171,12 @@ def check_jobs(loader, master, jobs: list[list[str]]) -> list[str]:
         try:
             settings = config_mapping(cfg)
             run_cfg = RunConfig.from_mapping(settings)
-        except (ConfigError, ValueError, TypeError) as err:
-            problems.append(f"{label}: invalid configuration: {err}")
+        except (ConfigError, ValueError, TypeError, OmegaConfBaseException) as err:
+            problems.append(f"{label}: invalid configuration: {_first_line(err)}")
             continue
         if subdir is None:
             continue
-        folder = sweep_dir / subdir
+        folder = Path(os.path.abspath(sweep_dir / subdir))  # ".." taken out: folders that alias each other meet
         members = {seed: folder if run_cfg.seeds is None else folder / f"seed{seed}" for seed in run_cfg.members}
         for path in dict.fromkeys([folder, *members.values()]):
             if path in owners:

@@ -1,0 +1,118 @@
+"""Signals stop split populations and sweeps as they stop a run (issue 50; docs/guarantees.md): SIGTERM
+or SIGINT sent to the parent alone, as schedulers and ``timeout`` send it, stops every member and job at
+its episode's end with a checkpoint, starts no new job, leaves no process behind, and ends in one line
+with exit status 130 or 143; a signal before training starts is one line too."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from engine import rundir
+from engine.processes import descendants
+from tests.test_run_folders import TINY, _sigint_as_in_a_terminal
+from tests.test_train import ENV, ROOT
+
+LONG = [*TINY, "episodes=100000", "checkpoint_every=50"]  # far longer than a test: it ends by the signal
+
+
+def _start(*args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, str(ROOT / "train.py"), *args], cwd=ROOT, env=ENV, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, preexec_fn=_sigint_as_in_a_terminal)
+
+
+def _wait_for(paths: list[Path], proc: subprocess.Popen, seconds: float = 180) -> None:
+    deadline = time.time() + seconds
+    while not all(p.exists() and p.stat().st_size > 200 for p in paths):  # a header and some rows
+        assert proc.poll() is None and time.time() < deadline, proc.communicate()[1][-2000:]
+        time.sleep(0.1)
+
+
+def _lines(err: str) -> list[str]:
+    return [line for line in err.splitlines()
+            if line.strip() and not line.startswith(("Note:", "[")) and "HYDRA" not in line]
+
+
+def _ended_with_nothing_left(proc: subprocess.Popen, status: int, seconds: float = 120) -> str:
+    children = descendants(proc.pid)
+    _, err = proc.communicate(timeout=seconds)
+    assert proc.returncode == status, err[-3000:]
+    time.sleep(0.5)
+    alive = [pid for pid in children if Path(f"/proc/{pid}").exists()
+             and "Z" not in Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]]
+    assert not alive, f"processes left behind: {alive}"
+    return err
+
+
+def _rows(folder: Path) -> int:
+    return len((folder / "metrics.csv").read_text().splitlines()) - 1
+
+
+def test_sigterm_to_the_parent_of_a_split_population_stops_every_part_with_its_checkpoint(tmp_path):
+    """A population split over processes ignored SIGTERM sent to its parent: 60 s later it still trained."""
+    folder = tmp_path / "run"
+    proc = _start(*LONG, "seeds=[1,2]", "processes=2", f"hydra.run.dir={folder}")
+    _wait_for([folder / "seed1" / "metrics.csv", folder / "seed2" / "metrics.csv"], proc)
+    proc.send_signal(signal.SIGTERM)  # the parent alone
+    err = _ended_with_nothing_left(proc, 143)
+    (line,) = _lines(err)
+    assert line.startswith("Stopped by SIGTERM; saved checkpoint-1.pt at episode ") and \
+        line.endswith(f"in {folder}: the same command resumes from there"), line
+    for seed in (1, 2):
+        episode = int(line.split(f"checkpoint-{seed}.pt at episode ")[1].split(",")[0].split()[0])
+        assert _rows(folder / f"seed{seed}") == episode  # every row the checkpoint counts, no more
+        assert rundir.state(folder / f"seed{seed}").kind == "empty"  # rows only: its part's checkpoint holds it
+    assert sorted(p.name for p in rundir.checkpoints(folder)) == ["checkpoint-1.pt", "checkpoint-2.pt"]
+
+
+def test_sigterm_to_one_part_stops_the_whole_population(tmp_path):
+    """SIGTERM sent to a worker directly did not stop the population either."""
+    folder = tmp_path / "run"
+    proc = _start(*LONG, "seeds=[1,2]", "processes=2", f"hydra.run.dir={folder}")
+    _wait_for([folder / "seed1" / "metrics.csv", folder / "seed2" / "metrics.csv"], proc)
+    workers = [pid for pid in descendants(proc.pid) if "spawn_main" in Path(f"/proc/{pid}/cmdline").read_text()]
+    assert len(workers) == 2, workers
+    os.kill(workers[-1], signal.SIGTERM)
+    err = _ended_with_nothing_left(proc, 143)
+    (line,) = _lines(err)
+    assert line.startswith("Stopped by SIGTERM; saved checkpoint-") and "checkpoint-1.pt" in line \
+        and "checkpoint-2.pt" in line, line
+
+
+def test_sigterm_to_a_sweep_stops_its_jobs_starts_no_other_and_leaves_no_process(tmp_path):
+    """SIGTERM to a sweep's main process left its joblib workers running, orphaned; SIGINT stopped the
+    current job only, and the sweep started the next."""
+    sweep = tmp_path / "sweep"
+    seeds = "1,2,3,4"
+    proc = _start("-m", *LONG, f"seed={seeds}", "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={sweep}")
+    started = [sweep / "spg" / "recent" / f"seed{s}" / "metrics.csv" for s in (1, 2)]
+    _wait_for(started, proc)
+    proc.send_signal(signal.SIGTERM)  # the sweep's main process alone
+    err = _ended_with_nothing_left(proc, 143)
+    lines = _lines(err)
+    assert lines[-1] == ("Sweep stopped by SIGTERM: 0 of 4 jobs finished, 2 stopped with a checkpoint, 2 not started "
+                         "or not saved: the same command resumes it"), err[-3000:]
+    assert all(line.startswith("Stopped by SIGTERM after episode ") for line in lines[:-1]) and len(lines) == 3
+    for seed in (1, 2):
+        assert rundir.state(sweep / "spg" / "recent" / f"seed{seed}").kind == "resumable"
+    for seed in (3, 4):  # never started: nothing written
+        assert not (sweep / "spg" / "recent" / f"seed{seed}" / "metrics.csv").exists()
+    assert not (sweep / ".stop").exists()
+
+
+def test_a_signal_before_training_starts_is_one_line(tmp_path):
+    """SIGINT in a run's first seconds gave a 78-line KeyboardInterrupt traceback."""
+    for delay, name, status in ((0.3, "SIGINT", 130), (1.0, "SIGTERM", 143)):
+        proc = _start(*TINY, f"hydra.run.dir={tmp_path / name}")
+        time.sleep(delay)
+        proc.send_signal(getattr(signal, name))
+        _, err = proc.communicate(timeout=120)
+        if proc.returncode == 0:  # a machine fast enough to finish first: nothing to see
+            continue
+        assert proc.returncode == status, err[-3000:]
+        (line,) = _lines(err)
+        assert line.startswith(f"Stopped by {name} "), line
