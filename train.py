@@ -49,6 +49,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from engine import numerics
 from engine.config import ConfigError, RunConfig, config_mapping, register_resolvers
+from engine.limits import check_memory
 from engine.outputs import DiskFull, RunFolderError
 
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")  # torchrl's INFO lines (set before it loads)
@@ -88,6 +89,7 @@ def main(cfg: DictConfig) -> float | list | None:
     try:
         settings = config_mapping(cfg)
         run_cfg = RunConfig.from_mapping(settings)
+        check_memory(run_cfg)  # before anything is written: a run that cannot fit does not start
     except (ConfigError, OmegaConfBaseException) as err:  # e.g. seed=${oops}: an interpolation to nothing
         _end(str(err), 2, prefix="Invalid configuration: ")
     try:

@@ -70,8 +70,8 @@ def save(path: Path, payload: dict) -> None:
     """Atomically replace ``path`` with ``payload``, sealed with its SHA-256."""
     buffer = io.BytesIO()
     torch.save({"version": VERSION, **payload}, buffer)
-    data = buffer.getvalue()
-    write_atomic(Path(path), SEAL + hashlib.sha256(data).hexdigest().encode() + b"\n" + data)
+    body = buffer.getbuffer()  # no copy of what may be a large replay memory
+    write_atomic(Path(path), [SEAL + hashlib.sha256(body).hexdigest().encode() + b"\n", body])
 
 
 def save_tensors(path: Path, obj) -> None:

@@ -335,6 +335,9 @@ class RunConfig:
         if self.er.train_on_memory and minibatch > self.er.buffer_size:
             raise ConfigError(f"a minibatch of {minibatch} is larger than the replay memory "
                               f"({self.er.buffer_size} transitions) that er={self.er.name} trains on")
+        from engine.limits import check_ceilings
+
+        check_ceilings(self)  # every size a run allocates by (engine/limits.py; memory: check_memory)
 
     @property
     def members(self) -> tuple[int, ...]:

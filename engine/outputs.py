@@ -209,20 +209,23 @@ def write_table(path: Path, rows: list[dict]) -> None:
     print(f"wrote {path} ({len(rows)} rows)")
 
 
-def write_atomic(path: Path, data: bytes) -> None:
-    """Replace ``path`` with ``data`` so that a crash at any byte leaves the old file or the new one:
-    a temporary file beside it, flushed to the disk, renamed over it. A full disk raises ``DiskFull``
-    and leaves no temporary file."""
+def write_atomic(path: Path, data) -> None:
+    """Replace ``path`` with ``data`` (bytes, or a list of byte buffers written one after another) so
+    that a crash at any byte leaves the old file or the new one: a temporary file beside it, flushed
+    to the disk, renamed over it. A full disk raises ``DiskFull`` and leaves no temporary file."""
     path = Path(path)
+    chunks = data if isinstance(data, list) else [data]
+    size = sum(len(memoryview(chunk).cast("B")) for chunk in chunks)
     tmp = path.with_name(path.name + ".tmp")
     free = free_bytes(path.parent)
-    if free is not None and free < len(data):
-        raise DiskFull(path, len(data))
+    if free is not None and free < size:
+        raise DiskFull(path, size)
     if tmp.is_symlink():  # a link where the temporary goes: removed (the link only), never written through
         tmp.unlink()
     try:
         with os.fdopen(open_new_or_own(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC), "wb") as f:
-            f.write(data)
+            for chunk in chunks:
+                f.write(chunk)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)  # a link at ``path`` itself is replaced, not followed
@@ -230,7 +233,7 @@ def write_atomic(path: Path, data: bytes) -> None:
         if not tmp.is_symlink():
             tmp.unlink(missing_ok=True)
         if err.errno in (errno.ENOSPC, errno.EDQUOT):
-            raise DiskFull(path, len(data)) from None
+            raise DiskFull(path, size) from None
         raise
     try:  # the rename itself reaches the disk
         fd = os.open(path.parent, os.O_RDONLY)

@@ -11,9 +11,14 @@ import math
 from dataclasses import dataclass, fields
 
 
+MAX_SEGMENTS = 100_000  # a track's checkpoints (the paper's: 50); each costs about 200 bytes of tables
+MAX_STEPS = 1_000_000  # an episode's steps (the paper's: 200); a run keeps each episode's transitions
+
+
 @dataclass(frozen=True)
 class RacingConfig:
-    """Constants of track generation, car dynamics, sensors and episodes."""
+    """Constants of track generation, car dynamics, sensors and episodes (sizes bounded:
+    ``MAX_SEGMENTS``, ``MAX_STEPS``)."""
 
     # Track layout (pixels and degrees).
     num_segments: int = 50  # checkpoints (quadrilaterals) per track
@@ -52,10 +57,10 @@ class RacingConfig:
             elif not math.isfinite(value):
                 problems.append(f"{f.name} must be finite, got {value!r}")
         if not problems:
-            if not isinstance(self.num_segments, int) or self.num_segments < 2:
-                problems.append(f"num_segments must be an integer >= 2, got {self.num_segments!r}")
-            if not isinstance(self.max_steps, int) or self.max_steps < 1:
-                problems.append(f"max_steps must be an integer >= 1, got {self.max_steps!r}")
+            if not isinstance(self.num_segments, int) or not 2 <= self.num_segments <= MAX_SEGMENTS:
+                problems.append(f"num_segments must be an integer in [2, {MAX_SEGMENTS:,}], got {self.num_segments!r}")
+            if not isinstance(self.max_steps, int) or not 1 <= self.max_steps <= MAX_STEPS:
+                problems.append(f"max_steps must be an integer in [1, {MAX_STEPS:,}], got {self.max_steps!r}")
             for name in ("segment_length", "half_width", "max_speed", "turn_rate",
                          "min_turn_radius", "ray_length"):
                 if getattr(self, name) <= 0:

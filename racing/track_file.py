@@ -57,11 +57,20 @@ def example(name: str) -> Path:
     return path
 
 
+MAX_ROWS = 20_000  # points of a track file (real circuits have 1,000-6,000; every check is quadratic-ish beyond)
+MAX_BYTES = 4 * 1024 * 1024  # the file's size, checked before it is read
+
+
 def read_rows(path: Path) -> tuple[np.ndarray, list[int], dict]:
-    """The file's points (M, 4), the line number of each, and its ``# key: value`` settings."""
+    """The file's points (M, 4), the line number of each, and its ``# key: value`` settings; at
+    most ``MAX_ROWS`` points in a file of at most ``MAX_BYTES`` (a UTF-8 byte-order mark is allowed)."""
     path = Path(path)
     try:
-        text = path.read_text()
+        size = path.stat().st_size
+        if size > MAX_BYTES:
+            raise TrackFileError(f"{path}: {size:,} bytes, more than a track file holds (at most {MAX_BYTES:,} bytes "
+                                 f"and {MAX_ROWS:,} points)")
+        text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as err:
         raise TrackFileError(f"{path}: cannot be read ({type(err).__name__}: {err})") from None
     rows, lines, settings = [], [], {}
@@ -95,6 +104,9 @@ def read_rows(path: Path) -> tuple[np.ndarray, list[int], dict]:
                 raise TrackFileError(f"{path}, line {number}: {name} must be > 0 (a width), got {value:g}")
         rows.append(values)
         lines.append(number)
+        if len(rows) > MAX_ROWS:
+            raise TrackFileError(f"{path}, line {number}: more than {MAX_ROWS:,} points, more than a track file holds "
+                                 "(resample the centre line more coarsely)")
     return np.array(rows, dtype=np.float64).reshape(-1, 4), lines, settings
 
 

@@ -5,6 +5,7 @@ before work. Each test names the hostile case it holds against."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -217,3 +218,81 @@ def test_a_row_that_does_not_fit_on_the_disk_is_cut_off_whole(tmp_path, monkeypa
     writer.write({**row, "episode": 1})
     writer.close()
     assert (tmp_path / "metrics.csv").read_text().count("\n") == 3
+
+
+OVERSIZED = [  # each passed validation, wrote .hydra/, then ran out of memory
+    ("env.options.num_segments=100000000", "num_segments must be an integer in [2, 100,000]"),
+    ("env.options.max_steps=1000000000", "max_steps must be an integer in [1, 1,000,000]"),
+    ("er.buffer_size=1000000000", "er.buffer_size is 1,000,000,000 transitions per member, above its ceiling"),
+    ("network.actor_hidden=[1000000000]", "network.width is 1,000,000,000 units of a hidden layer, above its"),
+    ("network.critic_hidden=[60000,60000]", "this run needs about "),
+    ("er.buffer_size=90000000", "this run needs about "),
+]
+
+
+def test_every_size_is_bounded_before_anything_is_written(tmp_path):
+    """train.py refuses in one line before writing anything (three values: a process each costs
+    seconds); the same checks (RunConfig's ceilings, then check_memory) refuse the others."""
+    from engine.config import ConfigError, RunConfig
+    from engine.limits import check_memory
+    from tests.test_train import run_train
+
+    for override, expected in OVERSIZED[:2] + OVERSIZED[4:5]:
+        result = run_train("er=memory", override, f"hydra.run.dir={tmp_path / 'run'}")
+        assert result.returncode == 2 and expected in result.stderr, (override, result.stderr[-1500:])
+        assert "Traceback" not in result.stderr
+        assert {p.name for p in (tmp_path / "run").iterdir()} <= {"train.log"}  # Hydra's folder and log, empty
+    for override, expected in OVERSIZED[2:]:
+        with pytest.raises(ConfigError, match=re.escape(expected)):
+            check_memory(RunConfig.compose("er=memory", override), available=16 * 2**30)
+
+
+def test_the_memory_estimate_allows_every_shipped_configuration_and_names_its_parts():
+    from engine.config import RunConfig
+    from engine.limits import check_memory, estimate
+
+    for algo in ("spg_p_multi", "ppo", "sac", "redq", "bro", "droq", "tqc", "td3", "crossq"):
+        cfg = RunConfig.compose(f"algo={algo}", "er=memory", f"seeds=[{','.join(map(str, range(25)))}]")
+        check_memory(cfg, available=2 * 2**30)  # a population of 25 of every learner fits in 2 GB
+        assert sum(estimate(cfg).values()) < 2 * 2**30
+
+
+def test_every_ceiling_is_documented_in_conf():
+    from engine.limits import CEILINGS
+    from racing.config import MAX_SEGMENTS, MAX_STEPS
+    from racing.track_file import MAX_ROWS
+
+    conf = "\n".join(p.read_text() for p in Path(__file__).resolve().parent.parent.glob("conf/**/*.yaml"))
+    for name, (ceiling, _) in CEILINGS.items():
+        if name in ("algo.minibatch_size", "algo.tqc.critics", "algo.redq.critics", "algo.tqc.quantiles",
+                    "algo.spg.num_samples", "algo.td.critic_blocks", "algo.td.critic_width", "algo.td.n_step"):
+            key = name.split(".")[-1]
+            assert any(line.lstrip().startswith(f"{key}:") and f"at most {ceiling:,}" in line
+                       for line in conf.splitlines()), name
+        else:
+            assert f"at most {ceiling:,}" in conf, name
+    for ceiling in (MAX_SEGMENTS, MAX_STEPS, MAX_ROWS):
+        assert f"at most {ceiling:,}" in conf
+
+
+def test_a_huge_track_file_and_a_byte_order_mark(tmp_path):
+    """A track file of a million rows gave a traceback after 15 s; one starting with a byte-order mark
+    was refused for the wrong reason."""
+    import time
+
+    from racing.track_file import TrackFileError, read_rows
+
+    oval = Path(__file__).resolve().parent.parent / "racing" / "tracks" / "oval.csv"
+    marked = tmp_path / "marked.csv"
+    marked.write_bytes(b"\xef\xbb\xbf" + oval.read_bytes())
+    assert (read_rows(marked)[0] == read_rows(oval)[0]).all()
+    huge = tmp_path / "huge.csv"
+    huge.write_text("".join(f"{i}.0,0.0,5.0,5.0\n" for i in range(1_000_000)))
+    start = time.perf_counter()
+    with pytest.raises(TrackFileError, match="more than a track file holds"):
+        read_rows(huge)
+    assert time.perf_counter() - start < 2
+    many = tmp_path / "many.csv"
+    many.write_text("".join(f"{i}.0,0.0,5.0,5.0\n" for i in range(25_000)))
+    with pytest.raises(TrackFileError, match="line 20001: more than 20,000 points"):
+        read_rows(many)

@@ -150,6 +150,7 @@ def check_jobs(loader, master, jobs: list[list[str]]) -> list[str]:
     """One line per problem of the sweep's jobs (see the module's docstring); none if all can run."""
     from engine import rundir
     from engine.config import ConfigError, RunConfig, config_mapping, register_resolvers
+    from engine.limits import check_memory
 
     register_resolvers()
     sweep_dir = Path(str(master.hydra.sweep.dir))
@@ -171,6 +172,7 @@ def check_jobs(loader, master, jobs: list[list[str]]) -> list[str]:
         try:
             settings = config_mapping(cfg)
             run_cfg = RunConfig.from_mapping(settings)
+            check_memory(run_cfg)
         except (ConfigError, ValueError, TypeError, OmegaConfBaseException) as err:
             problems.append(f"{label}: invalid configuration: {_first_line(err)}")
             continue

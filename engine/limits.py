@@ -1,0 +1,159 @@
+"""Every size a run allocates by, bounded before any work (torch-free).
+
+Two checks, both before a run writes anything (train.py, and the sweeper for every job):
+
+- ``check_ceilings``: each configuration value that sets an allocation has a ceiling, far above any
+  use in this project and below what would exhaust a machine by itself (``CEILINGS``; the
+  simulator's own, ``racing.config.MAX_SEGMENTS`` and ``MAX_STEPS``, and a track file's,
+  ``racing.track_file.MAX_ROWS``, are checked where those values are read). conf/ names each.
+- ``check_memory``: the memory a run will need, estimated from its sizes (``estimate``: replay
+  memory, episodes, networks with their optimiser state, a minibatch's activations, and the
+  process itself), against the memory the machine has available (``available_bytes``: the
+  kernel's MemAvailable, or a cgroup's limit if lower). A run that would not fit is refused with
+  the estimate, part by part. The estimate errs low rather than high (a run it refuses would not
+  have fitted); it is not a promise that a run it allows fits beside other work.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from learners.options import ConfigError
+
+# name -> (ceiling, what the value counts)
+CEILINGS = {
+    "seeds": (1_000, "members of a population"),
+    "episodes": (10_000_000, "episodes"),
+    "er.buffer_size": (100_000_000, "transitions per member"),
+    "network.layers": (64, "hidden layers"),
+    "network.width": (65_536, "units of a hidden layer"),
+    "eval_seeds": (100_000, "evaluation tracks"),
+    "eval_episodes": (100_000, "episodes per evaluation track"),
+    "threads": (4_096, "threads"),
+    "processes": (1_000, "processes"),
+    "algo.minibatch_size": (10_000_000, "transitions"),
+    "algo.spg.num_samples": (100_000, "sampled actions per state"),
+    "algo.td.critic_blocks": (64, "residual blocks"),
+    "algo.td.critic_width": (65_536, "units"),
+    "algo.td.n_step": (10_000, "steps"),
+    "algo.tqc.critics": (1_000, "Q-networks"),
+    "algo.tqc.quantiles": (10_000, "quantiles per Q-network"),
+    "algo.redq.critics": (1_000, "Q-networks"),
+}
+
+TRANSITION_BYTES = 72  # a stored transition (measured: 44 bytes for the paper's learners, 70 for SAC's with priorities)
+CHECKPOINT_COPIES = 2  # a checkpoint holds the whole replay storage (allocated at its full size), serialised and read
+EPISODE_STEP_BYTES = 640  # a collected step of one member, with the collector's keys and a copy for training
+PROCESS_BYTES = 600 * 2**20  # torch, the simulator and Python themselves
+PARAMETER_COPIES = 5  # a parameter, its gradient, Adam's two moments, and a target network's copy
+ACTIVATION_COPIES = 8  # per unit of a layer and row of a minibatch: forward values, gradients, temporaries
+
+
+def _over(name: str, value) -> str | None:
+    ceiling, unit = CEILINGS[name]
+    if isinstance(value, (int, float)) and value > ceiling:
+        return f"{name} is {value:,} {unit}, above its ceiling of {ceiling:,}"
+    return None
+
+
+def check_ceilings(cfg) -> None:
+    """``ConfigError`` naming the first value of ``cfg`` (a ``RunConfig``) above its ceiling."""
+    algo = cfg.algo
+    values = {
+        "seeds": len(cfg.members), "episodes": cfg.episodes, "er.buffer_size": cfg.er.buffer_size,
+        "network.layers": max(len(cfg.network.actor_hidden), len(cfg.network.critic_hidden)),
+        "network.width": max((*cfg.network.actor_hidden, *cfg.network.critic_hidden)),
+        "eval_seeds": len(cfg.eval_seeds or ()), "eval_episodes": cfg.eval_episodes, "threads": cfg.threads,
+        "processes": cfg.processes, "algo.minibatch_size": algo.minibatch_size,
+        "algo.spg.num_samples": algo.spg.num_samples if algo.spg is not None else None,
+        "algo.td.critic_blocks": algo.td.critic_blocks if algo.td is not None else None,
+        "algo.td.critic_width": algo.td.critic_width if algo.td is not None else None,
+        "algo.td.n_step": algo.td.n_step if algo.td is not None else None,
+        "algo.tqc.critics": algo.tqc.critics if algo.tqc is not None else None,
+        "algo.tqc.quantiles": algo.tqc.quantiles if algo.tqc is not None else None,
+        "algo.redq.critics": algo.redq.critics if algo.redq is not None else None,
+    }
+    for name, value in values.items():
+        problem = _over(name, value)
+        if problem:
+            raise ConfigError(f"{problem} (conf/ documents each ceiling; they bound what a run allocates)")
+
+
+def _mlp_parameters(sizes: list[int]) -> int:
+    return sum((a + 1) * b for a, b in zip(sizes, sizes[1:]))
+
+
+def estimate(cfg) -> dict[str, int]:
+    """Bytes a run of ``cfg`` (a ``RunConfig``) will hold at its peak, by part (a low estimate)."""
+    from racing.config import RacingConfig
+
+    options = RacingConfig(**cfg.env.options)
+    members, steps, obs = len(cfg.members), options.max_steps, options.obs_size
+    algo, net = cfg.algo, cfg.network
+    critics, outputs = 1, 1  # the paper's: one critic network of one value
+    if algo.loss in ("sac", "td3", "crossq"):
+        critics = 2
+    elif algo.loss == "tqc":
+        critics, outputs = algo.tqc.critics, algo.tqc.quantiles
+    elif algo.loss == "redq":
+        critics = algo.redq.critics
+    critic_layers = list(net.critic_hidden)
+    if algo.td is not None and algo.td.critic_blocks:
+        width = algo.td.critic_width or net.critic_hidden[0]
+        critic_layers = [width] * (1 + 2 * algo.td.critic_blocks)
+    actor = _mlp_parameters([obs, *net.actor_hidden, 4])
+    critic = _mlp_parameters([obs + 2, *critic_layers, outputs])
+    stored = cfg.er.buffer_size if cfg.er.train_on_memory else 0  # allocated whole, saved whole by checkpoints
+    minibatch = max(1, round(algo.minibatch_size * cfg.er.minibatch_fraction))
+    rows = minibatch * max(1, algo.spg.num_samples if algo.spg is not None else 1)  # SPG scores sampled actions
+    widest = max((*net.actor_hidden, *critic_layers))
+    layers = max(len(net.actor_hidden), len(critic_layers))
+    return {
+        "replay memory": members * stored * TRANSITION_BYTES,
+        "checkpoints": members * stored * TRANSITION_BYTES * CHECKPOINT_COPIES if cfg.checkpoint_every else 0,
+        "episodes": members * steps * EPISODE_STEP_BYTES,
+        "networks": members * (actor + critics * critic) * 4 * PARAMETER_COPIES,
+        "activations": members * rows * widest * layers * (critics if algo.td is not None else 1) * 4
+        * ACTIVATION_COPIES,
+        "process": PROCESS_BYTES,
+    }
+
+
+def available_bytes() -> int | None:
+    """Memory this process may still take: MemAvailable (``/proc/meminfo``), or the cgroup's limit
+    less its usage if that is lower; None where neither can be read (not Linux)."""
+    found = []
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                found.append(int(line.split()[1]) * 1024)
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if limit != "max":
+            used = int(Path("/sys/fs/cgroup/memory.current").read_text())
+            found.append(int(limit) - used)
+    except (OSError, ValueError):
+        pass
+    return min(found) if found else None
+
+
+def _gb(size: float) -> str:
+    return f"{size / 2**30:.1f} GB" if size >= 2**30 else f"{math.ceil(size / 2**20)} MB"
+
+
+def check_memory(cfg, available: int | None = None) -> None:
+    """``ConfigError`` with the estimate if a run of ``cfg`` would not fit in ``available`` bytes
+    (default: ``available_bytes()``; no check where that is unknown)."""
+    available = available_bytes() if available is None else available
+    if available is None:
+        return
+    parts = estimate(cfg)
+    total = sum(parts.values())
+    if total > available:
+        detail = ", ".join(f"{name} {_gb(size)}" for name, size in parts.items() if size >= 2**20)
+        raise ConfigError(f"this run needs about {_gb(total)} of memory ({detail}) and the machine has "
+                          f"{_gb(max(available, 0))} available; make it smaller (er.buffer_size, seeds, "
+                          "env.options.max_steps, network sizes) or split it (processes, or several commands)")
