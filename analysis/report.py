@@ -172,10 +172,15 @@ def versions_markdown(groups: dict[str, list[Run]]) -> str:
 
 
 def _read_rewards(path: Path) -> list[float]:
+    """The learning curve in metrics.csv; a last row cut short (a run killed while appending it) is
+    left out, as a resume drops it; any other malformed row: no curve."""
     try:
         with open(path, newline="") as f:
-            return [float(row["total_reward"]) for row in csv.DictReader(f)]
-    except (FileNotFoundError, KeyError, ValueError):
+            rows = list(csv.DictReader(f))
+        if rows and None in rows[-1].values():  # fields missing: a row cut short
+            rows = rows[:-1]
+        return [float(row["total_reward"]) for row in rows]
+    except (OSError, UnicodeDecodeError, csv.Error, KeyError, ValueError, TypeError):
         return []
 
 

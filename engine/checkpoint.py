@@ -122,7 +122,7 @@ def load_tensors(path: Path, what: str = "file", sealed: bool = False):
         reason = _unpickler_reason(str(err))
         if reason.startswith("Unsupported global"):
             raise ValueError(f"{path} holds objects other than tensors and plain containers "
-                             f"({reason.split(' was not')[0][:120]}); it "
+                             f"({reason.split(' was not')[0].split(' whose module')[0][:120]}); it "
                              f"was refused unread, as loading them could run code (not a {what} written here)") from None
         raise ValueError(f"{path} is not a readable {what} (UnpicklingError: {reason[:200]})") from None
     except (RuntimeError, EOFError, OSError, zipfile.BadZipFile, TypeError, AttributeError, KeyError) as err:
@@ -130,9 +130,14 @@ def load_tensors(path: Path, what: str = "file", sealed: bool = False):
 
 
 def _unpickler_reason(message: str) -> str:
-    """The reason inside torch's weights-only refusal (its advice to load the file another way left out)."""
+    """The reason inside torch's weights-only refusal, without its advice to load the file another way
+    (which is exactly what must not be done with a file that may be hostile)."""
     tail = message.split("WeightsUnpickler error:", 1)[-1]
-    lines = [line.strip() for line in tail.splitlines() if line.strip()]
+    advice = ("Weights only load failed", "In PyTorch", "Re-running", "Check the documentation", "will likely succeed")
+    lines = [line.strip() for line in tail.splitlines() if line.strip() and not line.strip().startswith(advice)]
+    for line in lines:
+        if "GLOBAL" in line or "Unsupported" in line or "blocked" in line:
+            return "Unsupported global: " + line.removeprefix("Unsupported global: ")
     return lines[0] if lines else "not a file of tensors"
 
 

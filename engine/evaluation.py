@@ -60,6 +60,9 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
     except (KeyError, TypeError):
         raise RunFolderError(f"{run_dir / 'summary.json'} is not a summary written by train.py "
                              "(its settings lack the network, env or algo)") from None
+    problem = track_file_problem(settings)
+    if problem:
+        raise RunFolderError(f"{run_dir}: {problem}")
     try:
         state_dict = load_tensors(actor_path, "actor")
     except ValueError as err:
@@ -95,6 +98,26 @@ def make_policy(loss: str, network: dict, obs_size: int, state: dict) -> Policy:
 def deterministic_action(policy: Policy, observation: np.ndarray) -> np.ndarray:
     """The policy's action without exploration noise."""
     return policy(observation)
+
+
+def track_file_problem(settings: dict) -> str | None:
+    """Why a run's own track file cannot stand for the track it trained on (None: it can): missing,
+    or changed since (its SHA-256 differs from the one the run recorded)."""
+    import hashlib
+
+    env = settings.get("env") or {}
+    if env.get("track") != "file":
+        return None
+    path, recorded = Path(env.get("track_file") or ""), env.get("track_file_sha256")
+    try:
+        found = hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError as err:
+        return (f"the run trained on the track file {path}, which cannot be read here ({first_line(err)}); "
+                "restore it (a relative path is read from the current folder) to evaluate the run")
+    if recorded is not None and found != recorded:
+        return (f"the run trained on the track file {path}, which has changed since (its SHA-256 differs from the "
+                "one the run recorded); restore that file to evaluate the run on its own track")
+    return None
 
 
 def own_track(settings: dict) -> int | str:

@@ -296,3 +296,95 @@ def test_a_huge_track_file_and_a_byte_order_mark(tmp_path):
     many.write_text("".join(f"{i}.0,0.0,5.0,5.0\n" for i in range(25_000)))
     with pytest.raises(TrackFileError, match="line 20001: more than 20,000 points"):
         read_rows(many)
+
+
+def test_a_run_whose_track_file_changed_or_vanished_is_not_scored_on_it(tmp_path, capsys):
+    """evaluate.py scored a changed track file as the run's own track; a deleted one gave a traceback."""
+    import shutil
+
+    import evaluate
+
+    track = tmp_path / "oval.csv"
+    shutil.copy(Path(__file__).resolve().parent.parent / "racing" / "tracks" / "oval.csv", track)
+    folder = tmp_path / "run"
+    train([*TINY, "env.track=file", f"env.track_file={track}"], folder)
+    assert evaluate.main([str(folder), "--episodes", "1"]) == 0
+    capsys.readouterr()
+    track.write_text(track.read_text().replace("\n", "\n\n", 3))  # the same points, other bytes
+    assert evaluate.main([str(folder), "--episodes", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "which has changed since (its SHA-256 differs from the one the run recorded)" in err, err
+    track.unlink()
+    assert evaluate.main([str(folder), "--episodes", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "which cannot be read here" in err and "Traceback" not in err, err
+
+
+def test_a_hostile_pickle_is_refused_without_torchs_advice(tmp_path):
+    import os as os_module
+
+    import torch
+
+    from engine import checkpoint
+
+    path = tmp_path / "checkpoint.pt"
+    torch.save({"version": checkpoint.VERSION, "call": os_module.system}, path)
+    with pytest.raises(checkpoint.CheckpointError, match="refused unread") as refused:
+        checkpoint.load(path)
+    message = str(refused.value)
+    assert "posix.system" in message and "weights_only" not in message and "Re-running" not in message, message
+
+
+def test_report_without_matplotlib_writes_its_tables_and_a_cut_last_row_is_left_out(tmp_path, capsys, monkeypatch):
+    import sys
+
+    import report
+    from analysis.report import read_run
+    from tests.test_report import fake_run
+
+    fake_run(tmp_path, "spg", "recent", 1, 90.0)
+    cut = fake_run(tmp_path, "spg", "recent", 2, summary=False) / "metrics.csv"
+    cut.write_text(cut.read_text() + "3")  # killed after the first field of its last row
+    assert read_run(cut.parent).rewards == [-1.0, 0.0, 1.0]
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    monkeypatch.setitem(sys.modules, "matplotlib.pyplot", None)
+    assert report.main([str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "figures skipped: they need matplotlib" in out and (tmp_path / "report" / "table.md").exists()
+
+
+def test_a_refused_partial_run_leaves_its_hydra_record_alone(tmp_path):
+    from tests.test_train import run_train
+
+    folder = tmp_path / "run"
+    _checkpointed(folder)
+    record = folder / ".hydra"
+    record.mkdir()
+    for name in ("config.yaml", "overrides.yaml", "hydra.yaml"):
+        (record / name).write_text(f"the first session's {name}\n")
+    rows = (folder / "metrics.csv").read_text().splitlines(keepends=True)
+    (folder / "metrics.csv").write_text(rows[0] + rows[1].replace(",", ",9", 1) + "".join(rows[2:]))
+    result = run_train(*TINY, "episodes=4", "checkpoint_every=1", f"hydra.run.dir={folder}")
+    assert result.returncode == 2 and "differ from those its checkpoint recorded" in result.stderr, result.stderr
+    assert {p.name: p.read_text() for p in record.iterdir()} == {
+        name: f"the first session's {name}\n" for name in ("config.yaml", "overrides.yaml", "hydra.yaml")}
+
+
+def test_sweeps_refuse_aliased_folders_bad_interpolations_and_unknown_groups_in_one_line_each(tmp_path):
+    """Folders aliasing through '..' were caught only while running; seed=${oops} gave a traceback;
+    algo=doesnotexist gave 'provider=schema, path=structured://'."""
+    from tests.test_train import run_train
+
+    sweep = tmp_path / "sweep"
+    aliased = run_train("-m", *TINY, "seed=1,2", f"hydra.sweep.dir={sweep}",
+                        "hydra.sweep.subdir=x/${seed}/..")  # both jobs write x
+    assert aliased.returncode == 2 and "writes " in aliased.stderr and "as job #0" in aliased.stderr, aliased.stderr
+    unknown = run_train("-m", *TINY, "algo=spg,doesnotexist", f"hydra.sweep.dir={sweep}")
+    assert unknown.returncode == 2 and "Could not find 'algo/doesnotexist'" in unknown.stderr, unknown.stderr
+    assert "provider=" not in unknown.stderr
+    for args in ((*TINY, "seed=${oops}", f"hydra.run.dir={tmp_path / 'run'}"),
+                 ("-m", *TINY, "seed=${oops}", f"hydra.sweep.dir={sweep}")):
+        bad = run_train(*args)
+        assert bad.returncode == 2 and "Traceback" not in bad.stderr, bad.stderr[-3000:]
+        assert "Interpolation key 'oops' not found" in bad.stderr
+    assert not sweep.exists() or not any(sweep.rglob("metrics.csv"))
