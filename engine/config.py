@@ -69,6 +69,31 @@ def config_mapping(cfg) -> dict:
     return mapping
 
 
+def settings_difference(old, new, limit: int = 3) -> str:
+    """The keys in which two runs' settings differ, as ``key: old -> new`` (at most ``limit``)."""
+    def flat(value, prefix=""):
+        if isinstance(value, dict):
+            out = {}
+            for key, item in value.items():
+                out.update(flat(item, f"{prefix}{key}."))
+            return out
+        return {prefix.rstrip("."): value}
+
+    a, b = flat(old or {}), flat(new or {})
+    keys = [k for k in dict.fromkeys([*a, *b]) if a.get(k, "(unset)") != b.get(k, "(unset)")]
+    if "env.track_file_sha256" in keys and a.get("env.track_file") == b.get("env.track_file"):
+        return (f"its track file {b.get('env.track_file')} has changed since (its SHA-256 differs from the one the "
+                "run recorded)")
+    shown = [f"{k}: {_short(a.get(k, '(unset)'))} -> {_short(b.get(k, '(unset)'))}" for k in keys[:limit]]
+    more = f" and {len(keys) - limit} more" if len(keys) > limit else ""
+    return "; ".join(shown) + more if shown else "no key differs"
+
+
+def _short(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
 def _sha256(path) -> str | None:
     """The SHA-256 of a file's bytes (None if it cannot be read: validation then says why)."""
     import hashlib

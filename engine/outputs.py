@@ -34,7 +34,8 @@ class DiskFull(RunFolderError):
         self.path, self.needed = Path(path), needed
         free = free_bytes(self.path.parent)
         have = "" if free is None else f", {free:,} are free"
-        super().__init__(f"no space left on the device of {self.path}: writing it needs {needed:,} bytes{have}; "
+        what = f"writing it needs {needed:,} bytes{have}" if needed else f"it could not be flushed to the disk{have}"
+        super().__init__(f"no space left on the device of {self.path}: {what}; "
                          "the folder keeps its last good files (free some space and run the same command again)")
 
 
@@ -118,7 +119,12 @@ class MetricsWriter:
 
     def sync(self) -> None:
         """Flush the rows to the disk (before a checkpoint that counts them)."""
-        os.fsync(self.fd)
+        try:
+            os.fsync(self.fd)
+        except OSError as err:
+            if err.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise DiskFull(self.path, 0) from None
+            raise
 
     def close(self) -> None:
         if self.fd is not None:

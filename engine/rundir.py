@@ -61,7 +61,10 @@ def refusal(found: FolderState, settings: dict | None, solo: bool = True) -> str
     (None: it may; a finished run of these very settings is skipped, not refused). ``solo=False``:
     the folder is a population member's, where a solo run's checkpoint is another run."""
     if found.kind == "finished" and found.summary.get("settings") != settings:
-        return (f"{found.folder} holds a finished run of a different configuration; choose another folder "
+        from engine.config import settings_difference
+
+        return (f"{found.folder} holds a finished run of a different configuration "
+                f"({settings_difference(found.summary.get('settings'), settings)}); choose another folder "
                 "(hydra.run.dir=..., or hydra.sweep.dir=... for a sweep) or pass overwrite=true to replace it")
     if found.kind == "damaged":
         return found.refusal()

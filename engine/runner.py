@@ -40,7 +40,7 @@ from engine import checkpoint, numerics, setup
 from engine import rundir
 from engine.processes import (RunStopped, StopSignals, descendants, exit_with_parent, keep_freed_memory,
                               spawn_context, stop_at_once)
-from engine.config import ConfigError, RunConfig
+from engine.config import ConfigError, RunConfig, settings_difference
 from engine.outputs import METRICS_FILE, MetricsWriter, file_record, kept_rows, metric_columns, write_summary
 from engine.progress import Progress
 from engine.version import code_version, software_versions
@@ -273,9 +273,11 @@ def _resumed_parts(out_dir: Path, settings: dict | None) -> list[tuple[Path, tup
     parts = []
     for path in checkpoint.in_folder(out_dir):
         payload = checkpoint.load(path)
-        if RunConfig.training_settings(payload.get("settings")) != RunConfig.training_settings(settings):
-            raise ConfigError(f"the run folder holds a checkpoint of a different configuration ({path.name}); "
-                              "choose another folder (hydra.run.dir=...) or pass overwrite=true to start afresh")
+        old, new = RunConfig.training_settings(payload.get("settings")), RunConfig.training_settings(settings)
+        if old != new:
+            raise ConfigError(f"the run folder holds a checkpoint of a different configuration ({path.name}: "
+                              f"{settings_difference(old, new)}); choose another folder (hydra.run.dir=...) or pass "
+                              "overwrite=true to start afresh")
         parts.append((path, tuple(payload["members"]), payload))
     return parts
 

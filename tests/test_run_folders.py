@@ -36,14 +36,14 @@ def _sigint_as_in_a_terminal() -> None:
 class FaultServer:
     """tests/fault_server.py: forks training sessions with faults injected."""
 
-    def __init__(self, log: Path):
-        self.log = log
+    def __init__(self, log: Path, overrides: list[str] = FAULT_RUN):
+        self.log, self.overrides = log, overrides
         self.proc = subprocess.Popen([sys.executable, "-m", "tests.fault_server"], cwd=ROOT, env=ENV, text=True,
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                      preexec_fn=_sigint_as_in_a_terminal)
 
     def session(self, folder: Path, fault: dict | None = None, kill_after: tuple[float, str] | None = None) -> int:
-        command = {"folder": str(folder), "overrides": FAULT_RUN, "fault": fault, "log": str(self.log)}
+        command = {"folder": str(folder), "overrides": self.overrides, "fault": fault, "log": str(self.log)}
         self.proc.stdin.write(json.dumps(command) + "\n")
         self.proc.stdin.flush()
         pid = json.loads(self.proc.stdout.readline())["pid"]
