@@ -256,7 +256,7 @@ def try_signals(family: str, work: Path, rng: random.Random, kills: int) -> list
     must be the uninterrupted run's."""
     from tests.test_run_folders import FaultServer
 
-    longer = [o if not o.startswith("episodes=") else "episodes=60" for o in FAMILIES[family]]  # many moments
+    longer = [o if not o.startswith("episodes=") else "episodes=150" for o in FAMILIES[family]]  # many moments
     server = FaultServer(work / "sessions.log", longer)
     outcomes = []
     try:

@@ -16,3 +16,15 @@ def test_a_sample_of_faults_on_every_family_is_refused_or_survived_exactly(tmp_p
             table(counts)
     assert sum(v for (_, _, outcome), v in counts.items() if outcome == "refused") > 10
     assert sum(v for (_, _, outcome), v in counts.items() if outcome == "exact") > 10
+
+
+def test_the_documented_command_runs_at_a_tiny_size(capsys):
+    from pathlib import Path
+
+    from tests.fault_injection import main
+
+    guarantees = (Path(__file__).resolve().parent.parent / "docs" / "guarantees.md").read_text()
+    assert "    python -m tests.fault_injection --trials 400 --signals 12\n" in guarantees
+    assert main(["--trials", "3", "--signals", "0", "--families", "spg"]) == 0
+    out = capsys.readouterr().out
+    assert "| all | all | 3 |" in out and out.rstrip().endswith("| 0 |")
