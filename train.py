@@ -86,12 +86,13 @@ def save_hydra_record(cfg: DictConfig, out_dir: Path) -> None:
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> float | list | None:
+    getattr(sys.stderr, "pass_through", lambda: None)()  # Hydra has composed the configuration (_HydraErrors)
     try:
         settings = config_mapping(cfg)
         run_cfg = RunConfig.from_mapping(settings)
         check_memory(run_cfg)  # before anything is written: a run that cannot fit does not start
     except (ConfigError, OmegaConfBaseException) as err:  # e.g. seed=${oops}: an interpolation to nothing
-        _end(str(err), 2, prefix="Invalid configuration: ")
+        _end(str(err).strip().splitlines()[0], 2, prefix="Invalid configuration: ")
     try:
         numerics.apply(run_cfg.numerics)  # before torch loads: it reads the kernel settings then
     except numerics.NumericsError as err:
@@ -104,7 +105,9 @@ def main(cfg: DictConfig) -> float | list | None:
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     stop_file = None
     if HydraConfig.get().mode == RunMode.MULTIRUN:  # a sweep asked to stop starts no job, and stops its runs
-        from engine.processes import STOP_FILE, read_stop_file
+        from engine.processes import STOP_FILE, idle_between_jobs, read_stop_file
+
+        idle_between_jobs()  # a sweep's worker: a signal between its jobs is the sweep's, not the worker's end
 
         stop_file = Path(HydraConfig.get().sweep.dir) / STOP_FILE
         asked = read_stop_file(stop_file)
@@ -151,34 +154,78 @@ def _finished_line(cfg: RunConfig, out_dir: Path, summary: dict) -> str:
             f"{summary['episodes']} episodes, {score}{tail}; results in {folder}")
 
 
-class _HydraFormattingNotice:
-    """stderr without Hydra's notice that it could not shorten an error's traceback (printed
-    before the error is re-raised, which ``_run`` then reports in one line)."""
+class _HydraErrors:
+    """stderr while Hydra composes the configuration, before ``main`` runs: what Hydra writes there is
+    an error (``algo=nope``, ``nope=1``, ``episodes=[``: the message, the options, the config search
+    path, a hint) that ``_run`` reports in one line; its notice that it could not shorten a traceback
+    is dropped. From ``main``'s first line on, everything passes through."""
 
     def __init__(self, stream):
         self.stream = stream
+        self.held: list[str] | None = []
 
     def write(self, text: str) -> int:
         if text.startswith("An error occurred during Hydra's exception formatting"):
             return len(text)
+        if self.held is not None:
+            self.held.append(text)
+            return len(text)
         return self.stream.write(text)
+
+    def pass_through(self) -> None:
+        held, self.held = self.held or [], None
+        for text in held:
+            self.stream.write(text)
+
+    def line(self) -> str | None:
+        """Hydra's error in one line: its first line, the options it lists, its hint (None: it wrote nothing)."""
+        lines = [line.strip() for text in self.held or [] for line in text.splitlines() if line.strip()]
+        lines = [line for line in lines if not line.startswith(("Set the environment variable HYDRA_FULL_ERROR",
+                                                                "See https://hydra.cc"))]
+        if not lines:
+            return None
+        first = lines[0]
+        if "Available options" in " ".join(lines):
+            start = next(i for i, line in enumerate(lines) if line.startswith("Available options")) + 1
+            end = next((i for i, line in enumerate(lines) if line.startswith("Config search path")), len(lines))
+            first += f" (options: {', '.join(lines[start:end])})"
+        hint = next((line for line in lines if line.startswith("To append to your config use")), None)
+        if hint:
+            first += f" ({hint[0].lower()}{hint[1:]})"
+        elif len(lines) > 1 and first.startswith("Could not"):
+            first += f" ({lines[1]})"
+        return first
 
     def __getattr__(self, name):
         return getattr(self.stream, name)
 
 
 def _run() -> None:
-    """``main()``; a configuration Hydra cannot even resolve (``seed=${oops}``, which its run folder's
-    name interpolates) ends in one line and exit status 2, as other invalid configurations do."""
-    stderr, sys.stderr = sys.stderr, _HydraFormattingNotice(sys.stderr)
+    """``main()``; a configuration Hydra cannot compose (``algo=nope``) or resolve (``seed=${oops}``,
+    which its run folder's name interpolates) ends in one line and exit status 2, as other invalid
+    configurations do."""
+    stderr = sys.stderr
+    sys.stderr = errors = _HydraErrors(stderr)
     try:
         main()
     except OmegaConfBaseException as err:
         lines = [line.strip() for line in str(err).splitlines() if line.strip()]
         print(f"Invalid configuration: {lines[0] if lines else type(err).__name__}", file=stderr)
+        errors.held = None  # said in that line
         raise SystemExit(2) from None
+    except SystemExit as end:
+        line = errors.line()
+        if line is not None and end.code == 1:  # Hydra's own error, before main ran
+            print(f"Invalid configuration: {line}", file=stderr)
+            errors.held = None
+            raise SystemExit(2) from None
+        raise
     finally:
+        errors.pass_through()
         sys.stderr = stderr
+        for number in (signal.SIGINT, signal.SIGTERM):  # the work is over: a late signal must not interrupt
+            if signal.getsignal(number) is _stopped_early:  # the exit (joblib joins its threads at exit)
+                signal.signal(number, signal.SIG_IGN)
 
 
 if __name__ == "__main__":

@@ -110,7 +110,7 @@ def load_tensors(path: Path, what: str = "file", sealed: bool = False):
     checkpoint, whose seal (``unsealed``) is checked first."""
     path = Path(path)
     try:
-        data = read_own(path)
+        data = read_own(path, _load_limit(), what)
         if len(data) == 0:
             raise ValueError(f"{path} is empty (0 bytes)")
         if sealed:
@@ -127,6 +127,14 @@ def load_tensors(path: Path, what: str = "file", sealed: bool = False):
         raise ValueError(f"{path} is not a readable {what} (UnpicklingError: {reason[:200]})") from None
     except (RuntimeError, EOFError, OSError, zipfile.BadZipFile, TypeError, AttributeError, KeyError) as err:
         raise ValueError(f"{path} is not a readable {what} ({first_line(err)})") from None
+
+
+def _load_limit() -> int | None:
+    """The largest file a load may read: half the memory available (it is read, then unpacked)."""
+    from engine.limits import available_bytes
+
+    available = available_bytes()
+    return None if available is None else max(available // 2, 1 << 20)
 
 
 def _unpickler_reason(message: str) -> str:

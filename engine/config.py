@@ -95,13 +95,21 @@ def _short(value) -> str:
 
 
 def _sha256(path) -> str | None:
-    """The SHA-256 of a file's bytes (None if it cannot be read: validation then says why)."""
+    """The SHA-256 of a track file's bytes (None if it is not a regular file of at most the size a
+    track file may have, or cannot be read: validation then says why)."""
     import hashlib
+    import os
+    import stat
+
+    from racing.track_file import MAX_BYTES
 
     try:
+        info = os.stat(path)  # before opening: opening a pipe waits for a writer
+        if not stat.S_ISREG(info.st_mode) or info.st_size > MAX_BYTES:
+            return None  # never read: a device or a pipe would be read without end
         with open(path, "rb") as f:
-            return hashlib.sha256(f.read()).hexdigest()
-    except (OSError, TypeError):
+            return hashlib.sha256(f.read(MAX_BYTES + 1)).hexdigest()
+    except (OSError, TypeError, ValueError):
         return None
 
 

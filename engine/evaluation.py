@@ -110,6 +110,8 @@ def track_file_problem(settings: dict) -> str | None:
         return None
     path, recorded = Path(env.get("track_file") or ""), env.get("track_file_sha256")
     try:
+        if path.exists() and not path.is_file():
+            raise OSError(f"{path} is not a regular file")
         found = hashlib.sha256(path.read_bytes()).hexdigest()
     except OSError as err:
         return (f"the run trained on the track file {path}, which cannot be read here ({first_line(err)}); "

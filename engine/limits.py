@@ -4,11 +4,11 @@ Two checks, both before a run writes anything (train.py, and the sweeper for eve
 
 - ``check_ceilings``: each configuration value that sets an allocation has a ceiling, far above any
   use in this project and below what would exhaust a machine by itself (``CEILINGS``; the
-  simulator's own, ``racing.config.MAX_SEGMENTS`` and ``MAX_STEPS``, and a track file's,
+  simulator's own, ``racing.config.MAX_SEGMENTS``, ``MAX_STEPS`` and ``MAX_RAYS``, and a track file's,
   ``racing.track_file.MAX_ROWS``, are checked where those values are read). conf/ names each.
 - ``check_memory``: the memory a run will need, estimated from its sizes (``estimate``: replay
-  memory, episodes, networks with their optimiser state, a minibatch's activations, and the
-  process itself), against the memory the machine has available (``available_bytes``: the
+  memory and its checkpoint copies, episodes, the tracks' ray tables, networks with their
+  optimiser state, a minibatch's activations, and the process itself), against the memory the machine has available (``available_bytes``: the
   kernel's MemAvailable, or a cgroup's limit if lower). A run that would not fit is refused with
   the estimate, part by part. The estimate errs low rather than high (a run it refuses would not
   have fitted); it is not a promise that a run it allows fits beside other work.
@@ -42,9 +42,14 @@ CEILINGS = {
     "algo.redq.critics": (1_000, "Q-networks"),
 }
 
-TRANSITION_BYTES = 72  # a stored transition (measured: 44 bytes for the paper's learners, 70 for SAC's with priorities)
+TRANSITION_BYTES = 32  # a stored transition besides its two observations (measured in all: 44 bytes for the paper's
+#                       learners, 70 for SAC's with priorities, at 6 observations)
+OBSERVATION_BYTES = 8  # per observation of a stored transition (float32, and the next state's)
+TABLE_BYTES = 16  # a track's ray tables, per squared checkpoint, kept (racing.physics builds N x 2N tables;
+#                  building one takes 9 times that at its peak: measured 3.6 GB at 5,000 checkpoints)
 CHECKPOINT_COPIES = 2  # a checkpoint holds the whole replay storage (allocated at its full size), serialised and read
 EPISODE_STEP_BYTES = 640  # a collected step of one member, with the collector's keys and a copy for training
+#                           (and 16 bytes more per observation)
 PROCESS_BYTES = 600 * 2**20  # torch, the simulator and Python themselves
 PARAMETER_COPIES = 5  # a parameter, its gradient, Adam's two moments, and a target network's copy
 ACTIVATION_COPIES = 8  # per unit of a layer and row of a minibatch: forward values, gradients, temporaries
@@ -90,6 +95,11 @@ def estimate(cfg) -> dict[str, int]:
 
     options = RacingConfig(**cfg.env.options)
     members, steps, obs = len(cfg.members), options.max_steps, options.obs_size
+    checkpoints = options.num_segments
+    if cfg.env.track_file is not None:  # the file decides (validated already: it reads)
+        from racing.track_file import read_rows
+
+        checkpoints = len(read_rows(cfg.env.track_file)[0])
     algo, net = cfg.algo, cfg.network
     critics, outputs = 1, 1  # the paper's: one critic network of one value
     if algo.loss in ("sac", "td3", "crossq"):
@@ -105,14 +115,16 @@ def estimate(cfg) -> dict[str, int]:
     actor = _mlp_parameters([obs, *net.actor_hidden, 4])
     critic = _mlp_parameters([obs + 2, *critic_layers, outputs])
     stored = cfg.er.buffer_size if cfg.er.train_on_memory else 0  # allocated whole, saved whole by checkpoints
+    transition = TRANSITION_BYTES + OBSERVATION_BYTES * obs
     minibatch = max(1, round(algo.minibatch_size * cfg.er.minibatch_fraction))
     rows = minibatch * max(1, algo.spg.num_samples if algo.spg is not None else 1)  # SPG scores sampled actions
     widest = max((*net.actor_hidden, *critic_layers))
     layers = max(len(net.actor_hidden), len(critic_layers))
     return {
-        "replay memory": members * stored * TRANSITION_BYTES,
-        "checkpoints": members * stored * TRANSITION_BYTES * CHECKPOINT_COPIES if cfg.checkpoint_every else 0,
-        "episodes": members * steps * EPISODE_STEP_BYTES,
+        "replay memory": members * stored * transition,
+        "checkpoints": members * stored * transition * CHECKPOINT_COPIES if cfg.checkpoint_every else 0,
+        "episodes": members * steps * (EPISODE_STEP_BYTES + 16 * obs),
+        "track tables": (members + 8) * TABLE_BYTES * checkpoints**2,
         "networks": members * (actor + critics * critic) * 4 * PARAMETER_COPIES,
         "activations": members * rows * widest * layers * (critics if algo.td is not None else 1) * 4
         * ACTIVATION_COPIES,

@@ -10,6 +10,7 @@ import json
 import math
 import os
 import shutil
+import stat
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,8 @@ SUMMARY_FILE = "summary.json"
 EPISODE_COLUMNS = ("episode", "total_reward", "crashes", "final_checkpoint")
 
 
+SUMMARY_LIMIT = 16 * 2**20  # bytes: a summary is a few kilobytes
+ROWS_LIMIT = 1 << 30  # bytes of metrics.csv read to resume (its checkpoint's record says how many, when it has one)
 RECORDABLE_FILES = (METRICS_FILE, "actor.pt", "critic.pt", "model.zip")  # what a summary's "files" may name
 FINAL_STATUSES = ("completed", "diverged", "incomplete")  # a run that ended ("incomplete": an SB3 baseline's, short)
 SUMMARY_KEYS = ("algo", "er", "seed", "status", "final_mean", "episodes", "settings")
@@ -139,7 +142,9 @@ def kept_rows(path: Path, count: int, expect: dict | None, header: str | None = 
     if count == 0:
         return b""
     try:
-        data = read_own(path)
+        data = read_own(path, ROWS_LIMIT, "metrics.csv")
+        if expect is not None and isinstance(expect.get("bytes"), int):
+            data = data[:expect["bytes"]]  # the rows it recorded; those after it are written again
     except FileNotFoundError:
         data = b""
     except OSError as err:
@@ -173,11 +178,28 @@ def open_new_or_own(path: Path, flags: int, mode: int = 0o644) -> int:
         raise
 
 
-def read_own(path: Path) -> bytes:
-    """The bytes of a run's own file (``RunFolderError`` if it is a symbolic link)."""
+def read_own(path: Path, limit: int | None = None, what: str = "file") -> bytes:
+    """The bytes of a run's own file: ``RunFolderError`` if it is a symbolic link, not a regular file,
+    or larger than ``limit`` bytes (read no further: a file grown to gigabytes is refused, not loaded)."""
     fd = open_new_or_own(path, os.O_RDONLY)
     with os.fdopen(fd, "rb") as f:
-        return f.read()
+        info = os.fstat(f.fileno())
+        if not stat.S_ISREG(info.st_mode):
+            raise RunFolderError(f"{path} is not a regular file")
+        if limit is not None and info.st_size > limit:
+            raise RunFolderError(f"{path} is {info.st_size:,} bytes, more than a {what} of a run holds "
+                                 f"(at most {limit:,}): damaged or not a run's")
+        return f.read(limit + 1 if limit is not None else -1)
+
+
+def file_digest(path: Path) -> dict:
+    """{"bytes", "sha256"} of a file, read in pieces (a file of any size, in little memory)."""
+    digest, size = hashlib.sha256(), 0
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 20):
+            digest.update(chunk)
+            size += len(chunk)
+    return {"bytes": size, "sha256": digest.hexdigest()}
 
 
 def _format(value: Any) -> Any:
@@ -284,8 +306,7 @@ def file_record(folder: Path, names: tuple[str, ...]) -> dict:
     for name in names:
         path = Path(folder) / name
         if path.is_file():
-            data = path.read_bytes()
-            record[name] = {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+            record[name] = file_digest(path)
     return record
 
 
@@ -295,7 +316,7 @@ def read_summary(out_dir: Path) -> dict | None:
     object, keys missing). A damaged summary is never taken for a missing one."""
     path = Path(out_dir) / SUMMARY_FILE
     try:
-        text = path.read_text()
+        text = read_own(path, SUMMARY_LIMIT, "summary").decode()
     except FileNotFoundError:
         return None
     except (OSError, UnicodeDecodeError) as err:

@@ -149,6 +149,23 @@ class StopSignals:
             signal.signal(number, handler)
 
 
+def _between_jobs(number, frame) -> None:
+    """A signal to a sweep's worker between its jobs: the sweep's process has it too and stops the sweep."""
+
+
+_between_jobs.racing_replaceable = True
+
+
+def idle_between_jobs() -> None:
+    """In a sweep's worker process (joblib's), SIGINT and SIGTERM outside a run's training do nothing
+    (each run's ``StopSignals`` stands in for this while it trains): a second Ctrl-C that reaches a
+    worker between two jobs must not end it with a traceback. Only over the default handlers."""
+    if threading.current_thread() is threading.main_thread():
+        for number, default in ((signal.SIGINT, signal.default_int_handler), (signal.SIGTERM, signal.SIG_DFL)):
+            if signal.getsignal(number) is default:
+                signal.signal(number, _between_jobs)
+
+
 def read_stop_file(path: Path) -> str | None:
     """The signal named by a sweep's stop file (None: there is none)."""
     try:

@@ -25,18 +25,20 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 import socket
 from dataclasses import dataclass
 from pathlib import Path
 
-from engine.outputs import (DIGEST_KEY, FINAL_STATUSES, METRICS_FILE, SUMMARY_FILE, RunFolderError, file_record,
+from engine.outputs import (DIGEST_KEY, FINAL_STATUSES, METRICS_FILE, SUMMARY_FILE, RunFolderError, file_digest,
                             first_line, open_new_or_own, read_summary)
 
 WEIGHT_FILES = ("actor.pt", "critic.pt")
 RECORDED_FILES = (METRICS_FILE, *WEIGHT_FILES)  # what a summary's "files" record covers
 LOCK_FILE = ".lock"
 LOGS_DIR = "logs"  # TorchRL's logger (engine.outputs.make_torchrl_logger)
+_CHECKPOINT_NAME = re.compile(r"checkpoint(-\d+)?\.pt")
 
 
 class RunFolderBusy(RunFolderError):
@@ -75,9 +77,10 @@ def refusal(found: FolderState, settings: dict | None, solo: bool = True) -> str
 
 
 def _run_files(folder: Path) -> list[Path]:
-    """Every file a run writes in its folder, present or not (checkpoints: those present)."""
-    names = (SUMMARY_FILE, *RECORDED_FILES, "model.zip", LOCK_FILE)
-    return [folder / name for name in names] + sorted(folder.glob("checkpoint*.pt"))
+    """Every file (and folder) a run writes in its folder, present or not (checkpoints: those present)."""
+    names = (SUMMARY_FILE, *RECORDED_FILES, "model.zip", LOCK_FILE, LOGS_DIR, ".hydra")
+    return [folder / name for name in names] + checkpoints(folder) + [
+        p for p in folder.glob("checkpoint*.pt") if p.is_symlink()]
 
 
 def linked_file(folder: Path) -> str | None:
@@ -88,8 +91,10 @@ def linked_file(folder: Path) -> str | None:
 
 
 def checkpoints(folder: Path) -> list[Path]:
-    """The checkpoints in a folder: ``checkpoint.pt`` and those of a split population's parts."""
-    return sorted(p for p in Path(folder).glob("checkpoint*.pt") if p.is_file())
+    """The checkpoints in a folder: ``checkpoint.pt`` and those of a split population's parts
+    (``checkpoint-<first seed>.pt``); a user's ``checkpoint-copy.pt`` is not one."""
+    return sorted(p for p in Path(folder).glob("checkpoint*.pt")
+                  if p.is_file() and _CHECKPOINT_NAME.fullmatch(p.name))
 
 
 def state(folder: Path) -> FolderState:
@@ -157,16 +162,16 @@ def _mismatch(folder: Path, summary: dict) -> str | None:
     """What differs between the folder's files and those its summary stands for (None: nothing)."""
     recorded = summary.get("files")
     if isinstance(recorded, dict):
-        present = file_record(folder, tuple(recorded))
         for name, expected in recorded.items():
-            found = present.get(name)
-            if found is None:
-                return f"{folder / name} is missing (its summary records it)"
-            if found != expected:
-                if found["bytes"] != expected.get("bytes"):
-                    return (f"{folder / name} is not the file its summary records ({found['bytes']} bytes where "
-                            f"{expected.get('bytes')} were written)")
-                return f"{folder / name} differs from the file its summary records (its SHA-256)"
+            path = folder / name
+            if not path.is_file():
+                return f"{path} is missing (its summary records it)"
+            size = path.stat().st_size  # sizes first: a file grown to gigabytes is not read
+            if size != expected.get("bytes"):
+                return (f"{path} is not the file its summary records ({size} bytes where "
+                        f"{expected.get('bytes')} were written)")
+            if file_digest(path) != expected:
+                return f"{path} differs from the file its summary records (its SHA-256)"
         return None
     weights = ("model.zip",) if str(summary["algo"]).startswith("sb3_") else WEIGHT_FILES  # baseline.py's
     needed = (METRICS_FILE, *(weights if summary["status"] == "completed" else ()))
@@ -192,7 +197,8 @@ def remove_temporaries(folder: Path) -> None:
     """Temporary files a killed writer left behind (``engine.outputs.write_atomic``'s ``<name>.tmp``,
     for the files a run writes only: a user's own ``*.tmp`` stays)."""
     folder = Path(folder)
-    for path in [*folder.glob("checkpoint*.pt.tmp"), *(folder / f"{p.name}.tmp" for p in _run_files(folder))]:
+    for path in [*(p for p in folder.glob("checkpoint*.pt.tmp") if _CHECKPOINT_NAME.fullmatch(p.name[:-4])),
+                 *(folder / f"{p.name}.tmp" for p in _run_files(folder))]:
         if path.is_file() or path.is_symlink():
             path.unlink(missing_ok=True)
 

@@ -237,7 +237,7 @@ def _parts_stopped(name: str, lines: list[str]) -> str:
     import re
 
     saved = [re.search(r"saved at episode (\d+) \((.*)\)", line) for line in lines]
-    where = [f"{Path(m.group(2)).name} at episode {m.group(1)}" for m in saved if m]
+    where = sorted(f"{Path(m.group(2)).name} at episode {m.group(1)}" for m in saved if m)
     if not where:
         return f"Stopped by {name} before any part saved a checkpoint: the same command starts the run afresh"
     folder = Path(next(m for m in saved if m).group(2)).parent

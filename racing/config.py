@@ -11,14 +11,15 @@ import math
 from dataclasses import dataclass, fields
 
 
-MAX_SEGMENTS = 100_000  # a track's checkpoints (the paper's: 50); each costs about 200 bytes of tables
+MAX_SEGMENTS = 5_000  # a track's checkpoints (the paper's: 50); the ray tables' building grows with their square
 MAX_STEPS = 1_000_000  # an episode's steps (the paper's: 200); a run keeps each episode's transitions
+MAX_RAYS = 64  # distance rays (the paper's: 5); each is an observation of every stored transition
 
 
 @dataclass(frozen=True)
 class RacingConfig:
     """Constants of track generation, car dynamics, sensors and episodes (sizes bounded:
-    ``MAX_SEGMENTS``, ``MAX_STEPS``)."""
+    ``MAX_SEGMENTS``, ``MAX_STEPS``, ``MAX_RAYS``)."""
 
     # Track layout (pixels and degrees).
     num_segments: int = 50  # checkpoints (quadrilaterals) per track
@@ -51,6 +52,8 @@ class RacingConfig:
             if f.name == "ray_angles_deg":
                 if len(value) == 0 or not all(math.isfinite(a) for a in value):
                     problems.append("ray_angles_deg must be a non-empty sequence of finite angles")
+                elif len(value) > MAX_RAYS:
+                    problems.append(f"ray_angles_deg holds {len(value):,} rays, more than {MAX_RAYS}")
                 continue
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 problems.append(f"{f.name} must be a number, got {value!r}")

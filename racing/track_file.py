@@ -57,7 +57,7 @@ def example(name: str) -> Path:
     return path
 
 
-MAX_ROWS = 20_000  # points of a track file (real circuits have 1,000-6,000; every check is quadratic-ish beyond)
+MAX_ROWS = 5_000  # points of a track file (real circuits: about 1,000); the ray tables grow with their square
 MAX_BYTES = 4 * 1024 * 1024  # the file's size, checked before it is read
 
 
@@ -66,11 +66,14 @@ def read_rows(path: Path) -> tuple[np.ndarray, list[int], dict]:
     most ``MAX_ROWS`` points in a file of at most ``MAX_BYTES`` (a UTF-8 byte-order mark is allowed)."""
     path = Path(path)
     try:
-        size = path.stat().st_size
-        if size > MAX_BYTES:
-            raise TrackFileError(f"{path}: {size:,} bytes, more than a track file holds (at most {MAX_BYTES:,} bytes "
-                                 f"and {MAX_ROWS:,} points)")
-        text = path.read_text(encoding="utf-8-sig")
+        if not path.is_file():  # a device (/dev/zero) or a pipe would be read without end
+            raise TrackFileError(f"{path}: not a regular file" if path.exists() else f"{path}: no such file")
+        with open(path, "rb") as f:
+            data = f.read(MAX_BYTES + 1)
+        if len(data) > MAX_BYTES:
+            raise TrackFileError(f"{path}: more than {MAX_BYTES:,} bytes, more than a track file holds (at most "
+                                 f"{MAX_ROWS:,} points)")
+        text = data.decode("utf-8-sig")
     except (OSError, UnicodeDecodeError) as err:
         raise TrackFileError(f"{path}: cannot be read ({type(err).__name__}: {err})") from None
     rows, lines, settings = [], [], {}

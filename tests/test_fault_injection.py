@@ -15,7 +15,7 @@ def test_a_sample_of_faults_on_every_family_is_refused_or_survived_exactly(tmp_p
         assert {kind for f, kind in tried if f == family} >= {"flip", "truncate", "link", "disk", "signal"}, \
             table(counts)
     assert sum(v for (_, _, outcome), v in counts.items() if outcome == "refused") > 10
-    assert sum(v for (_, _, outcome), v in counts.items() if outcome == "exact") > 10
+    assert sum(v for (_, _, outcome), v in counts.items() if outcome == "exact") > 5
 
 
 def test_the_documented_command_runs_at_a_tiny_size(capsys):

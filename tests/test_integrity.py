@@ -221,7 +221,7 @@ def test_a_row_that_does_not_fit_on_the_disk_is_cut_off_whole(tmp_path, monkeypa
 
 
 OVERSIZED = [  # each passed validation, wrote .hydra/, then ran out of memory
-    ("env.options.num_segments=100000000", "num_segments must be an integer in [2, 100,000]"),
+    ("env.options.num_segments=100000000", "num_segments must be an integer in [2, 5,000]"),
     ("env.options.max_steps=1000000000", "max_steps must be an integer in [1, 1,000,000]"),
     ("er.buffer_size=1000000000", "er.buffer_size is 1,000,000,000 transitions per member, above its ceiling"),
     ("network.actor_hidden=[1000000000]", "network.width is 1,000,000,000 units of a hidden layer, above its"),
@@ -259,7 +259,7 @@ def test_the_memory_estimate_allows_every_shipped_configuration_and_names_its_pa
 
 def test_every_ceiling_is_documented_in_conf():
     from engine.limits import CEILINGS
-    from racing.config import MAX_SEGMENTS, MAX_STEPS
+    from racing.config import MAX_RAYS, MAX_SEGMENTS, MAX_STEPS
     from racing.track_file import MAX_ROWS
 
     conf = "\n".join(p.read_text() for p in Path(__file__).resolve().parent.parent.glob("conf/**/*.yaml"))
@@ -271,7 +271,7 @@ def test_every_ceiling_is_documented_in_conf():
                        for line in conf.splitlines()), name
         else:
             assert f"at most {ceiling:,}" in conf, name
-    for ceiling in (MAX_SEGMENTS, MAX_STEPS, MAX_ROWS):
+    for ceiling in (MAX_SEGMENTS, MAX_STEPS, MAX_ROWS, MAX_RAYS):
         assert f"at most {ceiling:,}" in conf
 
 
@@ -293,8 +293,8 @@ def test_a_huge_track_file_and_a_byte_order_mark(tmp_path):
         read_rows(huge)
     assert time.perf_counter() - start < 2
     many = tmp_path / "many.csv"
-    many.write_text("".join(f"{i}.0,0.0,5.0,5.0\n" for i in range(25_000)))
-    with pytest.raises(TrackFileError, match="line 20001: more than 20,000 points"):
+    many.write_text("".join(f"{i}.0,0.0,5.0,5.0\n" for i in range(6_000)))
+    with pytest.raises(TrackFileError, match="line 5001: more than 5,000 points"):
         read_rows(many)
 
 
@@ -388,3 +388,108 @@ def test_sweeps_refuse_aliased_folders_bad_interpolations_and_unknown_groups_in_
         assert bad.returncode == 2 and "Traceback" not in bad.stderr, bad.stderr[-3000:]
         assert "Interpolation key 'oops' not found" in bad.stderr
     assert not sweep.exists() or not any(sweep.rglob("metrics.csv"))
+
+
+# ---- a hostile trial of the above (links where Hydra and TorchRL write, files grown to gigabytes,
+# ---- devices as track files, rays and checkpoints by the thousand, Hydra's own errors) ----
+
+@pytest.mark.parametrize("name", [".hydra", "logs"])
+def test_a_linked_folder_where_a_run_writes_is_refused(tmp_path, name):
+    from engine.config import ConfigError
+
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    folder = tmp_path / "run"
+    folder.mkdir()
+    (folder / name).symlink_to(outside, target_is_directory=True)
+    with pytest.raises((ConfigError, RunFolderError), match="symbolic link"):
+        train([*TINY, "logger=csv"], folder)
+    assert not any(outside.iterdir())
+
+
+def test_no_log_file_and_no_link_followed_by_a_sweep(tmp_path):
+    """Hydra's train.log (written through a link, and even by refused commands) is not made; a linked
+    multirun.yaml is replaced, not written through."""
+    from tests.test_train import run_train
+
+    refused = run_train(*TINY, "seed=abc", f"hydra.run.dir={tmp_path / 'run'}")
+    assert refused.returncode == 2 and not (tmp_path / "run" / "train.log").exists()
+    sweep = tmp_path / "sweep"
+    sweep.mkdir()
+    precious = tmp_path / "precious.yaml"
+    precious.write_text("mine\n")
+    (sweep / "multirun.yaml").symlink_to(precious)
+    result = run_train("-m", *TINY, "episodes=1", "seed=5", "hydra/launcher=basic", f"hydra.sweep.dir={sweep}")
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert precious.read_text() == "mine\n" and not (sweep / "multirun.yaml").is_symlink()
+    assert not list(sweep.rglob("*.log"))
+
+
+def test_a_file_grown_to_gigabytes_is_refused_unread(finished, tmp_path):
+    """A metrics.csv of 40 GB (sparse) in a finished folder gave a MemoryError traceback."""
+    import time
+
+    from engine.config import ConfigError
+
+    folder = _copy(finished, tmp_path / "run")
+    with open(folder / "metrics.csv", "r+b") as f:
+        f.truncate(40 * 2**30)
+    start = time.perf_counter()
+    with pytest.raises(ConfigError, match=r"metrics.csv is not the file its summary records \(42949672960 bytes"):
+        train([*TINY], folder)
+    (folder / "summary.json").unlink()
+    with open(folder / "checkpoint.pt", "wb") as f:
+        f.truncate(200 * 2**30)
+    with pytest.raises(Exception, match=r"checkpoint.pt is 214,748,364,800 bytes, more than a checkpoint of a run holds"):
+        train([*TINY], folder)
+    assert time.perf_counter() - start < 10
+
+
+@pytest.mark.parametrize("kind", ["device", "fifo"])
+def test_a_track_file_that_is_a_device_or_a_pipe_is_refused_at_once(tmp_path, kind):
+    """env.track_file=/dev/zero was read until the kernel killed the process at 22 GB; a FIFO hung."""
+    import os
+
+    from engine.config import ConfigError, RunConfig
+
+    path = Path("/dev/zero")
+    if kind == "fifo":
+        path = tmp_path / "fifo"
+        os.mkfifo(path)
+    with pytest.raises(ConfigError, match="not a regular file"):
+        RunConfig.compose(*TINY, "env.track=file", f"env.track_file={path}")
+
+
+def test_rays_and_checkpoints_by_the_thousand_are_bounded_before_work():
+    """3,000 rays passed and ran out of memory; 20,000 segments needed 12 GiB of ray tables, unestimated."""
+    from engine.config import ConfigError, RunConfig
+    from engine.limits import check_memory, estimate
+
+    with pytest.raises(ConfigError, match="ray_angles_deg holds 3,000 rays, more than 64"):
+        RunConfig.compose("er=memory", f"env.options.ray_angles_deg=[{','.join(['0.0'] * 3000)}]")
+    with pytest.raises(ConfigError, match=r"num_segments must be an integer in \[2, 5,000\]"):
+        RunConfig.compose("er=memory", "env.options.num_segments=20000")
+    cfg = RunConfig.compose("er=memory", "env.options.num_segments=5000", "seeds=[1,2,3,4,5,6,7,8]")
+    assert estimate(cfg)["track tables"] > 5 * 2**30  # 3.6 GB measured to build one such track's tables
+    with pytest.raises(ConfigError, match=r"track tables \d+\.\d GB"):
+        check_memory(cfg, available=4 * 2**30)
+
+
+def test_hydras_own_errors_are_one_line_with_status_2(tmp_path):
+    """algo=nope gave 22 lines (options, config search path) and exit status 1."""
+    from tests.test_train import run_train
+
+    for override, expected in (("algo=nope", "Could not find 'algo/nope' (options: bro, crossq,"),
+                               ("nope=1", "Could not override 'nope'. (to append to your config use +nope=1)"),
+                               ("seed=${oc.env:NOPE}", "Environment variable 'NOPE' not found")):
+        result = run_train(override, f"hydra.run.dir={tmp_path / 'run'}")
+        lines = [line for line in result.stderr.splitlines() if line.strip()]
+        assert result.returncode == 2 and len(lines) == 1 and expected in lines[0], result.stderr
+
+
+def test_a_users_checkpoint_copy_is_neither_resumed_nor_removed(tmp_path):
+    folder = tmp_path / "run"
+    _checkpointed(folder)
+    (folder / "checkpoint-copy.pt").write_bytes((folder / "checkpoint.pt").read_bytes())
+    train([*TINY, "episodes=4", "checkpoint_every=1"], folder)
+    assert rundir.state(folder).kind == "finished" and (folder / "checkpoint-copy.pt").exists()

@@ -152,11 +152,11 @@ def test_track_bank_reuses_slots_of_random_tracks():
 
 
 @pytest.mark.parametrize("kwargs, message", [
-    ({"num_segments": 1}, "num_segments must be an integer >= 2"),
+    ({"num_segments": 1}, r"num_segments must be an integer in \[2, 5,000\]"),
     ({"max_speed": -1.0}, "max_speed must be > 0"),
     ({"accel": 1.5}, "accel must be in (0, 1]"),
     ({"ray_length": float("nan")}, "ray_length must be finite"),
-    ({"max_steps": 0}, "max_steps must be an integer >= 1"),
+    ({"max_steps": 0}, r"max_steps must be an integer in \[1, 1,000,000\]"),
     ({"ray_angles_deg": ()}, "ray_angles_deg must be a non-empty sequence"),
     ({"half_width": "wide"}, "half_width must be a number"),
 ])

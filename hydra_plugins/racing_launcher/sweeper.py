@@ -85,11 +85,13 @@ class _SweepSignals:
 class CheckedSweeper(BasicSweeper):
     def sweep(self, arguments: list[str]) -> Any:
         assert self.config is not None and self.launcher is not None and self.hydra_context is not None
+        getattr(sys.stderr, "pass_through", lambda: None)()  # composed: train.py's stderr is the sweep's now
         parser = OverridesParser.create(config_loader=self.hydra_context.config_loader)
         self.overrides = self.split_arguments(parser.parse_overrides([*self._parse_config(), *arguments]),
                                               self.max_batch_size)
         jobs = [list(job) for batch in self.overrides for job in batch]
-        problems = check_jobs(self.hydra_context.config_loader, self.config, jobs)
+        self.folders: list[list[Path]] = []
+        problems = check_jobs(self.hydra_context.config_loader, self.config, jobs, self.folders)
         if problems:
             print(f"The sweep was not started: {len(problems)} of its {len(jobs)} jobs cannot run as given "
                   "(nothing was written):", file=sys.stderr)
@@ -99,29 +101,38 @@ class CheckedSweeper(BasicSweeper):
 
         sweep_dir = Path(str(self.config.hydra.sweep.dir))
         sweep_dir.mkdir(parents=True, exist_ok=True)
-        OmegaConf.save(self.config, sweep_dir / "multirun.yaml")
+        from engine.outputs import write_atomic
+
+        write_atomic(sweep_dir / "multirun.yaml", OmegaConf.to_yaml(self.config).encode())  # never through a link
         stop_file = sweep_dir / STOP_FILE
         if stop_file.exists() or stop_file.is_symlink():
             stop_file.unlink()  # an earlier sweep's: this one starts anew
-        returns, failed, first, finished = [], [], 0, 0
+        returns, failed, first = [], [], 0
         with _SweepSignals(stop_file):
             while not self.is_done() and read_stop_file(stop_file) is None:
                 batch = self.get_job_batch()
-                results = self.launcher.launch(batch, initial_job_idx=first)
+                try:
+                    results = self.launcher.launch(batch, initial_job_idx=first)
+                except (Exception, KeyboardInterrupt):  # a second signal reached jobs that were starting
+                    if read_stop_file(stop_file) is None:
+                        raise
+                    break
                 for index, (job, result) in enumerate(zip(batch, results), start=first):
                     if result.status == JobStatus.FAILED:
                         failed.append(f"job #{index} ({' '.join(filter_overrides(job))}): "
                                       f"{_message(result._return_value)}")
-                    else:
-                        finished += 1
                 first += len(batch)
                 returns.append(results)
         stopped = read_stop_file(stop_file)
         stop_file.unlink(missing_ok=True)  # every job has ended: the next sweep starts anew
-        if stopped is not None:
-            saved = sum("saved at episode" in line for line in failed)
-            print(f"Sweep stopped by {stopped}: {finished} of {len(jobs)} jobs finished, {saved} stopped with a "
-                  f"checkpoint, {len(jobs) - finished - saved} not started or not saved: the same command resumes it",
+        if stopped is not None:  # counted from the folders: a job's own report may not have come back
+            from engine import rundir
+
+            states = [[rundir.state(f).kind for f in paths] for paths in self.folders]  # the job's, its members'
+            done = sum(bool(kinds) and set(kinds[1:] or kinds) == {"finished"} for kinds in states)
+            saved = sum("resumable" in kinds for kinds in states)
+            print(f"Sweep stopped by {stopped}: {done} of {len(jobs)} jobs finished, {saved} stopped with a "
+                  f"checkpoint, {len(jobs) - done - saved} not started or not saved: the same command resumes it",
                   file=sys.stderr)
             raise SweepStopped(130 if stopped == "SIGINT" else 143)
         if failed:
@@ -146,8 +157,9 @@ def _message(error: Any) -> str:
     return (lines[-1] if lines else type(error).__name__)[:300]
 
 
-def check_jobs(loader, master, jobs: list[list[str]]) -> list[str]:
-    """One line per problem of the sweep's jobs (see the module's docstring); none if all can run."""
+def check_jobs(loader, master, jobs: list[list[str]], folders: list | None = None) -> list[str]:
+    """One line per problem of the sweep's jobs (see the module's docstring); none if all can run.
+    ``folders``, if given, receives each job's member folders (a list per job; empty where unknown)."""
     from engine import rundir
     from engine.config import ConfigError, RunConfig, config_mapping, register_resolvers
     from engine.limits import check_memory
@@ -180,6 +192,8 @@ def check_jobs(loader, master, jobs: list[list[str]]) -> list[str]:
             continue
         folder = Path(os.path.abspath(sweep_dir / subdir))  # ".." taken out: folders that alias each other meet
         members = {seed: folder if run_cfg.seeds is None else folder / f"seed{seed}" for seed in run_cfg.members}
+        if folders is not None:
+            folders.append([folder, *(p for p in members.values() if p != folder)])
         for path in dict.fromkeys([folder, *members.values()]):
             if path in owners:
                 problems.append(f"{label}: writes {path}, as {owners[path]} does; give the jobs different folders "
