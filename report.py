@@ -110,6 +110,11 @@ def main(argv: list[str] | None = None) -> int:
             (out / name).write_text(versions_markdown(versions) + "\n" + text)
             print(text)
             extra.append(name)
+    unsealed = sum(r.status in ("completed", "diverged") and not r.sealed for r in every)
+    if unsealed:
+        print(f"{unsealed} finished run(s) written before summaries were sealed (engine/legacy_summaries.txt): "
+              "their metrics and weights are checked against their records where they have them, their "
+              "summaries' own values are not")
     print(f"{sum(r.status == 'completed' for r in every)} completed runs; wrote {out}/table.md, table.csv, "
           "runs.csv, conclusions.md, collapse.md" + "".join(f", {name}" for name in extra))
     if not args.no_figures:

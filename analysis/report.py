@@ -46,6 +46,7 @@ class Run:
     episode_steps: int = EPISODE_STEPS  # environment steps per episode (env.options.max_steps; racing's default 200)
     cpu_time: float | None = None  # seconds per run: the CPU time of the process that trained it over its size
     problem: str | None = None  # a damaged run's: which file, and what is wrong with it
+    sealed: bool = True  # its summary carries its own digest (False: written before summaries were sealed)
 
     @property
     def version(self) -> str:
@@ -138,6 +139,8 @@ def read_run(folder: Path) -> Run:
         return Run(folder, "damaged", rewards=rewards, problem=found.problem)
     summary = found.summary
     try:
+        from engine.outputs import DIGEST_KEY
+
         settings = summary.get("settings") or {}
         size = (summary.get("population") or {}).get("size") or 1
         wall = summary.get("wall_time_s")
@@ -150,7 +153,8 @@ def read_run(folder: Path) -> Run:
                    (settings.get("env") or {}).get("track", "fixed"), summary.get("evaluation"),
                    wall / size if wall is not None else None, numerics_label(summary),
                    int(((settings.get("env") or {}).get("options") or {}).get("max_steps") or EPISODE_STEPS),
-                   summary["cpu_time_s"] / size if summary.get("cpu_time_s") is not None else None)
+                   summary["cpu_time_s"] / size if summary.get("cpu_time_s") is not None else None,
+                   sealed=DIGEST_KEY in summary)
     except (KeyError, TypeError, ValueError, AttributeError) as err:
         return Run(folder, "damaged", rewards=rewards, problem=f"{folder / SUMMARY_FILE}: a field is malformed ({err!r})")
 
