@@ -67,7 +67,8 @@ def read_rows(path: Path) -> tuple[np.ndarray, list[int], dict]:
     path = Path(path)
     try:
         if not path.is_file():  # a device (/dev/zero) or a pipe would be read without end
-            raise TrackFileError(f"{path}: not a regular file" if path.exists() else f"{path}: no such file")
+            raise TrackFileError(f"{path}: cannot be read (not a regular file: a device, a pipe or a folder)"
+                                 if path.exists() else f"{path}: cannot be read (no such file)")
         with open(path, "rb") as f:
             data = f.read(MAX_BYTES + 1)
         if len(data) > MAX_BYTES:
