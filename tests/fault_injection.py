@@ -251,12 +251,12 @@ def count_writes(trial: Trial, folder: Path) -> int:
     return seen[0]
 
 
-def try_signals(family: str, work: Path, rng: random.Random, kills: int) -> list[tuple[str, str]]:
+def try_signals(family: str, work: Path, rng: random.Random, kills: int, episodes: int = 150) -> list[tuple[str, str]]:
     """``kills`` signals at random moments of one run (forked sessions), then to its end; the result
     must be the uninterrupted run's."""
     from tests.test_run_folders import FaultServer
 
-    longer = [o if not o.startswith("episodes=") else "episodes=150" for o in FAMILIES[family]]  # many moments
+    longer = [o if not o.startswith("episodes=") else f"episodes={episodes}" for o in FAMILIES[family]]  # moments
     server = FaultServer(work / "sessions.log", longer)
     outcomes = []
     try:
@@ -283,7 +283,8 @@ def try_signals(family: str, work: Path, rng: random.Random, kills: int) -> list
     return outcomes
 
 
-def run(trials: int, signals: int, seed: int, families: list[str], work: Path) -> tuple[Counter, list[str]]:
+def run(trials: int, signals: int, seed: int, families: list[str], work: Path,
+        signal_episodes: int = 150) -> tuple[Counter, list[str]]:
     rng = random.Random(seed)
     counts: Counter = Counter()
     failures: list[str] = []
@@ -301,7 +302,7 @@ def run(trials: int, signals: int, seed: int, families: list[str], work: Path) -
                 failures.append(f"{family}: {label}")
             shutil.rmtree(folder, ignore_errors=True)
         if signals:
-            for outcome, label in try_signals(family, base, rng, signals):
+            for outcome, label in try_signals(family, base, rng, signals, signal_episodes):
                 counts[(family, "signal", outcome)] += 1
                 if outcome == "misreported":
                     failures.append(f"{family}: {label}")

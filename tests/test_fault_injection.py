@@ -8,7 +8,8 @@ from __future__ import annotations
 def test_a_sample_of_faults_on_every_family_is_refused_or_survived_exactly(tmp_path):
     from tests.fault_injection import FAMILIES, run, table
 
-    counts, failures = run(trials=20, signals=2, seed=50, families=list(FAMILIES), work=tmp_path)
+    counts, failures = run(trials=12, signals=2, seed=50, families=list(FAMILIES), work=tmp_path,
+                           signal_episodes=30)
     assert not failures, "\n".join(failures) + "\n" + table(counts)
     tried = {(family, kind) for family, kind, _ in counts}
     for family in FAMILIES:

@@ -9,6 +9,8 @@ from __future__ import annotations
 import json
 import re
 import shlex
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -151,3 +153,18 @@ def test_every_documented_sweep_of_the_current_code_composes():
                 RunConfig.compose(*first[:i], value, *first[i + 1:])
                 checked += 1
     assert checked >= 20
+
+
+def test_the_quick_tier_selects_every_test_file_but_the_listed_slow_tests():
+    """The README's quick tier (``-m "not slow"``): it deselects exactly tests/slow_tests.txt and keeps a
+    test of every test file that has a fast one."""
+    from tests.conftest import _slow_tests
+
+    assert '.venv/bin/python -m pytest -m "not slow"' in README
+    result = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-m", "not slow", "-p",
+                             "no:cacheprovider", "-o", "addopts="], cwd=ROOT, capture_output=True, text=True,
+                            timeout=300)
+    assert result.returncode == 0, result.stdout[-2000:]
+    selected = {line for line in result.stdout.splitlines() if "::" in line}
+    assert not selected & _slow_tests() and len(selected) > 400
+    assert len({test.split("::")[0] for test in selected}) >= 30
