@@ -65,7 +65,7 @@ def config_mapping(cfg) -> dict:
         if env["track_file"] is None:
             del env["track_file"]
         elif "track_file_sha256" not in env:
-            env["track_file_sha256"] = _sha256(env["track_file"])
+            env["track_file_sha256"] = track_file_sha256(env["track_file"])
     return mapping
 
 
@@ -94,7 +94,7 @@ def _short(value) -> str:
     return text if len(text) <= 40 else text[:37] + "..."
 
 
-def _sha256(path) -> str | None:
+def track_file_sha256(path) -> str | None:
     """The SHA-256 of a track file's bytes (None if it is not a regular file of at most the size a
     track file may have, or cannot be read: validation then says why)."""
     import hashlib
@@ -257,7 +257,7 @@ class EnvConfig:
                 file_track(self.track_file, dict(self.options), "env.options")
             except (TrackFileError, TypeError, ValueError) as err:
                 raise ConfigError(f"env.track_file: {err}") from None
-            if self.track_file_sha256 != _sha256(self.track_file):
+            if self.track_file_sha256 != track_file_sha256(self.track_file):
                 raise ConfigError(f"env.track_file {self.track_file} is not the file its run recorded "
                                   "(env.track_file_sha256 differs)")
 

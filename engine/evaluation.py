@@ -103,19 +103,17 @@ def deterministic_action(policy: Policy, observation: np.ndarray) -> np.ndarray:
 def track_file_problem(settings: dict) -> str | None:
     """Why a run's own track file cannot stand for the track it trained on (None: it can): missing,
     or changed since (its SHA-256 differs from the one the run recorded)."""
-    import hashlib
+    from engine.config import track_file_sha256
 
     env = settings.get("env") or {}
     if env.get("track") != "file":
         return None
     path, recorded = Path(env.get("track_file") or ""), env.get("track_file_sha256")
-    try:
-        if path.exists() and not path.is_file():
-            raise OSError(f"{path} is not a regular file")
-        found = hashlib.sha256(path.read_bytes()).hexdigest()
-    except OSError as err:
-        return (f"the run trained on the track file {path}, which cannot be read here ({first_line(err)}); "
-                "restore it (a relative path is read from the current folder) to evaluate the run")
+    found = track_file_sha256(path)  # bounded: a regular file of a track file's size, never a pipe
+    if found is None:
+        return (f"the run trained on the track file {path}, which cannot be read here (missing, not a regular file, "
+                "or larger than a track file); restore it (a relative path is read from the current folder) to "
+                "evaluate the run")
     if recorded is not None and found != recorded:
         return (f"the run trained on the track file {path}, which has changed since (its SHA-256 differs from the "
                 "one the run recorded); restore that file to evaluate the run on its own track")

@@ -74,7 +74,7 @@ class MetricsWriter:
         checked before they are kept."""
         self.path = out_dir / METRICS_FILE
         self.columns = columns
-        kept = self._kept_rows(keep_rows, expect)
+        kept = kept_rows(self.path, keep_rows, expect, ",".join(columns))
         text = io.StringIO(newline="")
         csv.DictWriter(text, fieldnames=columns).writeheader()
         write_atomic(self.path, text.getvalue().encode() + kept)  # a crash now leaves the old file whole
@@ -82,10 +82,6 @@ class MetricsWriter:
         self.fd = open_new_or_own(self.path, os.O_WRONLY | os.O_APPEND)
         self.size = os.fstat(self.fd).st_size
         self.logger = make_torchrl_logger(logger_kind, out_dir)
-
-    def _kept_rows(self, count: int, expect: dict | None) -> bytes:
-        return kept_rows(self.path, count, expect, ",".join(self.columns))
-
 
     def record(self) -> dict:
         """Size and SHA-256 of the file as it is on the disk now (a checkpoint keeps it: ``expect``)."""
@@ -156,9 +152,9 @@ def kept_rows(path: Path, count: int, expect: dict | None, header: str | None = 
         raise RunFolderError(f"{path} {found}, but the run's checkpoint counts {count} episode rows: "
                              "the run cannot continue exactly; pass overwrite=true to start it afresh")
     if expect is not None and bytes_record(b"".join(lines[:count + 1])) != expect:
-        raise RunFolderError(f"{path}: its first {count} row{'s' if count != 1 else ''} differ from those its checkpoint recorded (their "
-                             "SHA-256): edited or damaged since; the run cannot continue exactly: pass overwrite=true "
-                             "to start it afresh")
+        raise RunFolderError(f"{path}: its first {count} row{'s' if count != 1 else ''} differ from those its "
+                             "checkpoint recorded (their SHA-256): edited or damaged since; the run cannot continue "
+                             "exactly: pass overwrite=true to start it afresh")
     return b"".join(lines[1:count + 1])
 
 

@@ -76,11 +76,19 @@ def refusal(found: FolderState, settings: dict | None, solo: bool = True) -> str
     return None
 
 
+_RUN_NAMES = (SUMMARY_FILE, *RECORDED_FILES, "model.zip", LOCK_FILE, LOGS_DIR, ".hydra")
+
+
+def _is_run_file(name: str) -> bool:
+    """A name a run writes in its folder (a user's ``checkpoint-copy.pt`` or ``notes.tmp`` is not)."""
+    return name in _RUN_NAMES or _CHECKPOINT_NAME.fullmatch(name) is not None
+
+
 def _run_files(folder: Path) -> list[Path]:
-    """Every file (and folder) a run writes in its folder, present or not (checkpoints: those present)."""
-    names = (SUMMARY_FILE, *RECORDED_FILES, "model.zip", LOCK_FILE, LOGS_DIR, ".hydra")
-    return [folder / name for name in names] + checkpoints(folder) + [
-        p for p in folder.glob("checkpoint*.pt") if p.is_symlink()]
+    """Every file (and folder) a run writes in its folder: those of fixed names, present or not, and
+    its checkpoints present (files or links)."""
+    return [folder / name for name in _RUN_NAMES] + sorted(
+        p for p in folder.glob("checkpoint*.pt") if _is_run_file(p.name))
 
 
 def linked_file(folder: Path) -> str | None:
@@ -93,8 +101,7 @@ def linked_file(folder: Path) -> str | None:
 def checkpoints(folder: Path) -> list[Path]:
     """The checkpoints in a folder: ``checkpoint.pt`` and those of a split population's parts
     (``checkpoint-<first seed>.pt``); a user's ``checkpoint-copy.pt`` is not one."""
-    return sorted(p for p in Path(folder).glob("checkpoint*.pt")
-                  if p.is_file() and _CHECKPOINT_NAME.fullmatch(p.name))
+    return sorted(p for p in Path(folder).glob("checkpoint*.pt") if p.is_file() and _is_run_file(p.name))
 
 
 def state(folder: Path) -> FolderState:
@@ -196,10 +203,8 @@ def clear(folder: Path) -> None:
 def remove_temporaries(folder: Path) -> None:
     """Temporary files a killed writer left behind (``engine.outputs.write_atomic``'s ``<name>.tmp``,
     for the files a run writes only: a user's own ``*.tmp`` stays)."""
-    folder = Path(folder)
-    for path in [*(p for p in folder.glob("checkpoint*.pt.tmp") if _CHECKPOINT_NAME.fullmatch(p.name[:-4])),
-                 *(folder / f"{p.name}.tmp" for p in _run_files(folder))]:
-        if path.is_file() or path.is_symlink():
+    for path in Path(folder).glob("*.tmp"):
+        if _is_run_file(path.name.removesuffix(".tmp")) and (path.is_file() or path.is_symlink()):
             path.unlink(missing_ok=True)
 
 

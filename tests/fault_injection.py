@@ -183,42 +183,49 @@ def try_file_fault(trial: Trial, kind: str, rng: random.Random, folder: Path) ->
     return "exact", label
 
 
-def try_disk_full(trial: Trial, rng: random.Random, folder: Path, writes: int) -> tuple[str, str]:
-    """The n-th write (file write or fsync) of a fresh run fails for want of space; then the same command."""
-    nth = rng.randint(1, writes)
-    label = f"disk full at write {nth} of {writes}"
+@contextmanager
+def writes_failing_at(nth: int | None):
+    """Within the block, every write of a run (an fsync, a row appended) is counted, and the ``nth``
+    fails for want of space (a row half written, an fsync raising ENOSPC); yields the count so far."""
     seen = [0]
     real_fsync, real_append = os.fsync, outputs.MetricsWriter.append
 
-    def full_now() -> bool:
-        seen[0] += 1
-        return seen[0] == nth
-
     def fsync(fd):
-        if full_now():
+        seen[0] += 1
+        if seen[0] == nth:
             raise OSError(errno.ENOSPC, "No space left on device")
         return real_fsync(fd)
 
     def append(self, data):
-        if full_now():
-            real_write = os.write
-            os.write = lambda fd, chunk: real_write(fd, chunk[:len(chunk) // 2])
-            try:
-                return real_append(self, data)
-            finally:
-                os.write = real_write
-        return real_append(self, data)
+        seen[0] += 1
+        if seen[0] != nth:
+            return real_append(self, data)
+        real_write = os.write
+        os.write = lambda fd, chunk: real_write(fd, chunk[:len(chunk) // 2])
+        try:
+            return real_append(self, data)
+        finally:
+            os.write = real_write
 
     os.fsync, outputs.MetricsWriter.append = fsync, append
     try:
-        trial.train(folder)
-        failed = None
+        yield seen
+    finally:
+        os.fsync, outputs.MetricsWriter.append = real_fsync, real_append
+
+
+def try_disk_full(trial: Trial, rng: random.Random, folder: Path, writes: int) -> tuple[str, str]:
+    """The n-th write (file write or fsync) of a fresh run fails for want of space; then the same command."""
+    nth = rng.randint(1, writes)
+    label = f"disk full at write {nth} of {writes}"
+    failed = None
+    try:
+        with writes_failing_at(nth):
+            trial.train(folder)
     except outputs.DiskFull as err:
         failed = err
     except Exception as err:  # noqa: BLE001
         return "misreported", f"{label}: {type(err).__name__}: {err}"
-    finally:
-        os.fsync, outputs.MetricsWriter.append = real_fsync, real_append
     if list(folder.glob("*.tmp")):
         return "misreported", f"{label}: a temporary file was left"
     if failed is not None:
@@ -232,22 +239,8 @@ def try_disk_full(trial: Trial, rng: random.Random, folder: Path, writes: int) -
 
 
 def count_writes(trial: Trial, folder: Path) -> int:
-    seen = [0]
-    real_fsync, real_append = os.fsync, outputs.MetricsWriter.append
-
-    def fsync(fd):
-        seen[0] += 1
-        return real_fsync(fd)
-
-    def append(self, data):
-        seen[0] += 1
-        return real_append(self, data)
-
-    os.fsync, outputs.MetricsWriter.append = fsync, append
-    try:
+    with writes_failing_at(None) as seen:
         trial.train(folder)
-    finally:
-        os.fsync, outputs.MetricsWriter.append = real_fsync, real_append
     return seen[0]
 
 
