@@ -17,6 +17,19 @@ from engine import numerics  # noqa: E402
 
 numerics.apply(numerics.DEFAULT)  # the tests run the default numerics; it must precede torch's import
 
+from learners import kernels  # noqa: E402
+
+_FMA_AT_START = kernels.active()  # the project's products run (a machine without a compiler runs portable)
+
+
+@pytest.fixture(autouse=True)
+def _default_numerics_after_each_test():
+    """A test that ran report.py or evaluate.py in-process on portable runs switched this process to
+    their mode; the next test (of any file, on the same worker) starts in the default again."""
+    yield
+    if _FMA_AT_START and not kernels.active():
+        numerics.apply(numerics.DEFAULT)
+
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("RACING_SHARED_DIR", ROOT.parent / "shared"))
 CONFORMANCE = SHARED / "reference" / "env_conformance.json"
