@@ -1,21 +1,26 @@
 """Drive the car yourself, with the arrow keys, in a window:
 
     python drive.py [--track 2067791 | --track racing/tracks/oval.csv] [--ghost AGENT] [--seed 0]
-                    [--max-steps 200] [--fps 30] [--no-oracle]
+                    [--max-steps 200] [--fps 30] [--no-oracle] [--track-scale S] [--track-closed | --track-open]
 
 Up accelerates (full throttle), down brakes (throttle -1), neither holds the throttle at 0 (a
 target of half speed); left and right steer. AGENT (``score.py``'s kinds: a train.py run folder,
 a Stable-Baselines3 ``model.zip``, ``module:function``, ``pure_pursuit``, ``ray_follower``)
 drives the same episode beside you, drawn as a blue ghost car (it cannot touch you). At the end
 the window shows your total reward beside the ghost's and the oracle's on the same track and
-start state (the oracle takes a few seconds; ``--no-oracle`` skips it); the same lines are
-printed. Escape or closing the window ends the episode early. Needs the ``render`` extra.
+start state (the oracle takes about 10 ms a step, a notice says so while it drives;
+``--no-oracle`` skips it), until you close the window or press Escape; the same lines are
+printed. Escape or closing the window during the episode ends it early. Needs the ``render``
+extra (``pip install -c constraints/cpu.txt -e '.[render]'``).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+
+from racing.track_file import add_track_options
 
 KEYS = ("up", "down", "left", "right")
 
@@ -28,18 +33,22 @@ def action_of(pressed: set[str]) -> list[float]:
 
 
 def play(track, seed: int = 0, ghost=None, max_steps: int = 200, fps: int = 30, oracle: bool = True,
-         script: dict[int, list[tuple[str, bool]]] | None = None) -> dict:
+         script: dict[int, list[tuple[str, bool]]] | None = None, hold: bool | None = None) -> dict:
     """One episode driven from the keyboard; returns the totals {"you", "ghost", "oracle"}.
 
     ``script`` ({step: [(key, down), ...]}) posts those key events before each step (how the tests
-    drive it under SDL's dummy video driver)."""
+    drive it under SDL's dummy video driver). ``hold``: keep the end screen until the window is
+    closed (or Escape, Enter or Q is pressed); default: unless scripted or without a display to
+    close (SDL's dummy video driver)."""
     from racing.gym_env import RacingEnv
     from racing.render import Renderer, import_pygame
 
     pg = import_pygame()
     names = {pg.K_UP: "up", pg.K_DOWN: "down", pg.K_LEFT: "left", pg.K_RIGHT: "right"}
     keys_of = {v: k for k, v in names.items()}
-    where = {"track_file": track} if isinstance(track, str) else {"track_seed": track}
+    from racing.track_file import env_keywords
+
+    where = env_keywords(track)
     env = RacingEnv(max_steps=max_steps, **where)
     shadow = RacingEnv(max_steps=max_steps, **where) if ghost is not None else None
     renderer = Renderer(env.config, human=True, fps=fps)
@@ -76,21 +85,35 @@ def play(track, seed: int = 0, ghost=None, max_steps: int = 200, fps: int = 30, 
     if oracle and not quit_early:
         from racing.oracle import Oracle, drive
 
+        renderer.draw(env.unwrapped.sim, extra=["", "The oracle is driving the same episode to compare;",
+                                                f"about {max_steps / 100:.0f} s ({max_steps} steps at ~10 ms)..."])
         totals["oracle"] = drive(RacingEnv(max_steps=max_steps, **where), Oracle(env.config), seed)
     lines = [f"you: {totals['you']:.1f}"]
     if totals["ghost"] is not None:
         lines.append(f"ghost ({ghost.name}): {totals['ghost']:.1f}")
     if "oracle" in totals:
         lines.append(f"oracle: {totals['oracle']:.1f}")
-    renderer.draw(env.unwrapped.sim, extra=["", *lines, "", "(close the window)"])
+    renderer.draw(env.unwrapped.sim, extra=["", *lines, "", "(close the window, or press Escape)"])
+    if hold if hold is not None else (script is None and os.environ.get("SDL_VIDEODRIVER") != "dummy"):
+        _wait_for_close(pg)
     renderer.close()
     print("; ".join(lines))
     return totals
 
 
+def _wait_for_close(pg) -> None:
+    """Until the window is closed or Escape, Enter or Q is pressed."""
+    done = {pg.K_ESCAPE, pg.K_RETURN, pg.K_q}
+    while True:
+        event = pg.event.wait(200)  # NOEVENT after 200 ms: the loop stays responsive to signals
+        if event.type == pg.QUIT or (event.type == pg.KEYDOWN and event.key in done):
+            return
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--track", default="2067791", help="a track seed or a track file (default: 2067791)")
+    add_track_options(parser)
     parser.add_argument("--ghost", default=None, help="an agent to race against, drawn as a ghost")
     parser.add_argument("--seed", type=int, default=0, help="the start state's seed")
     parser.add_argument("--max-steps", type=int, default=200)
@@ -100,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     from racing.track_file import TrackFileError, parse_track
 
     try:
-        track = parse_track("--track", args.track)
+        track = parse_track("--track", args.track, args.track_scale, args.track_closed)
     except TrackFileError as err:
         parser.error(str(err))
     if not 0 <= args.seed < 2**32 or args.max_steps < 1 or args.fps < 1:

@@ -6,6 +6,7 @@
     python evaluate.py --oracle --tracks 2067791 773203 [--episodes 5] [--table oracle.csv]
 
     python evaluate.py AGENT --video agent.gif [--tracks 2067791 | --track-file racing/tracks/oval.csv]
+                       [--track-scale S] [--track-closed | --track-open]
 
 A RUN_DIR is a finished train.py run folder (summary.json and actor.pt); any other folder
 stands for every finished run inside it (a sweep, a population). Policies act without
@@ -33,6 +34,7 @@ from pathlib import Path
 
 from engine import numerics
 from engine.outputs import RunFolderError
+from racing.track_file import add_track_options
 
 
 def find_runs(paths: list[Path]) -> list[Path]:
@@ -75,6 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--video", type=Path, default=None, help="film the first run on the first track (.gif/.mp4)")
     parser.add_argument("--track-file", default=None,
                         help="with --video and an agent (not a run folder): film it on this track file")
+    add_track_options(parser)
     parser.add_argument("--numerics", choices=numerics.MODES, default=None,
                         help="the numerics mode to evaluate in (default: the one the runs were trained in)")
     oracle = parser.add_argument_group("the oracle (a planning controller with the true state)")
@@ -95,6 +98,15 @@ def main(argv: list[str] | None = None) -> int:
     for option, path in (("--table", args.table), ("--video", args.video)):
         if path is not None and path.is_dir():
             parser.error(f"{option} {path} is a folder; give a file name (e.g. {path / ('evaluation.csv' if option == '--table' else 'agent.gif')})")
+    if args.track_file is not None:
+        from racing.track_file import TrackFileError, parse_track
+
+        try:
+            args.track_file = parse_track("--track-file", args.track_file, args.track_scale, args.track_closed)
+        except TrackFileError as err:
+            parser.error(str(err))
+    elif args.track_scale is not None or args.track_closed is not None:
+        parser.error("--track-scale, --track-closed and --track-open apply to --track-file")
     if args.oracle:
         if args.paths or not args.tracks:
             parser.error("--oracle scores the oracle on --tracks (give track seeds, and no run folders)")

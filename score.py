@@ -3,6 +3,8 @@ each from the same start states (engine/benchmark.py; docs/benchmark.md):
 
     python score.py AGENT [AGENT ...] [--table scores.csv] [--episodes 5]
     python score.py AGENT --video agent.gif [--video-track SEED_OR_FILE] [--max-steps 400]
+                    [--track-scale S] [--track-closed | --track-open]
+    python score.py AGENT [AGENT ...] --laps-on CIRCUIT.csv [--laps 3] [--max-steps N] [--table laps.csv]
 
 AGENT is a train.py run folder, a Stable-Baselines3 ``model.zip``, ``module:function`` (a
 Python callable ``observation -> [throttle, steering]``, its module importable from here), or
@@ -13,15 +15,21 @@ the oracle-normalised score (each track's score over the oracle's, shipped in
 per-track scores as CSV. ``--episodes`` other than 5 is not the protocol, and says so.
 ``--video`` films one episode of each agent instead (progress, crashes and, on a circuit, laps
 drawn on the frames; the ``render`` extra), on the first benchmark track or ``--video-track``.
+``--laps-on`` times laps instead: each agent drives a circuit (a track file, read by the rules of
+racing/track_file.py or ``--track-scale``/``--track-closed``) from start seed 0 until ``--laps``
+laps are done or a step cap is reached, and its laps, best lap (seconds, 30 steps a second),
+crashes and total reward are printed (and written with ``--table``).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
 from engine import numerics
+from racing.track_file import add_track_options
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -36,7 +44,12 @@ def main(argv: list[str] | None = None) -> int:
                              "file; several: <stem>-<n><suffix>)")
     parser.add_argument("--video-track", default=None,
                         help="the track to film on: a seed or a track file (default: the first benchmark track)")
-    parser.add_argument("--max-steps", type=int, default=None, help="the film's episode length (default 200)")
+    parser.add_argument("--max-steps", type=int, default=None,
+                        help="the film's episode length (default 200); with --laps-on, the step cap")
+    parser.add_argument("--laps-on", default=None, metavar="FILE",
+                        help="time laps on this circuit (a track file) instead of scoring")
+    parser.add_argument("--laps", type=int, default=3, help="with --laps-on: laps per agent (default 3)")
+    add_track_options(parser)
     parser.add_argument("--numerics", choices=numerics.MODES, default=None,
                         help="the numerics to run run folders' policies in (default: the one they were trained in)")
     args = parser.parse_args(argv)
@@ -46,7 +59,17 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--tracks must be track seeds in [0, 2**32), got {args.tracks}")
     if args.video is not None and args.video.suffix.lower() not in (".gif", ".mp4"):
         parser.error(f"--video must name a .gif or .mp4 file, got {str(args.video)!r}")
-    video_track = _track(parser, args.video_track)
+    if args.laps < 1 or (args.max_steps is not None and args.max_steps < 1):
+        parser.error("--laps and --max-steps must be at least 1")
+    if args.laps_on is not None and args.video is not None:
+        parser.error("give --laps-on or --video, not both")
+    if args.laps_on is not None:
+        circuit = _track(parser, args.laps_on, args.track_scale, args.track_closed, "--laps-on")
+        if isinstance(circuit, int):
+            parser.error(f"--laps-on needs a track file (a circuit), got the seed {circuit}")
+        video_track = None
+    else:
+        video_track = _track(parser, args.video_track, args.track_scale, args.track_closed)
     if args.table is not None and args.table.is_dir():
         parser.error(f"--table {args.table} is a folder; give a file name (e.g. {args.table / 'scores.csv'})")
     folders = [Path(a) for a in args.agents if Path(a).is_dir()]
@@ -67,6 +90,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.video is not None:
         return _film(agents, args.video, video_track if video_track is not None else TRACKS[0], args.max_steps)
+    if args.laps_on is not None:
+        return _lap_times(agents, circuit, args.laps, args.max_steps, args.table)
     if (tracks, episodes) != (TRACKS, EPISODES):
         print(f"note: {len(tracks)} tracks x {episodes} episodes is not the benchmark's protocol "
               f"({len(TRACKS)} x {EPISODES}); the scores are not comparable with docs/benchmark.md")
@@ -79,12 +104,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"score: {agent.name}: {err}", file=sys.stderr)
             return 2
         summary = summarise(per_track, oracle)
-        low, high = summary["ci"]
-        line = (f"{agent.name} ({agent.kind}): score {summary['mean']:.1f} [{low:.1f}, {high:.1f}] over "
-                f"{summary['tracks']} tracks x {episodes} episodes")
+        line = (f"{agent.name} ({agent.kind}): score {summary['mean']:.1f} {_interval(summary['ci'], 1)} over "
+                f"{summary['tracks']} {'track' if summary['tracks'] == 1 else 'tracks'} x {episodes} episodes")
         if "normalised" in summary:
-            n_low, n_high = summary["normalised_ci"]
-            line += f"; oracle-normalised {summary['normalised']:.3f} [{n_low:.3f}, {n_high:.3f}]"
+            line += f"; oracle-normalised {summary['normalised']:.3f} {_interval(summary['normalised_ci'], 3)}"
         print(line)
         rows += [{"agent": agent.name, "kind": agent.kind, "track": track, "episodes": episodes,
                   "mean_reward": round(value, 6), "oracle": oracle.get(track, ""),
@@ -97,12 +120,22 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _track(parser, text: str | None) -> int | str | None:
-    """--video-track: a seed, or the path of a track file (checked now)."""
+def _interval(bounds, digits: int) -> str:
+    """A 95% interval over tracks as printed: "n/a" where one track gives none."""
+    low, high = bounds
+    if not (math.isfinite(low) and math.isfinite(high)):
+        return "[n/a: one track]"
+    return f"[{low:.{digits}f}, {high:.{digits}f}]"
+
+
+def _track(parser, text: str | None, scale: float | None, closed: bool | None, option: str = "--video-track"):
+    """--video-track or --laps-on: a seed, or a track file (checked now) with --track-scale/--track-closed."""
     from racing.track_file import TrackFileError, parse_track
 
+    if text is None and (scale is not None or closed is not None):
+        parser.error("--track-scale, --track-closed and --track-open apply to a --video-track or --laps-on file")
     try:
-        return None if text is None else parse_track("--video-track", text)
+        return None if text is None else parse_track(option, text, scale, closed)
     except TrackFileError as err:
         parser.error(str(err))
 
@@ -119,6 +152,33 @@ def _film(agents, path: Path, track, max_steps: int | None) -> int:
             print(f"score: {agent.name}: {err}", file=sys.stderr)
             return 2
         print(f"wrote {out}: {agent.name} on track {track}, {frames} frames, total reward {total:.1f}")
+    return 0
+
+
+def _lap_times(agents, circuit, laps: int, max_steps: int | None, table: Path | None) -> int:
+    from engine.benchmark import lap_times
+
+    rows = []
+    for agent in agents:
+        try:
+            result = lap_times(agent, circuit, laps, max_steps=max_steps)
+        except (RuntimeError, ValueError, TypeError) as err:
+            print(f"score: {agent.name}: {err}", file=sys.stderr)
+            return 2
+        best = "no lap" if result["best_lap_s"] is None else f"best lap {result['best_lap_s']:.2f} s"
+        each = ", ".join(f"{s:.2f}" for s in result["lap_seconds"])
+        print(f"{Path(str(circuit)).name}: {agent.name}: {result['laps']} of {laps} laps in {result['steps']:,} steps, "
+              f"{best}" + (f" (laps {each} s)" if each else "") + f", {result['crashes']} crashes, total reward "
+              f"{result['total_reward']:.1f}")
+        rows.append({"agent": agent.name, "kind": agent.kind, "circuit": str(circuit), "laps": result["laps"],
+                     "best_lap_s": result["best_lap_s"] if result["best_lap_s"] is not None else "",
+                     "lap_seconds": " ".join(f"{s:.3f}" for s in result["lap_seconds"]),
+                     "crashes": result["crashes"], "steps": result["steps"],
+                     "total_reward": round(result["total_reward"], 6)})
+    if table is not None:
+        from engine.outputs import write_table
+
+        write_table(table, rows)
     return 0
 
 

@@ -1,16 +1,21 @@
 """Track files (racing/track_file.py: the TUM racetrack-database's CSV columns): check one, draw
-one, or export a generated track to one.
+one, make a circuit, or export a generated track to one.
 
-    python tracks.py check FILE [--scale S] [--closed | --open]
-    python tracks.py show FILE [--out track.png] [--scale S] [--closed | --open]
+    python tracks.py check FILE [--track-scale S] [--track-closed | --track-open] [--no-lap]
+    python tracks.py show FILE [--out track.png] [--track-scale S] [--track-closed | --track-open]
+    python tracks.py circuit [--points 1200] [--out circuit.csv]
     python tracks.py export --seed 2067791 [--out track_2067791.csv]
 
-``check`` loads the file as the environments do and prints what it holds (or the line and the
-problem that stops it loading); ``show`` also draws it (the ``render`` extra); ``export`` writes
+``check`` loads the file as the environments do and prints what it holds: whether it is read as
+a circuit and at which scale (and where each came from: the options, the file's comments, or
+the rules for a downloaded file), the road's width, what the car may not fit, and how many
+steps a lap (an open track: the way to the finish) takes the pure-pursuit driver and the ray
+follower, the pace to size ``env.options.max_steps`` by; or the line and the problem that stops
+it loading. ``show`` also draws it (the ``render`` extra). ``circuit`` writes a circuit in the
+layout of a downloaded TUM file (metres, closed, no comments but the header); ``export`` writes
 the track of a seed as a file. Train on a file with ``python train.py env.track=file
-env.track_file=FILE``; drive on one with ``gym.make("racing/Racing-v0", track_file=FILE)``.
-Example files ship in ``racing/tracks/`` (``oval``, ``kidney``: circuits; ``paper_2067791``:
-the first paper track, exported).
+env.track_file=FILE``. Example files ship in ``racing/tracks/`` (``oval``, ``kidney``: circuits;
+``paper_2067791``: the first paper track, exported).
 """
 
 from __future__ import annotations
@@ -21,18 +26,81 @@ from pathlib import Path
 
 import numpy as np
 
-from racing.config import RacingConfig
+from racing.config import MAX_STEPS, RacingConfig
 from racing.track import track_from_seed
-from racing.track_file import TrackFileError, load_track, save_track
+from racing.track_file import (MAX_ROWS, TrackFileError, add_track_options, load_track, make_circuit, save_track,
+                               write_rows)
+
+STEP_SECONDS = 1 / 30  # racing.sim.RacingSim.STEP_SECONDS (not imported: check stays free of the simulator's tables)
 
 
 def describe(track) -> str:
+    """One line: the track's name, shape, checkpoints, length and road width."""
     centre = (track.left_wall + track.right_wall) / 2
     length = float(np.hypot(*np.diff(centre, axis=0).T).sum())
     widths = np.hypot(*(track.left_wall - track.right_wall).T)
     kind = "a circuit (closed)" if track.closed else "open (start to finish)"
     return (f"{track.name}: {kind}, {track.num_checkpoints} checkpoints, centre line {length:,.0f} px, "
-            f"width {widths.min():.0f} to {widths.max():.0f} px")
+            f"road {widths.min():.0f} to {widths.max():.0f} px wide (median {np.median(widths):.0f})")
+
+
+def reading_lines(track) -> list[str]:
+    """How the file was read (shape, scale, where each came from) and its warnings."""
+    r = track.reading
+    lines = [f"  read as {'a circuit' if r.closed else 'open'} (from {r.closed_from}), scale {r.scale:g} px per "
+             f"file unit (from {r.scale_from})"]
+    return lines + [f"  warning: {w}" for w in r.warnings]
+
+
+def lap(path: Path, scale, closed, driver: str) -> dict:
+    """One lap of a circuit (an open track: the way to the finish) by a reference driver
+    (``pure_pursuit`` or ``ray_follower``), with a step cap of 20 steps per 50 px of centre line:
+    {"steps": ..., "crashes": ..., "done": whether it got round}."""
+    from racing.driver import PurePursuit, ray_follower
+    from racing.gym_env import RacingEnv
+
+    track = load_track(path, scale, closed)
+    centre = (track.left_wall + track.right_wall) / 2
+    length = float(np.hypot(*np.diff(centre, axis=0).T).sum())
+    cap = int(min(MAX_STEPS, 20 * length / RacingConfig().max_speed + 1_000))
+    env = RacingEnv(track_file=str(path), track_scale=scale, track_closed=closed, max_steps=cap)
+    obs, _ = env.reset(seed=0)
+    sim, pursuit = env.unwrapped.sim, PurePursuit()
+    for step in range(1, cap + 1):
+        action = pursuit.act(sim, 0) if driver == "pure_pursuit" else ray_follower(obs)
+        obs, _, terminated, truncated, _ = env.step(action)
+        if terminated or (track.closed and sim.laps[0] >= 1):
+            return {"steps": step, "crashes": int(sim.crashes[0]), "done": True}
+        if truncated:
+            break
+    return {"steps": cap, "crashes": int(sim.crashes[0]), "done": False}
+
+
+def lap_lines(path: Path, scale, closed, track) -> list[str]:
+    what = "a lap" if track.closed else "the way to the finish"
+    lines, paces = [], []
+    for driver in ("pure_pursuit", "ray_follower"):
+        result = lap(path, scale, closed, driver)
+        if result["done"]:
+            paces.append(result["steps"])
+            lines.append(f"  {what}: {result['steps']:,} steps ({result['steps'] * STEP_SECONDS:.1f} s) for the "
+                         f"{driver.replace('_', '-')} driver, {_crashes(result['crashes'])}")
+        else:
+            lines.append(f"  {what}: the {driver.replace('_', '-')} driver did not get round in {result['steps']:,} "
+                         f"steps ({_crashes(result['crashes'])})")
+    if paces:
+        steps = int(np.ceil(max(paces) * 1.25 / 100) * 100)
+        laps = " and env.options.laps=1 (the episode ends at the lap)" if track.closed else ""
+        default, share = RacingConfig().max_steps, RacingConfig().max_steps / min(paces)
+        cover = (f"{share:.2g} laps" if track.closed and share >= 1 else "all of it" if share >= 1
+                 else f"{share:.0%} of " + ("a lap" if track.closed else "it"))
+        lines.append(f"  {what} in one episode: env.options.max_steps={steps}{laps}; the default {default} steps "
+                     f"cover {cover} at the faster driver's pace")
+    return lines
+
+
+def _crashes(n: int) -> str:
+    return f"{n} crash" + ("" if n == 1 else "es")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -41,12 +109,14 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("check", "show"):
         command = commands.add_parser(name, help="load a track file" + (" and draw it" if name == "show" else ""))
         command.add_argument("file", type=Path)
-        command.add_argument("--scale", type=float, default=None, help="pixels per file unit (default: the file's)")
-        shape = command.add_mutually_exclusive_group()
-        shape.add_argument("--closed", dest="closed", action="store_const", const=True, default=None)
-        shape.add_argument("--open", dest="closed", action="store_const", const=False)
+        add_track_options(command)
+        if name == "check":
+            command.add_argument("--no-lap", action="store_true", help="do not drive a lap with the reference drivers")
         if name == "show":
             command.add_argument("--out", type=Path, default=None, help="the figure (default: FILE with .png)")
+    circuit = commands.add_parser("circuit", help="write a circuit in a downloaded TUM file's layout")
+    circuit.add_argument("--points", type=int, default=1200, help=f"centre-line points, 5 m apart (3 to {MAX_ROWS:,})")
+    circuit.add_argument("--out", type=Path, default=Path("circuit.csv"))
     export = commands.add_parser("export", help="write a generated track as a file")
     export.add_argument("--seed", type=int, required=True, help="the track seed")
     export.add_argument("--out", type=Path, default=None, help="default: track_<seed>.csv")
@@ -63,17 +133,34 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         print(f"wrote {path}: {describe(track)}")
         return 0
+    if args.command == "circuit":
+        if not 3 <= args.points <= MAX_ROWS:
+            parser.error(f"--points must be in [3, {MAX_ROWS:,}], got {args.points}")
+        if args.out.is_dir():
+            parser.error(f"--out {args.out} is a folder; give a file name (e.g. {args.out / 'circuit.csv'})")
+        path = write_rows(args.out, make_circuit(args.points))
+        print(f"wrote {path}: {describe(load_track(path))}")
+        return 0
+    if args.track_scale is not None and not args.track_scale > 0:
+        parser.error(f"--track-scale must be a number > 0 (pixels per file unit), got {args.track_scale}")
     try:
-        track = load_track(args.file, args.scale, args.closed)
+        track = load_track(args.file, args.track_scale, args.track_closed)
     except TrackFileError as err:
         print(f"tracks: {err}", file=sys.stderr)
         return 2
     print(describe(track))
+    print("\n".join(reading_lines(track)))
+    if args.command == "check" and not args.no_lap:
+        print("\n".join(lap_lines(args.file, args.track_scale, args.track_closed, track)))
     if args.command == "show":
-        from racing.figures import track_file_figure
+        try:
+            from racing.figures import track_file_figure
 
-        out = args.out or args.file.with_suffix(".png")
-        print(f"wrote {track_file_figure(track, out, describe(track))}")
+            out = track_file_figure(track, args.out or args.file.with_suffix(".png"), describe(track))
+        except ImportError as err:
+            print(f"tracks: {err}", file=sys.stderr)
+            return 2
+        print(f"wrote {out}")
     return 0
 
 

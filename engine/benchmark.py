@@ -145,10 +145,42 @@ def _callable(spec: str) -> Agent:
 
 def run_episode(agent: Agent, env, seed: int, frames: list | None = None) -> float:
     """One episode of ``agent`` from the start state of ``seed``: its total reward
-    (``engine.evaluation.drive_episode``)."""
+    (``engine.evaluation.drive_episode``). An agent that raises is an ``AgentError`` naming the
+    agent and its error."""
     from engine.evaluation import drive_episode
 
-    return drive_episode(agent.act, env, seed, frames, agent.reset)
+    def act(env, obs):
+        try:
+            return agent.act(env, obs)
+        except Exception as err:  # the agent's own code: any error, said in one line
+            raise AgentError(f"the agent raised {type(err).__name__}: {err}") from err
+
+    return drive_episode(act, env, seed, frames, agent.reset)
+
+
+def lap_times(agent: Agent, track, laps: int = 3, seed: int = 0, max_steps: int | None = None) -> dict:
+    """``agent`` on a circuit (a ``racing.track_file.FileTrack`` or a file's path) from the start
+    state of ``seed`` until it has driven ``laps`` laps (``RacingConfig.laps``) or ``max_steps``
+    steps (default: ``laps`` times four times the steps the centre line takes at full speed):
+    {"laps", "lap_seconds", "best_lap_s", "crashes", "total_reward", "steps"}."""
+    from racing.config import MAX_STEPS, RacingConfig
+    from racing.gym_env import RacingEnv
+    from racing.track_file import FileTrack, env_keywords, load_track
+
+    track = track if isinstance(track, FileTrack) else FileTrack(str(track))
+    circuit = load_track(track.path, track.scale, track.closed)
+    if not circuit.closed:
+        raise ValueError(f"{track.path} is read as an open track, which has no laps (a circuit: --track-closed)")
+    centre = (circuit.left_wall + circuit.right_wall) / 2
+    length = float(sum(math.hypot(*d) for d in (centre[1:] - centre[:-1]).tolist()))
+    cap = max_steps or min(MAX_STEPS, int(laps * 4 * length / RacingConfig().max_speed) + 1_000)
+    env = RacingEnv(**env_keywords(track), max_steps=cap, laps=laps)
+    total = run_episode(agent, env, seed)
+    sim = env.unwrapped.sim
+    seconds = [round(steps * sim.STEP_SECONDS, 3) for steps in sim.lap_times[0]]
+    env.close()
+    return {"laps": int(sim.laps[0]), "lap_seconds": seconds, "best_lap_s": min(seconds) if seconds else None,
+            "crashes": int(sim.crashes[0]), "total_reward": total, "steps": int(sim.t[0])}
 
 
 def film(agent: Agent, track: int | str, path: Path, seed: int = 0, **options) -> tuple[int, float]:
@@ -158,8 +190,9 @@ def film(agent: Agent, track: int | str, path: Path, seed: int = 0, **options) -
     from racing.gym_env import RacingEnv
 
     check_video_path(path)
-    where = {"track_file": track} if isinstance(track, str) else {"track_seed": track}
-    env = RacingEnv(render_mode="rgb_array", **where, **options)
+    from racing.track_file import env_keywords
+
+    env = RacingEnv(render_mode="rgb_array", **env_keywords(track), **options)
     frames: list = []
     total = run_episode(agent, env, seed, frames)
     env.close()

@@ -7,6 +7,7 @@ design does not allow, each in one sentence naming what was expected.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -61,6 +62,10 @@ def config_mapping(cfg) -> dict:
     env = mapping.get("env")
     if isinstance(env, dict) and isinstance(env.get("options"), dict):
         env["options"] = {k: v for k, v in env["options"].items() if v is not None}
+    if isinstance(env, dict):  # how to read a track file: recorded only when set
+        for key in ("track_scale", "track_closed"):
+            if key in env and env[key] is None:
+                del env[key]
     if isinstance(env, dict) and "track_file" in env:  # recorded only when set, with its content's hash
         if env["track_file"] is None:
             del env["track_file"]
@@ -235,6 +240,8 @@ class EnvConfig:
     options: dict
     track_file: str | None = None  # env.track=file: the CSV file (racing/track_file.py)
     track_file_sha256: str | None = None  # its content, recorded (config_mapping): a changed file is another run
+    track_scale: float | None = None  # the file's pixels per file unit (None: its comment, else the width rule)
+    track_closed: bool | None = None  # the file is a circuit (None: its comment, else its geometry)
 
     def __post_init__(self) -> None:
         _choice("env.track", self.track, TRACK_SOURCES)
@@ -248,13 +255,21 @@ class EnvConfig:
         if (self.track == "file") != (self.track_file is not None):
             raise ConfigError("env.track=file needs env.track_file=PATH (a track file), and env.track_file needs "
                               f"env.track=file; got env.track={self.track}, env.track_file={self.track_file}")
+        if self.track_file is None and (self.track_scale is not None or self.track_closed is not None):
+            raise ConfigError("env.track_scale and env.track_closed say how to read env.track_file; set "
+                              "env.track=file env.track_file=PATH, or leave them null")
+        if self.track_scale is not None and (isinstance(self.track_scale, bool) or not isinstance(
+                self.track_scale, (int, float)) or not math.isfinite(self.track_scale) or self.track_scale <= 0):
+            raise ConfigError(f"env.track_scale must be a number > 0 (pixels per file unit), got {self.track_scale!r}")
+        if self.track_closed is not None and not isinstance(self.track_closed, bool):
+            raise ConfigError(f"env.track_closed must be true, false or null, got {self.track_closed!r}")
         if self.track_file is not None:
             from racing.track_file import TrackFileError, file_track
 
             if "num_segments" in self.options:
                 raise ConfigError("env.options.num_segments comes from the track file; remove it")
             try:
-                file_track(self.track_file, dict(self.options), "env.options")
+                file_track(self.track_file, dict(self.options), "env.options", self.track_scale, self.track_closed)
             except (TrackFileError, TypeError, ValueError) as err:
                 raise ConfigError(f"env.track_file: {err}") from None
             if self.track_file_sha256 != track_file_sha256(self.track_file):

@@ -120,17 +120,23 @@ def track_file_problem(settings: dict) -> str | None:
     return None
 
 
-def own_track(settings: dict) -> int | str:
-    """The track a run trained on: its seed, or its track file (``env.track=file``)."""
+def own_track(settings: dict):
+    """The track a run trained on: its seed, or its track file (``env.track=file``: a
+    ``racing.track_file.FileTrack`` with the run's ``env.track_scale`` and ``env.track_closed``)."""
+    from racing.track_file import FileTrack
+
     env = settings.get("env") or {}
-    return env["track_file"] if env.get("track") == "file" else settings["seed"]
+    if env.get("track") != "file":
+        return settings["seed"]
+    return FileTrack(env["track_file"], env.get("track_scale"), env.get("track_closed"))
 
 
 def make_env(settings: dict, track: int | str, render_mode: str | None = None) -> RacingEnv:
     """A Gymnasium env with the run's environment settings, on a track: a seed or a track file."""
     env = settings["env"]
-    where = {"track_file": track} if isinstance(track, str) else {"track_seed": track}
-    return RacingEnv(render_mode=render_mode, nearest_ray=env.get("nearest_ray", False), **where,
+    from racing.track_file import env_keywords
+
+    return RacingEnv(render_mode=render_mode, nearest_ray=env.get("nearest_ray", False), **env_keywords(track),
                      **env.get("options", {}))
 
 

@@ -435,6 +435,7 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             **{f"time/{key}": round(value, 3) for key, value in {**timing, **compile_time()}.items()},
             "population": {"seeds": list(seeds), "size": len(seeds)},
             **({"evaluation": evaluation} if evaluation is not None else {}),
+            **({"track_file": env.sim.file_track.reading.record()} if env.sim.file_track is not None else {}),
             "code": code, "software": software_versions(), "numerics": numerics.in_effect(),
             "compile": compiled, "settings": member.settings,
             "files": file_record(member.folder, rundir.RECORDED_FILES),  # what this summary stands for
@@ -446,14 +447,15 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
 
 def _evaluate(cfg: RunConfig, seed: int, actor: dict) -> dict:
     """The final deterministic policy's mean total reward on its own track and on ``cfg.eval_seeds``."""
-    from engine.evaluation import evaluate, make_policy
+    from engine.evaluation import evaluate, make_policy, own_track
     from racing.config import RacingConfig
 
     network = {"actor_hidden": list(cfg.network.actor_hidden), "activation": cfg.network.activation}
     policy = make_policy(cfg.algo.loss, network, RacingConfig(**cfg.env.options).obs_size, actor)
     settings = {"env": {"options": dict(cfg.env.options), "nearest_ray": cfg.env.nearest_ray}}
-    track = cfg.env.track_file if cfg.env.track == "file" else seed
-    settings["env"]["track"] = cfg.env.track
+    settings["env"].update(track=cfg.env.track, track_file=cfg.env.track_file, track_scale=cfg.env.track_scale,
+                           track_closed=cfg.env.track_closed)
+    track = own_track({"env": settings["env"], "seed": seed})
     own = evaluate(policy, settings, [track], cfg.eval_episodes)[track]
     others = evaluate(policy, settings, list(cfg.eval_seeds), cfg.eval_episodes)
     return {"episodes": cfg.eval_episodes, "own_track": own, "tracks": {str(k): v for k, v in others.items()},

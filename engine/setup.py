@@ -67,8 +67,9 @@ def make_env(cfg: RunConfig, seeds: tuple[int, ...]) -> RacingTorchEnv:
     per episode (``random``) or on the file's track (``file``); car r's random stream is seeded
     with ``seeds[r]``."""
     if cfg.env.track == "file":
-        env = RacingTorchEnv(len(seeds), track_file=cfg.env.track_file, device=cfg.device,
-                             nearest_ray=cfg.env.nearest_ray, **cfg.env.options)
+        env = RacingTorchEnv(len(seeds), track_file=cfg.env.track_file, track_scale=cfg.env.track_scale,
+                             track_closed=cfg.env.track_closed, device=cfg.device, nearest_ray=cfg.env.nearest_ray,
+                             **cfg.env.options)
     else:
         track_seeds = list(seeds) if cfg.env.track == "fixed" else [None] * len(seeds)
         env = RacingTorchEnv(len(seeds), track_seeds=track_seeds, device=cfg.device,

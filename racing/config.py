@@ -39,6 +39,7 @@ class RacingConfig:
     # Rewards and episodes.
     crash_penalty: float = 10.0  # subtracted from the reward of a step that leaves the track
     max_steps: int = 200  # time limit (truncation)
+    laps: int = 0  # on a circuit (a closed track file): the episode ends after this many laps; 0: no lap limit
 
     def __post_init__(self) -> None:
         try:
@@ -64,6 +65,8 @@ class RacingConfig:
                 problems.append(f"num_segments must be an integer in [2, {MAX_SEGMENTS:,}], got {self.num_segments!r}")
             if not isinstance(self.max_steps, int) or not 1 <= self.max_steps <= MAX_STEPS:
                 problems.append(f"max_steps must be an integer in [1, {MAX_STEPS:,}], got {self.max_steps!r}")
+            if not isinstance(self.laps, int) or self.laps < 0:
+                problems.append(f"laps must be an integer >= 0 (0: no lap limit), got {self.laps!r}")
             for name in ("segment_length", "half_width", "max_speed", "turn_rate",
                          "min_turn_radius", "ray_length"):
                 if getattr(self, name) <= 0:

@@ -1,4 +1,4 @@
-"""Figures of tracks with matplotlib (``pip install racing-rl[render]``)."""
+"""Figures of tracks with matplotlib (the ``render`` extra: ``racing.render.RENDER_EXTRA``)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,9 @@ def import_pyplot():
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError as exc:  # pragma: no cover - depends on the installation
-        raise ImportError("figures need matplotlib: pip install 'racing-rl[render]'") from exc
+        from racing.render import RENDER_EXTRA
+
+        raise ImportError(f"figures need matplotlib, in the render extra: {RENDER_EXTRA}") from exc
     return plt
 
 

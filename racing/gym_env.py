@@ -87,7 +87,7 @@ class RacingEnv(gym.Env):
       loses one checkpoint and restarts, at rest, from the centre of the checkpoint it is
       put back in, facing along the track. A closed track (a circuit from a file) has no
       finish: the car goes round, each entry into checkpoint 0 from the last completing a lap,
-      until ``max_steps``.
+      until ``max_steps``, or until ``laps`` laps (``RacingConfig.laps`` > 0: termination).
 
     ## Arguments
 
@@ -101,8 +101,8 @@ class RacingEnv(gym.Env):
     * ``track_seed``: an int drives every episode on the track of that seed (the paper's
       tracks are ``racing.PAPER_TRACK_SEEDS``); ``None`` (default) lays out a fresh random
       track at every reset.
-    * ``render_mode``: ``"rgb_array"`` or ``"human"`` (both need ``pygame``: ``pip install
-      racing-rl[render]``).
+    * ``render_mode``: ``"rgb_array"`` or ``"human"`` (both need ``pygame``: ``pip install -c
+      constraints/cpu.txt -e '.[render]'``).
     * ``nearest_ray``: read the nearest wall crossing instead of the reference's first in
       scan order (they differ only where a track crosses itself within sensor range).
     * ``track_file``: a track from a CSV file (``racing.track_file``: the TUM racetrack-database's

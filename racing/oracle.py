@@ -60,11 +60,9 @@ class Oracle:
 
     def __init__(self, config: RacingConfig = RacingConfig(), settings: OracleSettings = OracleSettings(),
                  seed: int = 0, nearest_ray: bool = False):
-        self.config, self.settings = config, settings
+        self.config, self.settings, self.nearest_ray = config, settings, nearest_ray
         self.rng = np.random.default_rng(check_seed(seed))
-        self.planner = RacingSim(settings.candidates, None, config, nearest_ray=nearest_ray)
-        self.planner.seed(0)
-        self.planner.reset()  # the planning cars' own tracks are replaced by the driven car's below
+        self.planner: RacingSim | None = None  # built for the track driven (``_planner_on``)
         self.reset()
 
     def reset(self) -> None:
@@ -76,7 +74,7 @@ class Oracle:
     def act(self, sim: RacingSim, car: int = 0) -> np.ndarray:
         """The action ``[throttle, steering]`` for ``sim``'s car ``car`` now."""
         s = self.settings
-        steps_left = self.config.max_steps - int(sim.t[car])
+        steps_left = sim.config.max_steps - int(sim.t[car])
         horizon = max(1, min(s.horizon, steps_left))
         mean, std = self.plan[:horizon].copy(), np.full((horizon, 2), s.init_std)
         n_elite = max(1, round(s.elite * s.candidates))
@@ -95,15 +93,27 @@ class Oracle:
         self.elite_mean = mean[0].copy()  # the last round's elite mean first action: a smoother label
         return best_plan[0].copy()
 
+    def _planner_on(self, sim: RacingSim, car: int) -> RacingSim:
+        """The planning cars, on the track of ``sim``'s car ``car`` and only that one (their memory
+        is that track's tables, whatever its size), built again when the car's track changes."""
+        track = sim.tracks[car]
+        if self.planner is None or self.planner.file_track is not track:
+            self.planner = RacingSim(self.settings.candidates, None, sim.config, nearest_ray=self.nearest_ray,
+                                     track=track)
+            self.planner.seed(0)
+            self.planner.reset()  # start states only (a given track): the rollouts set the state
+        return self.planner
+
     def _rollout(self, sim: RacingSim, car: int, samples: np.ndarray) -> np.ndarray:
         """Total reward of each candidate action sequence from ``sim``'s car ``car``'s state."""
-        planner, track = self.planner, sim.tracks[car]
-        if planner.tracks[0] is not track:  # the planning cars drive on the car's track
-            for k in range(planner.num_cars):
-                planner._use_track(k, track)
+        planner = self._planner_on(sim, car)
         for name in self.STATE:
             getattr(planner, name)[:] = getattr(sim, name)[car]
         planner.finished[:] = False
+        if planner.file_track.closed:  # laps count toward config.laps; the planning cars' own lap times are dropped
+            planner.laps[:], planner.lap_start[:] = sim.laps[car], sim.lap_start[car]
+            for times in planner.lap_times:
+                times.clear()
         total = np.zeros(len(samples))
         alive = np.ones(len(samples), dtype=bool)
         for step in range(samples.shape[1]):

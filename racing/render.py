@@ -1,6 +1,6 @@
 """Pictures of the racing task with pygame: a camera that follows a car, and whole-track views.
 
-pygame is imported only when a picture is drawn (``pip install racing-rl[render]``).
+pygame is imported only when a picture is drawn (the ``render`` extra: ``RENDER_EXTRA``).
 Rendering needs no screen: ``rgb_array`` draws off-screen, and ``human`` works under
 ``SDL_VIDEODRIVER=dummy`` too.
 """
@@ -25,12 +25,14 @@ TEXT = (255, 255, 255)
 CAR_LENGTH, CAR_WIDTH = 24.0, 12.0  # pixels of the world
 
 
+RENDER_EXTRA = "pip install -c constraints/cpu.txt -e '.[render]' (in the project's folder, in its environment)"
+
+
 def import_pygame():
     try:
         import pygame
     except ImportError as exc:  # pragma: no cover - depends on the installation
-        raise ImportError("rendering needs pygame: pip install 'racing-rl[render]' "
-                          "(or pip install pygame)") from exc
+        raise ImportError(f"rendering needs pygame, in the render extra: {RENDER_EXTRA}") from exc
     return pygame
 
 

@@ -135,7 +135,8 @@ class RacingSim:
         track: one track for every car instead of seeds (a file's: ``racing.track_file``);
             ``config.num_segments`` must be its number of checkpoints. Its resets draw only
             the start state. On a closed track (a circuit) a car that enters checkpoint 0
-            from the last completes a lap; ``laps`` and ``lap_times`` (steps) count them.
+            from the last completes a lap; ``laps`` and ``lap_times`` (steps) count them, and
+            ``config.laps`` > 0 ends (terminates) the car's episode at that many laps.
     """
 
     CHUNK = 1024  # cars per block of the ray computation (see observe)
@@ -161,6 +162,9 @@ class RacingSim:
             if track.num_checkpoints != config.num_segments:
                 raise ValueError(f"the track has {track.num_checkpoints} checkpoints but config.num_segments is "
                                  f"{config.num_segments} (racing.track_file.track_config sets it)")
+        if config.laps and (track is None or not track.closed):
+            raise ValueError(f"laps={config.laps} ends an episode after laps of a circuit; these cars drive "
+                             f"{'an open track' if track is not None else 'generated tracks, which are open'}")
         self.file_track = track
         self.bank = TrackBank(config)
         self.tracks: list[Track | None] = [None] * n
@@ -373,20 +377,22 @@ class RacingSim:
         self.checkpoint += advanced
         self.x, self.y, self.theta, self.speed = x, y, theta, speed
         self.t += 1
-        self.finished = finished
         self.crashes += off_track
         lapped = self.checkpoint == cfg.num_segments  # only on a circuit: checkpoint 0 follows the last
         if lapped.any():
             for car in np.flatnonzero(lapped).tolist():
-                self._lap(car)
+                finished[car] = self._lap(car)
+        self.finished = finished
         return reward, finished, self.t >= cfg.max_steps, off_track
 
-    def _lap(self, car: int) -> None:
-        """Car ``car`` has just entered checkpoint 0 from the last one of a circuit."""
+    def _lap(self, car: int) -> bool:
+        """Car ``car`` has just entered checkpoint 0 from the last one of a circuit: whether that
+        ends its episode (``config.laps``)."""
         self.checkpoint[car] = 0
         self.laps[car] += 1
         self.lap_times[car].append(int(self.t[car] - self.lap_start[car]))
         self.lap_start[car] = self.t[car]
+        return 0 < self.config.laps <= self.laps[car]
 
     def step_car(self, throttle: float, steer: float) -> tuple[float, bool, bool, bool]:
         """``step`` of a one-car simulator with Python scalars in and out (``physics.step_car``:
@@ -402,10 +408,10 @@ class RacingSim:
             throttle, steer, self._car, cfg)
         self.x[0], self.y[0], self.theta[0], self.speed[0], self.checkpoint[0] = x, y, theta, speed, checkpoint
         self.t[0] += 1
-        self.finished[0] = finished
         self.crashes[0] += crashed
         if checkpoint == cfg.num_segments:  # only on a circuit
-            self._lap(0)
+            finished = self._lap(0)
+        self.finished[0] = finished
         return reward, finished, bool(self.t[0] >= cfg.max_steps), crashed
 
     # ---------------------------------------------------------------------------- observe

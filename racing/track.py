@@ -31,6 +31,7 @@ class Track:
     seed: int | None = None
     closed: bool = False  # a circuit: the walls' last points are their first, checkpoint 0 follows the last
     name: str | None = None  # a file track's (its file's stem)
+    reading: object = field(default=None, repr=False)  # a file track's racing.track_file.Reading: how it was read
     centres: np.ndarray = field(init=False, repr=False)  # (num_segments, 2)
 
     def __post_init__(self) -> None:

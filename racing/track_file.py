@@ -2,16 +2,27 @@
 
 The columns are those of the TUM racetrack-database (``x_m, y_m, w_tr_right_m, w_tr_left_m``):
 one row per centre-line point, its coordinates and the distance from it to the right and to
-the left wall. Lines starting with ``#`` are comments; two of them may say how to read the file:
+the left wall. A file of that database loads as it is downloaded. Lines starting with ``#``
+are comments; two of them may say how to read the file:
 
-    # closed: true      (a circuit: the last point joins the first; default false)
-    # scale: 16.0       (simulator units, pixels, per file unit; default 1)
+    # closed: true      (a circuit: the last point joins the first)
+    # scale: 16.0       (simulator units, pixels, per file unit)
     # x_m,y_m,w_tr_right_m,w_tr_left_m
     0.0,-10.0,100.0,100.0
     ...
 
-A header row of the column names (with or without ``#``) is optional. ``load_track`` arguments
-override the comments (a TUM file is a circuit in metres: ``closed=True, scale=...``).
+A header row of the column names (with or without ``#``) is optional. Without those comments
+a file is read the way a downloaded circuit needs:
+
+* **closed** if its last point lies within ``CLOSING_GAP`` segment lengths (the median
+  distance between its points) of its first, or repeats it; open otherwise;
+* **scaled** so that the road's median width is a generated track's (``2 * half_width``,
+  200 px): a file in metres then drives like the generated tracks (``scale_for``).
+
+``load_track`` arguments override the comments, and the comments the rules. How a file was
+read (scale, closed, where each came from, and what the car may not fit: a road narrower or a
+checkpoint shorter than a step at full speed, a bend tighter than the car turns) is the
+track's ``reading`` (``Reading``), which ``tracks.py check`` prints and runs record.
 
 How a file becomes walls: the walls at a point lie on the line through it perpendicular to the
 segment that arrives at it (the first point of an open track: the segment that leaves it), at
@@ -33,6 +44,7 @@ from __future__ import annotations
 
 import csv
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -128,15 +140,62 @@ def _setting(path: Path, number: int, key: str, value: str):
     return scale
 
 
+CLOSING_GAP = 2.0  # a file whose last point lies within this many segment lengths of its first is a circuit
+
+
+@dataclass(frozen=True)
+class Reading:
+    """How a track file was read: its scale and shape, where each came from ("the caller", "the
+    file" or the rule: "the road's width", "the geometry"), and what the car may not fit."""
+
+    file: str
+    scale: float
+    scale_from: str
+    closed: bool
+    closed_from: str
+    warnings: tuple[str, ...] = ()
+
+    def record(self) -> dict:
+        """As a run's ``summary.json`` records it."""
+        return {"file": self.file, "scale": self.scale, "scale_from": self.scale_from, "closed": self.closed,
+                "closed_from": self.closed_from, "warnings": list(self.warnings)}
+
+    def describe(self) -> str:
+        shape = "a circuit (closed)" if self.closed else "open (start to finish)"
+        return f"{shape}, from {self.closed_from}; scale {self.scale:g} px per file unit, from {self.scale_from}"
+
+
+def scale_for(points: np.ndarray, config: RacingConfig = RacingConfig()) -> float:
+    """The scale (pixels per file unit, four significant digits) that gives the road of ``points``
+    (rows ``x, y, right, left``) the median width of a generated track, ``2 * config.half_width``."""
+    return float(f"{2 * config.half_width / float(np.median(points[:, 2] + points[:, 3])):.4g}")
+
+
+def looks_closed(points: np.ndarray) -> bool:
+    """Whether the file's last point lies within ``CLOSING_GAP`` segment lengths (the median
+    distance between consecutive points) of its first, or repeats it."""
+    xy = points[:, :2]
+    steps = np.hypot(*np.diff(xy, axis=0).T)
+    return bool(np.hypot(*(xy[-1] - xy[0])) <= CLOSING_GAP * float(np.median(steps)))
+
+
 def load_track(path: Path | str, scale: float | None = None, closed: bool | None = None,
                config: RacingConfig = RacingConfig()) -> Track:
-    """The track of a file (see the module docstring); ``TrackFileError`` if it is not one."""
+    """The track of a file (see the module docstring), its ``reading`` saying how it was read;
+    ``TrackFileError`` if it is not one."""
     path = Path(path)
     points, lines, settings = read_rows(path)
-    closed = settings.get("closed", False) if closed is None else bool(closed)
-    scale = settings.get("scale", 1.0) if scale is None else scale
-    if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
+    if len(points) < 3:
+        raise TrackFileError(f"{path}: {len(points)} point(s); a track needs at least 3 (2 checkpoints)")
+    closed, closed_from = ((bool(closed), "the caller") if closed is not None
+                           else (settings["closed"], "the file") if "closed" in settings
+                           else (looks_closed(points), "the geometry"))
+    scale, scale_from = ((scale, "the caller") if scale is not None
+                         else (settings["scale"], "the file") if "scale" in settings
+                         else (scale_for(points, config), "the road's width"))
+    if isinstance(scale, bool) or not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
         raise TrackFileError(f"{path}: scale must be a number > 0, got {scale!r}")
+    scale = float(scale)
     if closed and len(points) > 3 and np.array_equal(points[0, :2], points[-1, :2]):
         points, lines = points[:-1], lines[:-1]  # a circuit written with its first point repeated at the end
     if len(points) < 3:
@@ -156,7 +215,42 @@ def load_track(path: Path | str, scale: float | None = None, closed: bool | None
         left_wall, right_wall = np.vstack([left_wall, left_wall[:1]]), np.vstack([right_wall, right_wall[:1]])
     left_wall, right_wall = _pose(left_wall, right_wall, xy[0], tangent[0], config.start_line_y)
     _check_crossings(path, left_wall, right_wall, lines, closed)
-    return Track(left_wall, right_wall, closed=closed, name=path.stem)
+    reading = Reading(str(path), scale, scale_from, closed, closed_from,
+                      fit_warnings(xy, right + left, lengths, lines, closed, config))
+    return Track(left_wall, right_wall, closed=closed, name=path.stem, reading=reading)
+
+
+def fit_warnings(xy: np.ndarray, widths: np.ndarray, lengths: np.ndarray, lines: list[int], closed: bool,
+                 config: RacingConfig) -> tuple[str, ...]:
+    """What the car may not fit on a track of centre points ``xy`` and road ``widths`` (pixels;
+    ``lengths``: each checkpoint's centre-line length): a road narrower than a step at full speed,
+    a checkpoint shorter than one (a car at full speed skips it, which counts as leaving the
+    track), a bend whose radius is below the car's smallest turning radius at any speed."""
+    found = []
+    step, turn = config.max_speed, config.min_turn_radius
+
+    def where(mask: np.ndarray, value: np.ndarray, what: str) -> None:
+        if mask.any():
+            i = int(np.argmin(np.where(mask, value, np.inf)))
+            more = int(mask.sum()) - 1
+            found.append(what.format(value=float(value[i]), line=lines[i], next=lines[(i + 1) % len(lines)])
+                         + (f" (and at {more:,} more)" if more else ""))
+
+    where(widths < step, widths, "the road is {value:.0f} px wide at line {line}, narrower than a step at full speed "
+          f"({step:g} px)")
+    where(lengths < step, lengths, "the checkpoint from line {line} to line {next} is {value:.0f} px long, shorter "
+          f"than a step at full speed ({step:g} px): a car at full speed skips it and counts as leaving the track")
+    ring = np.vstack([xy[-1:], xy, xy[:1]]) if closed else xy
+    a, b, c = ring[:-2], ring[1:-1], ring[2:]
+    twice_area = np.abs((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
+    sides = np.hypot(*(b - a).T) * np.hypot(*(c - b).T) * np.hypot(*(c - a).T)
+    with np.errstate(divide="ignore"):
+        radius = np.concatenate([[np.inf] * (not closed), sides / (2 * twice_area), [np.inf] * (not closed)])
+    where(radius < turn, radius, "the centre line bends with a radius of {value:.0f} px at line {line}, tighter "
+          f"than the car turns at any speed ({turn:g} px)")
+    if found:
+        found.append("scale the file up (a larger scale) or see docs/usage.md, 'Bring your own circuit'")
+    return tuple(found)
 
 
 def _pose(left: np.ndarray, right: np.ndarray, first: np.ndarray, heading: np.ndarray,
@@ -235,6 +329,38 @@ def save_track(track: Track, path: Path | str, scale: float = 1.0) -> Path:
     return path
 
 
+def make_circuit(points: int = 1200, spacing: float = 5.0) -> np.ndarray:
+    """A circuit in the TUM racetrack-database's layout: ``points`` centre-line points ``spacing``
+    metres apart (closed: the last lies one spacing from the first, which is not repeated), a road
+    of 10 to 13 m. Its rows ``x_m, y_m, w_tr_right_m, w_tr_left_m``; ``write_rows`` saves them as
+    a downloaded file is (a header comment, no settings). A bean of radius ``r(phi) = R (1 + 0.25
+    cos 2 phi - 0.2 cos 3 phi)``, sized so that the centre line is ``points * spacing`` long."""
+    if isinstance(points, bool) or not isinstance(points, int) or not 3 <= points <= MAX_ROWS:
+        raise ValueError(f"points must be an integer in [3, {MAX_ROWS:,}], got {points!r}")
+    if not (math.isfinite(spacing) and spacing > 0):
+        raise ValueError(f"spacing must be a number > 0, got {spacing!r}")
+    phi = np.linspace(0.0, 2 * np.pi, 20_001)
+    radius = 1 + 0.25 * np.cos(2 * phi) - 0.2 * np.cos(3 * phi)
+    xy = np.stack([radius * np.cos(phi), radius * np.sin(phi)], axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+    at = np.arange(points) * (arc[-1] / points)  # equally spaced along the curve, the start not repeated
+    angle = np.interp(at, arc, phi)
+    r = 1 + 0.25 * np.cos(2 * angle) - 0.2 * np.cos(3 * angle)
+    size = points * spacing / arc[-1]
+    x, y = size * r * np.cos(angle), size * r * np.sin(angle)
+    right, left = 5.5 + 0.5 * np.sin(3 * angle), 5.8 + 0.6 * np.cos(2 * angle)
+    return np.stack([x, y, right, left], axis=1)
+
+
+def write_rows(path: Path | str, rows: np.ndarray) -> Path:
+    """Save rows ``x, y, right, left`` as the TUM racetrack-database's files are: its header as a
+    comment, three decimals, no ``closed`` or ``scale`` comment."""
+    path = Path(path)
+    lines = ["# " + ",".join(COLUMNS)] + [f"{x:.3f},{y:.3f},{r:.3f},{l:.3f}" for x, y, r, l in rows.tolist()]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
 def track_config(track: Track, config: RacingConfig) -> RacingConfig:
     """``config`` with ``num_segments`` set to the track's checkpoints (a file decides how many)."""
     import dataclasses
@@ -242,18 +368,57 @@ def track_config(track: Track, config: RacingConfig) -> RacingConfig:
     return dataclasses.replace(config, num_segments=track.num_checkpoints)
 
 
-def parse_track(option: str, text: str) -> int | str:
-    """A command line's track: a seed (digits), or the path of a track file, loaded once to check it;
-    ``TrackFileError`` saying which (``option`` names the argument)."""
+@dataclass(frozen=True)
+class FileTrack:
+    """A track file as a tool names it, with the scale and closure its caller gave (None: the
+    file's comment, else the rule; see the module docstring). Printed, it is its path."""
+
+    path: str
+    scale: float | None = None
+    closed: bool | None = None
+
+    def __str__(self) -> str:
+        return self.path
+
+
+def env_keywords(track: "int | str | FileTrack") -> dict:
+    """The environment keywords that put a car on ``track``: a seed, a track file's path, or a
+    ``FileTrack`` (``racing.RacingEnv(**env_keywords(track))``)."""
+    if isinstance(track, FileTrack):
+        return {"track_file": track.path, "track_scale": track.scale, "track_closed": track.closed}
+    return {"track_file": str(track)} if isinstance(track, (str, Path)) else {"track_seed": track}
+
+
+def add_track_options(parser) -> None:
+    """``--track-scale`` and ``--track-closed`` / ``--track-open``: how every tool that takes a
+    track file overrides the file's scale and closure (``train.py``: ``env.track_scale``,
+    ``env.track_closed``)."""
+    parser.add_argument("--track-scale", type=float, default=None, metavar="S",
+                        help="a track file's pixels per file unit (default: the file's '# scale:' comment, else "
+                             "the scale that makes its road 200 px wide, as generated tracks are)")
+    shape = parser.add_mutually_exclusive_group()
+    shape.add_argument("--track-closed", dest="track_closed", action="store_const", const=True, default=None,
+                       help="read a track file as a circuit (default: its '# closed:' comment, else its geometry)")
+    shape.add_argument("--track-open", dest="track_closed", action="store_const", const=False,
+                       help="read a track file as open, start to finish")
+
+
+def parse_track(option: str, text: str, scale: float | None = None, closed: bool | None = None) -> "int | FileTrack":
+    """A command line's track: a seed (digits), or a track file (a ``FileTrack`` with the caller's
+    ``scale`` and ``closed``), loaded once to check it; ``TrackFileError`` saying which (``option``
+    names the argument)."""
     if text.isdigit():
         if int(text) >= 2**32:
             raise TrackFileError(f"{option} must be a seed in [0, 2**32) or a track file, got {text}")
+        if scale is not None or closed is not None:
+            raise TrackFileError(f"--track-scale, --track-closed and --track-open apply to a track file; {option} "
+                                 f"is the seed {text}")
         return int(text)
     try:
-        load_track(text)
+        load_track(text, scale, closed)
     except TrackFileError as err:
         raise TrackFileError(f"{option}: {err}") from None
-    return text
+    return FileTrack(text, scale, closed)
 
 
 def env_track(owner: str, seeded: bool, track_file, track_scale, track_closed,

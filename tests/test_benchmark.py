@@ -12,7 +12,7 @@ import pytest
 
 from engine.benchmark import TRACKS, AgentError, load_agent, read_oracle, score, summarise
 from racing.track_file import example
-from tests.test_readme import readme_commands
+from tests.test_readme import readme_commands, stand_in_circuits
 from tests.test_train import ROOT
 
 
@@ -150,14 +150,17 @@ def test_the_documented_benchmark_commands_run(tmp_path, monkeypatch, capsys):
     score_lines, drive_lines = readme_commands("score.py"), readme_commands("drive.py")
     assert score_lines and drive_lines
     for args in score_lines:
-        args = _tiny_paths(args, tmp_path)
-        if "--video" in args:
+        args = stand_in_circuits(_tiny_paths(args, tmp_path), tmp_path / "circuits")
+        if "--laps-on" in args:
+            args += ["--laps", "1", "--max-steps", "5"]
+        elif "--video" in args:
             args += ["--max-steps", "5"]
         elif not any(a == "--tracks" for a in args):
             args += ["--episodes", "1", "--tracks", str(TRACKS[0])]
         assert score_py.main(args) == 0, shlex.join(args)
     monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
     for args in drive_lines:
+        args = stand_in_circuits(args, tmp_path / "circuits")
         args = [a for a in args if a != "--no-oracle"] + ["--fps", "10000", "--max-steps", "5", "--no-oracle"]
         capsys.readouterr()
         assert drive.main(args) == 0, shlex.join(args)
@@ -199,3 +202,20 @@ def test_the_leaderboard_scores_every_run_of_a_sweep_beside_the_references(tmp_p
     scores = np.array([[1.0, 2.0], [3.0, 4.0]])
     mean, low, high = leaderboard.interval(scores)
     assert mean == 2.5 and 1.0 <= low < mean < high <= 4.0
+
+
+def test_the_end_screen_stays_until_the_window_is_closed(monkeypatch):
+    """drive.py's end screen waits for the window's close (here posted 0.5 s later from a timer)."""
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    import threading
+    import time
+
+    import drive
+    from racing.render import import_pygame
+
+    pg = import_pygame()
+    closer = threading.Timer(0.5, lambda: pg.event.post(pg.event.Event(pg.QUIT)))
+    start = time.perf_counter()
+    closer.start()
+    drive.play(str(example("oval")), max_steps=3, fps=10000, oracle=False, hold=True)
+    assert time.perf_counter() - start >= 0.5

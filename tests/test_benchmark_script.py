@@ -70,6 +70,15 @@ def test_oracle_convergence_benchmark_prints_its_table():
     assert len(rows) == 1 + 2 and rows[1].startswith("| base |") and rows[2].startswith("| candidates=4 |")
 
 
+def test_oracle_circuit_benchmark_prints_its_table():
+    result = subprocess.run([sys.executable, "-m", "benchmarks.oracle_circuit", "--points", "100", "--steps", "2"],
+                            capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    rows = result.stdout.splitlines()[2:]
+    assert rows[0].startswith("generated (seed 1001)") and rows[0].endswith("1.00")
+    assert rows[1].startswith("circuit (100 points)") and " 100 " in rows[1]
+
+
 def test_recipe_cost_benchmark_prints_its_table():
     result = subprocess.run([sys.executable, "-m", "benchmarks.recipe_cost", "--sizes", "1", "--steps", "2",
                              "--recipes", "sac", "sac-module", "droq", "droq-module"], capture_output=True, text=True,

@@ -53,6 +53,12 @@ def test_the_oracle_is_reproducible_and_beats_the_hand_written_driver():
     assert first > driver + 5, (first, driver)
 
 
+def test_the_oracle_drives_as_it_did_when_its_scores_were_shipped():
+    """The first of the five episodes whose mean is analysis/data/oracle_tuning.csv's track 1001
+    (174.875741), to the bit as the code that made it drove it."""
+    assert score([1001], 1, 0)[1001]["episodes"] == [174.5600009852249]
+
+
 def test_bad_settings_are_refused():
     for bad in (dict(candidates=0), dict(horizon=1.5), dict(elite=0.0), dict(min_std=1.0, init_std=0.5)):
         with pytest.raises(ValueError, match="oracle"):

@@ -12,7 +12,7 @@ import pytest
 from racing import RacingEnv
 from racing.render import CAR, GRASS, RAY
 
-pytest.importorskip("pygame", reason="rendering needs pygame (pip install 'racing-rl[render]')")
+pytest.importorskip("pygame", reason="rendering needs pygame (pip install -c constraints/cpu.txt -e '.[render]')")
 
 ROOT = Path(__file__).resolve().parents[1]
 

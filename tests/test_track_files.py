@@ -20,7 +20,7 @@ from racing.sim import RacingSim
 from racing.track import track_from_seed
 from racing.track_file import TrackFileError, example, load_track, save_track, track_config
 from racing.vector_env import RacingVectorEnv
-from tests.test_readme import readme_commands
+from tests.test_readme import readme_commands, stand_in_circuits
 from tests.test_train import ENV, ROOT
 
 HEADER = "# x_m,y_m,w_tr_right_m,w_tr_left_m\n"
@@ -186,7 +186,7 @@ def test_the_documented_track_commands_run(tmp_path):
     commands = readme_commands("tracks.py")
     assert {c[0] for c in commands} >= {"check", "show", "export"}
     for args in commands:
-        args = [a for a in args]
+        args = stand_in_circuits(args, tmp_path / "circuits")
         if "--out" in args:
             i = args.index("--out")
             args[i + 1] = str(tmp_path / Path(args[i + 1]).name)
