@@ -493,3 +493,25 @@ def test_a_users_checkpoint_copy_is_neither_resumed_nor_removed(tmp_path):
     (folder / "checkpoint-copy.pt").write_bytes((folder / "checkpoint.pt").read_bytes())
     train([*TINY, "episodes=4", "checkpoint_every=1"], folder)
     assert rundir.state(folder).kind == "finished" and (folder / "checkpoint-copy.pt").exists()
+
+
+def test_an_archive_without_the_critic_is_finished_and_its_actor_scores(tmp_path):
+    """Archives keep a run's actor and not always its critic (docs/results/benchmark/runs.tar.xz):
+    an absent weight file is not damage; a present one must be the recorded one."""
+    from engine.config import RunConfig
+    from engine.evaluation import load_policy
+    from engine.rundir import state
+    from engine.runner import train_population
+
+    settings = RunConfig.compose_mapping("algo=spg", "er=recent", "episodes=2", "progress=false", "logger=none",
+                                         "algo.minibatch_size=100")
+    folder = tmp_path / "run"
+    train_population(RunConfig.from_mapping(settings), folder, settings)
+    (folder / "critic.pt").unlink()
+    assert state(folder).kind == "finished"
+    load_policy(folder)
+    (folder / "critic.pt").write_bytes(b"not the critic")
+    assert state(folder).kind == "damaged" and "critic.pt" in state(folder).problem
+    (folder / "critic.pt").unlink()
+    (folder / "metrics.csv").unlink()  # the run's data is never optional
+    assert state(folder).kind == "damaged" and "metrics.csv is missing" in state(folder).problem
