@@ -133,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
         from engine import numerics
 
         numerics.apply(numerics.DEFAULT)
-        from engine.benchmark import AgentError, load_agent
+        from benchmark.protocol import AgentError, load_agent
 
         try:
             ghost = load_agent(args.ghost)

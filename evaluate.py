@@ -34,36 +34,8 @@ from pathlib import Path
 
 from engine import numerics
 from engine.outputs import RunFolderError
+from engine.rundir import find_runs, runs_numerics  # noqa: F401 (evaluate.find_runs: the tools' own)
 from racing.track_file import add_track_options
-
-
-def find_runs(paths: list[Path]) -> list[Path]:
-    """The run folders named by ``paths``: each one itself if it holds summary.json, else every
-    folder below it that holds one (sorted)."""
-    runs: list[Path] = []
-    for path in paths:
-        if not path.is_dir():
-            raise RunFolderError(f"{path} is not a folder")
-        found = [path] if (path / "summary.json").exists() else sorted(p.parent for p in path.rglob("summary.json"))
-        if not found:
-            raise RunFolderError(f"{path} holds no finished train.py run (no summary.json in it or below it)")
-        runs.extend(found)
-    return runs
-
-
-def runs_numerics(runs: list[Path]) -> str:
-    """The numerics mode the finished runs were trained in (runs from before the modes: native;
-    damaged runs are skipped later, with their reason)."""
-    from engine import rundir
-
-    found = [rundir.state(run) for run in runs]
-    modes = {((f.summary.get("settings") or {}).get("numerics", "native")) for f in found if f.kind == "finished"}
-    if not modes:
-        return numerics.DEFAULT
-    if len(modes) > 1:
-        raise RunFolderError(f"the runs were trained under different numerics ({sorted(modes)}); "
-                             "choose one with --numerics")
-    return modes.pop()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -164,7 +136,7 @@ def _film_agent(spec: str, args) -> int:
     ``pure_pursuit``, ``ray_follower``, a Stable-Baselines3 ``model.zip``, ``module:function``) on
     the first of ``--tracks`` (default: the first benchmark track) or on ``--track-file``."""
     numerics.apply(args.numerics or numerics.DEFAULT)
-    from engine.benchmark import TRACKS, AgentError, film, load_agent
+    from benchmark.protocol import TRACKS, AgentError, film, load_agent
 
     try:
         agent = load_agent(spec)

@@ -1,5 +1,5 @@
 """The reactive ceiling (docs/beyond.md): an actor network that sees only the observation, taught
-by the oracle itself with DAgger (engine/imitation.py), scored with the usual protocol:
+by the oracle itself with DAgger (imitation/dagger.py), scored with the usual protocol:
 
     python imitate.py --tracks 1001 1002 1003 [--hidden 100] [--rounds 4] [--episodes 5]
                       [--labels best|mean] [--features observation|state] [--noise-states 200]
@@ -38,7 +38,7 @@ def _one(args: tuple):
     numerics.apply(numerics.DEFAULT)
     import torch
 
-    from engine.imitation import dagger
+    from imitation.dagger import dagger
 
     torch.set_num_threads(1)
     return dagger(track, settings)
@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--processes must be at least 1, got {args.processes}")
     numerics.apply(numerics.DEFAULT)
     from analysis.report import read_oracles
-    from engine.imitation import DaggerSettings, mean
+    from imitation.dagger import DaggerSettings, mean
     from engine.processes import spawn_context
 
     try:
@@ -108,9 +108,9 @@ def main(argv: list[str] | None = None) -> int:
                   "error_to_mean_label": "" if result.label_noise is None or k < len(result.scores) - 1
                   else round(result.error_to_mean_label, 6)}
                  for k, (s, n, e) in enumerate(zip(result.scores, result.samples, result.fit_error))]
-    from analysis.compare import _interval
+    from analysis.compare import bootstrap_interval
 
-    low, high = _interval(fractions)
+    low, high = bootstrap_interval(fractions)
     print(f"hidden {list(settings.hidden)}: {mean(fractions):.3f} of the oracle [{low:.3f}, {high:.3f}] over "
           f"{len(fractions)} tracks")
     if args.table is not None:

@@ -1,5 +1,5 @@
 """Score any agent on the benchmark: ten fixed tracks nothing here was tuned on, five episodes
-each from the same start states (engine/benchmark.py; docs/benchmark.md):
+each from the same start states (benchmark/protocol.py; docs/benchmark.md):
 
     python score.py AGENT [AGENT ...] [--table scores.csv] [--episodes 5]
     python score.py AGENT --video agent.gif [--video-track SEED_OR_FILE] [--max-steps 400]
@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, numerics.NumericsError) as err:
         print(f"score: {err}", file=sys.stderr)
         return 2
-    from engine.benchmark import EPISODES, TRACKS, AgentError, load_agent, read_oracle, score, summarise
+    from benchmark.protocol import EPISODES, TRACKS, AgentError, load_agent, read_oracle, score, summarise
 
     tracks = tuple(args.tracks) if args.tracks else TRACKS
     episodes = args.episodes or EPISODES
@@ -141,7 +141,7 @@ def _track(parser, text: str | None, scale: float | None, closed: bool | None, o
 
 
 def _film(agents, path: Path, track, max_steps: int | None) -> int:
-    from engine.benchmark import film
+    from benchmark.protocol import film
 
     options = {} if max_steps is None else {"max_steps": max_steps}
     for n, agent in enumerate(agents):
@@ -156,7 +156,7 @@ def _film(agents, path: Path, track, max_steps: int | None) -> int:
 
 
 def _lap_times(agents, circuit, laps: int, max_steps: int | None, table: Path | None) -> int:
-    from engine.benchmark import lap_times
+    from benchmark.protocol import lap_times
 
     rows = []
     for agent in agents:
@@ -183,7 +183,7 @@ def _lap_times(agents, circuit, laps: int, max_steps: int | None, table: Path | 
 
 
 def _runs_numerics(folders: list[Path]) -> str:
-    from evaluate import runs_numerics
+    from engine.rundir import runs_numerics
 
     return runs_numerics(folders)
 

@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     oracle = read_oracles()
     rows = budget_rows(runs, args.budgets, args.window, oracle)
-    from analysis.compare import _interval
+    from analysis.compare import bootstrap_interval
 
     print("| track | " + " | ".join(f"{b} episodes" for b in args.budgets) + " | deterministic, at the end |")
     print("|---:|" + "---:|" * (len(args.budgets) + 1))
@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {track} | " + " | ".join(cells) + f" | {end} |")
     def mean_fraction(label: str, fractions: list[float]) -> None:
         if fractions:
-            low, high = _interval(fractions)
+            low, high = bootstrap_interval(fractions)
             print(f"{label}: {statistics.fmean(fractions):.3f} of the oracle [{low:.3f}, {high:.3f}] "
                   f"over {len(fractions)} tracks")
 

@@ -51,7 +51,7 @@ def select_cell(runs: dict, cell: str, as_cell: str) -> dict:
     return chosen
 
 
-def _interval(values: list[float], reps: int = 10000, seed: int = 0) -> tuple[float, float]:
+def bootstrap_interval(values: list[float], reps: int = 10000, seed: int = 0) -> tuple[float, float]:
     import numpy as np
 
     x = np.asarray(values)
@@ -77,7 +77,7 @@ def compare(new: dict, old: dict, collapse: float = 20.0) -> str:
     ordered = sorted(diffs)
     mid = len(ordered) // 2
     median = ordered[mid] if len(ordered) % 2 else (ordered[mid - 1] + ordered[mid]) / 2
-    low, high = _interval(diffs)
+    low, high = bootstrap_interval(diffs)
     lines = [f"{len(keys)} runs paired ({len(new)} new, {len(old)} old completed runs): the new run is lower in "
              f"{sum(d < 0 for d in diffs)}, higher in {sum(d > 0 for d in diffs)}, equal in "
              f"{sum(d == 0 for d in diffs)}; difference median {median:+.1f}, mean {sum(diffs) / len(diffs):+.1f} "

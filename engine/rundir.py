@@ -273,3 +273,32 @@ def _release(folder: Path) -> None:
         del _held[folder]
         if entry[0] is not None:
             os.close(entry[0])  # closing the descriptor releases the flock
+
+
+def find_runs(paths: list[Path]) -> list[Path]:
+    """The run folders named by ``paths``: each one itself if it holds summary.json, else every
+    folder below it that holds one (sorted)."""
+    runs: list[Path] = []
+    for path in paths:
+        if not path.is_dir():
+            raise RunFolderError(f"{path} is not a folder")
+        found = [path] if (path / "summary.json").exists() else sorted(p.parent for p in path.rglob("summary.json"))
+        if not found:
+            raise RunFolderError(f"{path} holds no finished train.py run (no summary.json in it or below it)")
+        runs.extend(found)
+    return runs
+
+
+def runs_numerics(runs: list[Path]) -> str:
+    """The numerics mode the finished runs were trained in (runs from before the modes: native;
+    damaged runs are skipped later, with their reason)."""
+    from engine import numerics
+
+    found = [state(run) for run in runs]
+    modes = {((f.summary.get("settings") or {}).get("numerics", "native")) for f in found if f.kind == "finished"}
+    if not modes:
+        return numerics.DEFAULT
+    if len(modes) > 1:
+        raise RunFolderError(f"the runs were trained under different numerics ({sorted(modes)}); "
+                             "choose one with --numerics")
+    return modes.pop()

@@ -78,7 +78,7 @@ def test_bad_arguments_are_refused_with_a_reason(tmp_path, args, message):
 def test_random_tracks_train_on_a_new_track_each_episode_and_the_benchmark_scores_the_folder(tmp_path):
     """--random-tracks (the benchmark's training): the run's settings say so, its episodes differ
     from the same seed's fixed-track run, and score.py's agent loader takes the run folder."""
-    from engine.benchmark import load_agent
+    from benchmark.protocol import load_agent
 
     documented = [c for c in readme_commands("baseline.py", include_elsewhere=True) if "--random-tracks" in c]
     assert documented, "docs/benchmark.md shows how the leaderboard's Stable-Baselines3 runs are made"
@@ -103,7 +103,7 @@ def test_random_tracks_train_on_a_new_track_each_episode_and_the_benchmark_score
     assert agent.kind == "Stable-Baselines3 PPO"
     # The leaderboard scores these beside this project's runs (fma) under fma: their torch layers
     # compute the same there as under portable, the mode they were trained in.
-    from analysis.leaderboard import _numerics
+    from benchmark.leaderboard import _numerics
     from evaluate import runs_numerics
     from tests.test_train import run_train
 

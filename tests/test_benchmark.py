@@ -1,4 +1,4 @@
-"""The benchmark protocol and its commands (engine/benchmark.py, score.py, drive.py): fixed unseen
+"""The benchmark protocol and its commands (benchmark/protocol.py, score.py, drive.py): fixed unseen
 tracks, every kind of agent, videos of any agent, and driving it yourself (headless)."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from engine.benchmark import TRACKS, AgentError, load_agent, read_oracle, score, summarise
+from benchmark.protocol import TRACKS, AgentError, load_agent, read_oracle, score, summarise
 from racing.track_file import example
 from tests.test_readme import readme_commands, stand_in_circuits
 from tests.test_train import ROOT
@@ -105,7 +105,7 @@ def test_any_agent_is_filmed_on_a_seed_or_a_file_track(tmp_path, capsys):
     assert evaluate.main(["racing.driver:ray_follower", "--video", str(tmp_path / "follower.mp4"),
                           "--track-file", str(example("kidney"))]) == 0  # evaluate.py films any agent too
     assert f"wrote {tmp_path / 'follower.mp4'} (201 frames)" in capsys.readouterr().out
-    from engine.benchmark import film
+    from benchmark.protocol import film
 
     frames, total = film(load_agent("oracle"), TRACKS[0], tmp_path / "oracle.gif", max_steps=6)
     assert frames == 7 and total > 0
@@ -177,9 +177,9 @@ def _tiny_paths(args: list[str], tmp_path: Path) -> list[str]:
 
 
 def test_the_leaderboard_scores_every_run_of_a_sweep_beside_the_references(tmp_path, capsys):
-    """python -m analysis.leaderboard on a tiny sweep: one agent per cell, its runs and tracks
+    """python -m benchmark.leaderboard on a tiny sweep: one agent per cell, its runs and tracks
     resampled for the interval; a diverged run is left out and named."""
-    from analysis import leaderboard
+    from benchmark import leaderboard
     from engine.config import RunConfig
     from engine.runner import train_population
 

@@ -223,12 +223,12 @@ def read_oracle(path: Path = ORACLE_SCORES) -> dict[int, float]:
 
 def summarise(per_track: dict[int, float], oracle: dict[int, float]) -> dict:
     """The benchmark score and the normalised score, each with its 95% interval over tracks."""
-    from analysis.compare import _interval
+    from analysis.compare import bootstrap_interval
 
     tracks = list(per_track)
     raw = [per_track[t] for t in tracks]
     normalised = [per_track[t] / oracle[t] for t in tracks if t in oracle]
-    summary = {"tracks": len(tracks), "mean": math.fsum(raw) / len(raw), "ci": _interval(raw)}
+    summary = {"tracks": len(tracks), "mean": math.fsum(raw) / len(raw), "ci": bootstrap_interval(raw)}
     if len(normalised) == len(tracks):
-        summary.update(normalised=math.fsum(normalised) / len(normalised), normalised_ci=_interval(normalised))
+        summary.update(normalised=math.fsum(normalised) / len(normalised), normalised_ci=bootstrap_interval(normalised))
     return summary

@@ -6,7 +6,7 @@ oracle's action); every later round lets the current network drive (deterministi
 the oracle label every state it visits, planning from that state (``racing.oracle.Oracle.act``);
 the data of all rounds is aggregated and the network refit from scratch by regression (mean
 squared error on the action) after each round. Data episodes start from seeds 1000 + k, the
-scoring protocol's episodes from seeds 0-4 (``engine.benchmark``'s: five deterministic episodes,
+scoring protocol's episodes from seeds 0-4 (``benchmark.protocol``'s: five deterministic episodes,
 their mean total reward), so no scored start state is ever labelled. The network is the paper's
 actor body (``learners.solo.GaussianPolicyNet``: tanh hidden layers, the Gaussian's mean as the
 action) at any width.
@@ -124,7 +124,7 @@ def fit_error(net, observations: np.ndarray, actions: np.ndarray) -> float:
 
 def dagger(track: int, settings: DaggerSettings = DaggerSettings(), oracle_settings=None) -> DaggerResult:
     """DAgger on one track (see the module docstring); the scores are the protocol's."""
-    from engine.benchmark import Agent, score
+    from benchmark.protocol import Agent, score
     from engine.evaluation import Policy
     from racing.gym_env import RacingEnv
     from racing.oracle import Oracle, OracleSettings

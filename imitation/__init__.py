@@ -1,0 +1,1 @@
+"""Networks taught by the oracle (``dagger``: the reactive ceiling; ``imitate.py``)."""
