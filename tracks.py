@@ -36,10 +36,9 @@ STEP_SECONDS = 1 / 30  # racing.sim.RacingSim.STEP_SECONDS (not imported: check 
 
 def describe(track) -> str:
     """One line: the track's name, shape, checkpoints, length and road width."""
-    centre = (track.left_wall + track.right_wall) / 2
-    length = float(np.hypot(*np.diff(centre, axis=0).T).sum())
     widths = np.hypot(*(track.left_wall - track.right_wall).T)
     kind = "a circuit (closed)" if track.closed else "open (start to finish)"
+    length = track.centre_line_length()
     return (f"{track.name}: {kind}, {track.num_checkpoints} checkpoints, centre line {length:,.0f} px, "
             f"road {widths.min():.0f} to {widths.max():.0f} px wide (median {np.median(widths):.0f})")
 
@@ -52,17 +51,15 @@ def reading_lines(track) -> list[str]:
     return lines + [f"  warning: {w}" for w in r.warnings]
 
 
-def lap(path: Path, scale, closed, driver: str) -> dict:
-    """One lap of a circuit (an open track: the way to the finish) by a reference driver
-    (``pure_pursuit`` or ``ray_follower``), with a step cap of 20 steps per 50 px of centre line:
-    {"steps": ..., "crashes": ..., "done": whether it got round}."""
+def lap(path: Path, scale, closed, track, driver: str) -> dict:
+    """One lap of a circuit (an open track: the way to the finish), ``track`` as the file ``path``
+    reads with ``scale`` and ``closed``, by a reference driver (``pure_pursuit`` or
+    ``ray_follower``), with a step cap of 20 steps per 50 px of centre line: {"steps": ...,
+    "crashes": ..., "done": whether it got round}."""
     from racing.driver import PurePursuit, ray_follower
     from racing.gym_env import RacingEnv
 
-    track = load_track(path, scale, closed)
-    centre = (track.left_wall + track.right_wall) / 2
-    length = float(np.hypot(*np.diff(centre, axis=0).T).sum())
-    cap = int(min(MAX_STEPS, 20 * length / RacingConfig().max_speed + 1_000))
+    cap = int(min(MAX_STEPS, 20 * track.centre_line_length() / RacingConfig().max_speed + 1_000))
     env = RacingEnv(track_file=str(path), track_scale=scale, track_closed=closed, max_steps=cap)
     obs, _ = env.reset(seed=0)
     sim, pursuit = env.unwrapped.sim, PurePursuit()
@@ -80,7 +77,7 @@ def lap_lines(path: Path, scale, closed, track) -> list[str]:
     what = "a lap" if track.closed else "the way to the finish"
     lines, paces = [], []
     for driver in ("pure_pursuit", "ray_follower"):
-        result = lap(path, scale, closed, driver)
+        result = lap(path, scale, closed, track, driver)
         if result["done"]:
             paces.append(result["steps"])
             lines.append(f"  {what}: {result['steps']:,} steps ({result['steps'] * STEP_SECONDS:.1f} s) for the "

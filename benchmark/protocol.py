@@ -171,9 +171,8 @@ def lap_times(agent: Agent, track, laps: int = 3, seed: int = 0, max_steps: int 
     circuit = load_track(track.path, track.scale, track.closed)
     if not circuit.closed:
         raise ValueError(f"{track.path} is read as an open track, which has no laps (a circuit: --track-closed)")
-    centre = (circuit.left_wall + circuit.right_wall) / 2
-    length = float(sum(math.hypot(*d) for d in (centre[1:] - centre[:-1]).tolist()))
-    cap = max_steps or min(MAX_STEPS, int(laps * 4 * length / RacingConfig().max_speed) + 1_000)
+    full_speed_steps = circuit.centre_line_length() / RacingConfig().max_speed
+    cap = max_steps or min(MAX_STEPS, int(laps * 4 * full_speed_steps) + 1_000)
     env = RacingEnv(**env_keywords(track), max_steps=cap, laps=laps)
     total = run_episode(agent, env, seed)
     sim = env.unwrapped.sim

@@ -7,7 +7,6 @@ design does not allow, each in one sentence naming what was expected.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -258,11 +257,8 @@ class EnvConfig:
         if self.track_file is None and (self.track_scale is not None or self.track_closed is not None):
             raise ConfigError("env.track_scale and env.track_closed say how to read env.track_file; set "
                               "env.track=file env.track_file=PATH, or leave them null")
-        if self.track_scale is not None and (isinstance(self.track_scale, bool) or not isinstance(
-                self.track_scale, (int, float)) or not math.isfinite(self.track_scale) or self.track_scale <= 0):
+        if self.track_scale is not None and self.track_scale <= 0:  # its type and finiteness: coerce's
             raise ConfigError(f"env.track_scale must be a number > 0 (pixels per file unit), got {self.track_scale!r}")
-        if self.track_closed is not None and not isinstance(self.track_closed, bool):
-            raise ConfigError(f"env.track_closed must be true, false or null, got {self.track_closed!r}")
         if self.track_file is not None:
             from racing.track_file import TrackFileError, file_track
 

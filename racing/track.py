@@ -72,6 +72,12 @@ class Track:
         dx, dy = self.centres[i + 1] - self.centres[i]
         return float(np.pi / 2 - math.atan2(dy, dx))
 
+    def centre_line_length(self) -> float:
+        """The length of the line through the midpoints of the wall points (a circuit's closing
+        segment included), in pixels."""
+        centre = (self.left_wall + self.right_wall) / 2
+        return float(np.hypot(*np.diff(centre, axis=0).T).sum())
+
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Lower-left and upper-right corners of the box that holds both walls."""
         walls = np.concatenate([self.left_wall, self.right_wall])

@@ -198,8 +198,6 @@ def load_track(path: Path | str, scale: float | None = None, closed: bool | None
     scale = float(scale)
     if closed and len(points) > 3 and np.array_equal(points[0, :2], points[-1, :2]):
         points, lines = points[:-1], lines[:-1]  # a circuit written with its first point repeated at the end
-    if len(points) < 3:
-        raise TrackFileError(f"{path}: {len(points)} point(s); a track needs at least 3 (2 checkpoints)")
     xy, right, left = points[:, :2] * scale, points[:, 2] * scale, points[:, 3] * scale
     steps = np.diff(np.vstack([xy, xy[:1]]) if closed else xy, axis=0)
     lengths = np.hypot(steps[:, 0], steps[:, 1])
