@@ -140,6 +140,8 @@ def _setting(path: Path, number: int, key: str, value: str):
     return scale
 
 
+MAX_EXTENT = 1e9  # pixels a scaled track may span (a car drives at most 5e7 in an episode: 50 px x 1e6 steps)
+MIN_SEGMENT = 1e-3  # pixels: the shortest scaled segment the wall geometry is computed on (float64 rounding)
 CLOSING_GAP = 2.0  # a file whose last point lies within this many segment lengths of its first is a circuit
 
 
@@ -199,12 +201,21 @@ def load_track(path: Path | str, scale: float | None = None, closed: bool | None
     if closed and len(points) > 3 and np.array_equal(points[0, :2], points[-1, :2]):
         points, lines = points[:-1], lines[:-1]  # a circuit written with its first point repeated at the end
     xy, right, left = points[:, :2] * scale, points[:, 2] * scale, points[:, 3] * scale
+    extent = float(np.ptp(xy, axis=0).max()) + 2 * float(max(right.max(), left.max()))
+    if not extent <= MAX_EXTENT:
+        raise TrackFileError(f"{path}: scale {scale:g} makes the track {extent:.3g} px across; at most {MAX_EXTENT:.0e} "
+                             "(a car drives at most 5e7 px in an episode)")
     steps = np.diff(np.vstack([xy, xy[:1]]) if closed else xy, axis=0)
     lengths = np.hypot(steps[:, 0], steps[:, 1])
     if (lengths == 0).any():
         i = int(np.flatnonzero(lengths == 0)[0])
         after = lines[(i + 1) % len(lines)]
         raise TrackFileError(f"{path}, line {after}: repeats the point of line {lines[i]}")
+    if lengths.min() < MIN_SEGMENT:
+        i = int(np.argmin(lengths))
+        raise TrackFileError(f"{path}, line {lines[(i + 1) % len(lines)]}: at scale {scale:g} it lies {lengths[i]:.2g} px "
+                             f"from the point before it, below {MIN_SEGMENT:g} px (too small to compute walls on); "
+                             "give a larger scale")
     arriving = np.vstack([steps[-1:], steps[:-1]]) if closed else np.vstack([steps[:1], steps])  # (M, 2)
     tangent = arriving / np.hypot(arriving[:, 0], arriving[:, 1])[:, None]
     normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)  # to the left of the direction of travel

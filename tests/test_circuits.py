@@ -189,3 +189,21 @@ def test_score_says_one_line_for_a_raising_agent_and_na_for_one_track(tmp_path, 
     assert err.strip() == "score: raiser:act: the agent raised ZeroDivisionError: division by zero", err
     assert score.main(["ray_follower", "--tracks", "1001", "--episodes", "1"]) == 0
     assert "[n/a: one track] over 1 track x 1 episodes" in capsys.readouterr().out
+
+
+def test_absurd_scales_and_damaged_files_are_refused_in_one_line(tmp_path, circuit):
+    """A scale a thousand times too big or too small for float geometry, a flipped byte, a device."""
+    with pytest.raises(TrackFileError, match=r"makes the track .* px across; at most 1e\+09"):
+        load_track(circuit, scale=1e300)
+    with pytest.raises(TrackFileError, match=r"below 0.001 px \(too small to compute walls on\); give a larger"):
+        load_track(circuit, scale=1e-300)
+    with pytest.raises(ConfigError, match="makes the track"):
+        RunConfig.compose("env.track=file", f"env.track_file={circuit}", "env.track_scale=1e300")
+    lines = circuit.read_text().splitlines()
+    lines[100] = lines[100].replace(".", "x", 1)  # a flipped byte in a number
+    damaged = tmp_path / "damaged.csv"
+    damaged.write_text("\n".join(lines) + "\n")
+    with pytest.raises(TrackFileError, match="line 101: x_m is .*, not a number"):
+        load_track(damaged)
+    with pytest.raises(TrackFileError, match="not a regular file"):
+        parse_track("--laps-on", "/dev/zero")
