@@ -114,16 +114,16 @@ def main(argv: list[str] | None = None) -> int:
                          "train_seed": settings["seed"], "train_tracks": settings["env"]["track"], "track": track,
                          "own_track": track == own, "episodes": args.episodes, "mean_reward": round(mean, 6)})
         if first is None:
-            first = (policy, settings, tracks)
+            first = (policy, settings, tracks, run)
     _print(rows, len(runs) > 1)
     for line in skipped:
         print(f"skipped {line}", file=sys.stderr)
     if args.table is not None and rows:
         _write_table(args.table, rows)
     if args.video is not None and first is not None:
-        policy, settings, tracks = first
+        policy, settings, tracks, run = first
         try:
-            frames = film(policy, settings, (args.tracks or tracks)[0], args.video, args.seed)
+            frames = film(policy, settings, (args.tracks or tracks)[0], args.video, args.seed, name=str(run))
         except (RuntimeError, ValueError) as err:
             print(f"evaluate: {err}", file=sys.stderr)
             return 2

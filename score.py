@@ -13,8 +13,9 @@ one of ``oracle``, ``pure_pursuit``, ``ray_follower``. For each it prints the be
 the oracle-normalised score (each track's score over the oracle's, shipped in
 ``analysis/data/oracle_benchmark.csv``) with its interval; ``--table`` writes every agent's
 per-track scores as CSV. ``--episodes`` other than 5 is not the protocol, and says so.
-``--video`` films one episode of each agent instead (progress, crashes and, on a circuit, laps
-drawn on the frames; the ``render`` extra), on the first benchmark track or ``--video-track``.
+``--video`` films one episode of each agent instead (its name, reward so far, progress, crashes,
+on a circuit its laps, and a map of the whole track drawn on the frames; the ``render`` extra), on the
+first benchmark track or ``--video-track``.
 ``--laps-on`` times laps instead: each agent drives a circuit (a track file, read by the rules of
 racing/track_file.py or ``--track-scale``/``--track-closed``) from start seed 0 until ``--laps``
 laps are done or a step cap is reached, and its laps, best lap (seconds, 30 steps a second),

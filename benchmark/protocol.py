@@ -155,7 +155,7 @@ def run_episode(agent: Agent, env, seed: int, frames: list | None = None) -> flo
         except Exception as err:  # the agent's own code: any error, said in one line
             raise AgentError(f"the agent raised {type(err).__name__}: {err}") from err
 
-    return drive_episode(act, env, seed, frames, agent.reset)
+    return drive_episode(act, env, seed, frames, agent.reset, name=agent.name)
 
 
 def lap_times(agent: Agent, track, laps: int = 3, seed: int = 0, max_steps: int | None = None) -> dict:
@@ -184,7 +184,8 @@ def lap_times(agent: Agent, track, laps: int = 3, seed: int = 0, max_steps: int 
 
 def film(agent: Agent, track: int | str, path: Path, seed: int = 0, **options) -> tuple[int, float]:
     """One episode of ``agent`` on a track (a seed or a track file) as a GIF or MP4, with the
-    progress and, on a circuit, the laps drawn; returns (frames, total reward)."""
+    agent's name, its reward so far, the progress, a map of the track and, on a circuit, the laps
+    drawn; returns (frames, total reward)."""
     from engine.evaluation import check_video_path, write_video
     from racing.gym_env import RacingEnv
 

@@ -140,28 +140,34 @@ def make_env(settings: dict, track: int | str, render_mode: str | None = None) -
                      **env.get("options", {}))
 
 
-def run_episode(net: Policy, env: RacingEnv, seed: int, frames: list | None = None) -> float:
+def run_episode(net: Policy, env: RacingEnv, seed: int, frames: list | None = None, name: str | None = None) -> float:
     """One deterministic episode of a trained policy from the start state of ``seed``; its total
-    reward (with ``frames``, every rendered frame, the start included, appended to it)."""
-    return drive_episode(lambda _env, obs: deterministic_action(net, obs), env, seed, frames)
+    reward (with ``frames``, every rendered frame, the start included, appended to it, with
+    ``name`` and the reward so far drawn on each)."""
+    return drive_episode(lambda _env, obs: deterministic_action(net, obs), env, seed, frames, name=name)
 
 
-def drive_episode(act, env: RacingEnv, seed: int, frames: list | None = None, reset=None) -> float:
+def drive_episode(act, env: RacingEnv, seed: int, frames: list | None = None, reset=None,
+                  name: str | None = None) -> float:
     """One episode driven by ``act(env, observation) -> action`` from the start state of ``seed``
     (``reset()``, if given, called once the car is at the start); its total reward. The action is
-    checked as the environment checks any; ``frames`` as for ``run_episode``."""
+    checked as the environment checks any; ``frames`` and ``name`` as for ``run_episode``."""
     obs, _ = env.reset(seed=seed)
     if reset is not None:
         reset()
-    if frames is not None:
-        frames.append(env.render())
     total, done = 0.0, False
+
+    def take_frame() -> None:
+        if frames is not None:
+            env.unwrapped.render_lines = ([] if name is None else [name]) + [f"reward so far {total:.1f}"]
+            frames.append(env.render())
+
+    take_frame()
     while not done:
         obs, reward, terminated, truncated, _ = env.step(act(env, obs))
         total += reward
         done = terminated or truncated
-        if frames is not None:
-            frames.append(env.render())
+        take_frame()
     return total
 
 
@@ -178,13 +184,15 @@ def evaluate(net: Policy, settings: dict, track_seeds: list[int | str], episodes
     return results
 
 
-def film(net: Policy, settings: dict, track_seed: int | str, path: Path, seed: int = 0, fps: int = 30) -> int:
+def film(net: Policy, settings: dict, track_seed: int | str, path: Path, seed: int = 0, fps: int = 30,
+         name: str | None = None) -> int:
     """Write one deterministic episode on a track (a seed or a track file) as a GIF or MP4 (by
-    suffix); returns the number of frames."""
+    suffix), ``name`` (e.g. the run's folder) and the reward so far on each frame; returns the
+    number of frames."""
     check_video_path(path)
     env = make_env(settings, track_seed, render_mode="rgb_array")
     frames: list = []
-    run_episode(net, env, seed, frames)
+    run_episode(net, env, seed, frames, name=name)
     env.close()
     return write_video(frames, path, fps)
 

@@ -148,6 +148,7 @@ class RacingEnv(gym.Env):
         self.action_space = spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
         self.observation_space = spaces.Box(0.0, 1.0, shape=(self.config.obs_size,), dtype=np.float32)
         self._renderer = None
+        self.render_lines: list[str] = []  # more text drawn on every frame (films: the agent and its reward so far)
         self._crashed = False
 
     @property
@@ -198,7 +199,7 @@ class RacingEnv(gym.Env):
 
             self._renderer = Renderer(self.config, human=self.render_mode == "human",
                                       fps=self.metadata["render_fps"])
-        return self._renderer.draw(self.sim, car=0)
+        return self._renderer.draw(self.sim, car=0, extra=self.render_lines)
 
     def close(self):
         if self._renderer is not None:

@@ -118,8 +118,12 @@ def track_view(track: Track, size: tuple[int, int] = (800, 600), margin: float =
     return canvas
 
 
+MAP_SIZE = 150  # pixels: the whole track in a frame's lower right corner, the car a dot on it
+
+
 class Renderer:
-    """Draws one car of a ``RacingSim`` with a camera that follows it (the paper's screenshot view)."""
+    """Draws one car of a ``RacingSim`` with a camera that follows it (the paper's screenshot view),
+    a map of the whole track in a corner (``MAP_SIZE``) and the car's figures as text."""
 
     def __init__(self, config: RacingConfig, human: bool = False, size: tuple[int, int] = (600, 600),
                  view: float = 1200.0, fps: int = 30):
@@ -131,6 +135,7 @@ class Renderer:
         self.fps = fps
         self.window = None
         self.clock = None
+        self._map: tuple[Track, Canvas] | None = None  # the last track's map, drawn once per track
 
     def draw(self, sim, car: int = 0, ghosts: list = (), extra: list[str] = ()) -> np.ndarray | None:
         """The frame of ``sim``'s car ``car``; ``ghosts``: (x, y, theta) of other cars to draw faintly
@@ -142,6 +147,7 @@ class Renderer:
             canvas.car(gx, gy, gtheta, None, self.config, colour=GHOST)
         readings = sim.observe()[car]
         canvas.car(x, y, theta, readings, self.config)
+        self._draw_map(canvas, sim.tracks[car], [(x, y, CAR), *[(gx, gy, GHOST) for gx, gy, _ in ghosts]])
         n = self.config.num_segments
         progress = sim.car_state(car)["progress"]
         lines = [f"speed {sim.speed[car]:5.1f}   checkpoint {sim.checkpoint[car]}/{n}   progress {progress:.0%}",
@@ -164,6 +170,18 @@ class Renderer:
         pg.display.flip()
         self.clock.tick(self.fps)
         return None
+
+    def _draw_map(self, canvas: Canvas, track: Track, cars: list[tuple[float, float, tuple]]) -> None:
+        """The whole track in the lower right corner of ``canvas``, each of ``cars`` (x, y, colour) a dot."""
+        if self._map is None or self._map[0] is not track:
+            self._map = (track, track_view(track, (MAP_SIZE, MAP_SIZE), margin=0.08))
+        overview = self._map[1]
+        left, top = self.size[0] - MAP_SIZE - 8, self.size[1] - MAP_SIZE - 8
+        canvas.surface.blit(overview.surface, (left, top))
+        self.pg.draw.rect(canvas.surface, TEXT, (left, top, MAP_SIZE, MAP_SIZE), 1)
+        for x, y, colour in reversed(cars):  # the driven car on top
+            px, py = overview.to_screen([[x, y]])[0]
+            self.pg.draw.circle(canvas.surface, colour, (left + px, top + py), 4)
 
     def close(self) -> None:
         if self.window is not None:

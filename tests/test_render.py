@@ -74,3 +74,21 @@ def test_demo_writes_its_pictures(tmp_path):
     assert "return" in result.stdout
     for name in ("trajectory.png", "car.png", "paper_tracks.png"):
         assert (tmp_path / name).stat().st_size > 5_000
+
+
+def test_film_frames_name_the_agent_its_reward_and_show_the_whole_track():
+    """Each frame of a film carries the agent's name, its reward so far, and a map of the whole
+    track (lower right corner) with the car as a red dot where the car is."""
+    from benchmark.protocol import load_agent, run_episode
+    from racing.render import MAP_SIZE
+    from racing.track_file import example
+
+    env = RacingEnv(render_mode="rgb_array", track_file=str(example("kidney")), max_steps=40)
+    frames: list = []
+    total = run_episode(load_agent("ray_follower"), env, 0, frames)
+    assert env.unwrapped.render_lines == ["ray_follower", f"reward so far {total:.1f}"]
+    corner = frames[-1][-MAP_SIZE - 8:-8, -MAP_SIZE - 8:-8]
+    red = np.argwhere((corner == CAR).all(axis=-1))
+    assert len(red) > 0  # the car's dot on the map
+    first_red = np.argwhere((frames[0][-MAP_SIZE - 8:-8, -MAP_SIZE - 8:-8] == CAR).all(axis=-1))
+    assert not np.array_equal(red.mean(0), first_red.mean(0))  # the dot moved with the car
