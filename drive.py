@@ -87,7 +87,7 @@ def play(track, seed: int = 0, ghost=None, max_steps: int = 200, fps: int = 30, 
 
         renderer.draw(env.unwrapped.sim, extra=["", "The oracle is driving the same episode to compare;",
                                                 f"about {max_steps / 100:.0f} s ({max_steps} steps at ~10 ms)..."])
-        totals["oracle"] = drive(RacingEnv(max_steps=max_steps, **where), Oracle(env.config), seed)
+        totals["oracle"] = drive(RacingEnv(max_steps=max_steps, **where), Oracle(), seed)
     lines = [f"you: {totals['you']:.1f}"]
     if totals["ghost"] is not None:
         lines.append(f"ghost ({ghost.name}): {totals['ghost']:.1f}")

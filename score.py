@@ -18,7 +18,8 @@ on a circuit its laps, and a map of the whole track drawn on the frames; the ``r
 first benchmark track or ``--video-track``.
 ``--laps-on`` times laps instead: each agent drives a circuit (a track file, read by the rules of
 racing/track_file.py or ``--track-scale``/``--track-closed``) from start seed 0 until ``--laps``
-laps are done or a step cap is reached, and its laps, best lap (seconds, 30 steps a second),
+laps are done or a step cap is reached (``--max-steps``; default four times the steps its centre
+line takes at full speed, per lap), and its laps, best lap (seconds, 30 steps a second),
 crashes and total reward are printed (and written with ``--table``).
 """
 
@@ -168,8 +169,10 @@ def _lap_times(agents, circuit, laps: int, max_steps: int | None, table: Path | 
             return 2
         best = "no lap" if result["best_lap_s"] is None else f"best lap {result['best_lap_s']:.2f} s"
         each = ", ".join(f"{s:.2f}" for s in result["lap_seconds"])
-        print(f"{Path(str(circuit)).name}: {agent.name}: {result['laps']} of {laps} laps in {result['steps']:,} steps, "
-              f"{best}" + (f" (laps {each} s)" if each else "") + f", {result['crashes']} crashes, total reward "
+        capped = " (the step cap)" if result["laps"] < laps else ""
+        crashes = f"{result['crashes']} crash" + ("" if result["crashes"] == 1 else "es")
+        print(f"{Path(str(circuit)).name}: {agent.name}: {result['laps']} of {laps} laps in {result['steps']:,} steps"
+              f"{capped}, {best}" + (f" (laps {each} s)" if each else "") + f", {crashes}, total reward "
               f"{result['total_reward']:.1f}")
         rows.append({"agent": agent.name, "kind": agent.kind, "circuit": str(circuit), "laps": result["laps"],
                      "best_lap_s": result["best_lap_s"] if result["best_lap_s"] is not None else "",

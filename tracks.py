@@ -138,8 +138,6 @@ def main(argv: list[str] | None = None) -> int:
         path = write_rows(args.out, make_circuit(args.points))
         print(f"wrote {path}: {describe(load_track(path))}")
         return 0
-    if args.track_scale is not None and not args.track_scale > 0:
-        parser.error(f"--track-scale must be a number > 0 (pixels per file unit), got {args.track_scale}")
     try:
         track = load_track(args.file, args.track_scale, args.track_closed)
     except TrackFileError as err:

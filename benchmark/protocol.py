@@ -89,20 +89,8 @@ def _builtin(name: str) -> Agent:
     else:
         from racing.oracle import Oracle
 
-        driver = None  # built per environment (its config)
-    holder = {"driver": driver}
-
-    def act(env, obs):
-        if holder["driver"] is None:
-            holder["driver"] = Oracle(env.unwrapped.config)
-            holder["driver"].reset()
-        return holder["driver"].act(env.unwrapped.sim, 0)
-
-    def reset():
-        if holder["driver"] is not None:
-            holder["driver"].reset()
-
-    return Agent(name, act, reset, kind="reference (true state)")
+        driver = Oracle()
+    return Agent(name, lambda env, obs: driver.act(env.unwrapped.sim, 0), driver.reset, kind="reference (true state)")
 
 
 def _sb3(path: Path) -> Agent:

@@ -29,7 +29,7 @@ track, steps = sys.argv[1], int(sys.argv[2])
 where = {"track_seed": int(track)} if track.isdigit() else {"track_file": track}
 env = RacingEnv(max_steps=steps + 1, **where)
 env.reset(seed=0)
-oracle = Oracle(env.config, seed=0)
+oracle = Oracle(seed=0)
 sim = env.unwrapped.sim
 env.step(oracle.act(sim, 0))
 ready = time.perf_counter()

@@ -37,7 +37,7 @@ def scores(settings: OracleSettings, tracks: list[int], episodes: int) -> tuple[
     totals, start = [], time.perf_counter()
     for track in tracks:
         env = racing.RacingEnv(track_seed=track)
-        oracle = Oracle(env.config, settings, seed=0)
+        oracle = Oracle(settings, seed=0)
         totals += [drive(env, oracle, seed) for seed in range(episodes)]
     return totals, (time.perf_counter() - start) / len(totals)
 

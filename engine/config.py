@@ -265,9 +265,12 @@ class EnvConfig:
             if "num_segments" in self.options:
                 raise ConfigError("env.options.num_segments comes from the track file; remove it")
             try:
-                file_track(self.track_file, dict(self.options), "env.options", self.track_scale, self.track_closed)
+                track, _ = file_track(self.track_file, dict(self.options), "env.options", self.track_scale,
+                                      self.track_closed)
             except (TrackFileError, TypeError, ValueError) as err:
                 raise ConfigError(f"env.track_file: {err}") from None
+            for warning in track.reading.warnings:  # the car may not fit (tracks.py check says the same)
+                _note(f"env.track_file {self.track_file}: {warning}")
             if self.track_file_sha256 != track_file_sha256(self.track_file):
                 raise ConfigError(f"env.track_file {self.track_file} is not the file its run recorded "
                                   "(env.track_file_sha256 differs)")
@@ -349,6 +352,10 @@ class RunConfig:
         if self.final_window > self.episodes:
             _note(f"final_window={self.final_window} is larger than episodes={self.episodes}: the final performance "
                   f"is the mean of all {self.episodes} episodes (summary.json's final_window says how many)")
+        td = self.algo.td
+        if td is not None and td.updates_before(self.episodes, self.env.episode_steps) == 0:
+            _note(f"algo.td.warmup_episodes={td.warmup_episodes} with episodes={self.episodes}: no gradient step is "
+                  "taken, so the run's policy is its initial one (give more episodes than warm-up ones)")
         _choice("logger", self.logger, LOGGERS)
         if self.logger == "tensorboard":
             import importlib.util

@@ -131,7 +131,7 @@ def dagger(track: int, settings: DaggerSettings = DaggerSettings(), oracle_setti
 
     start = time.perf_counter()
     env = RacingEnv(track_seed=track)
-    oracle = Oracle(env.config, oracle_settings or OracleSettings(), seed=settings.seed)
+    oracle = Oracle(oracle_settings or OracleSettings(), seed=settings.seed)
     observations: list[np.ndarray] = []
     actions: list[np.ndarray] = []
     result = DaggerResult(track)
@@ -179,7 +179,7 @@ def label_noise(env, visited: list, policy, settings: DaggerSettings, oracle_set
 
     rng = np.random.default_rng(settings.seed)
     picks = rng.choice(len(visited), size=min(settings.noise_states, len(visited)), replace=False)
-    oracles = [Oracle(env.config, oracle_settings, seed=k + 1) for k in range(settings.noise_labels)]
+    oracles = [Oracle(oracle_settings, seed=k + 1) for k in range(settings.noise_labels)]
     variances, errors = [], []
     for index in sorted(picks):
         obs, state = visited[index]

@@ -58,9 +58,8 @@ class Oracle:
 
     STATE = ("x", "y", "theta", "speed", "checkpoint", "t")
 
-    def __init__(self, config: RacingConfig = RacingConfig(), settings: OracleSettings = OracleSettings(),
-                 seed: int = 0, nearest_ray: bool = False):
-        self.config, self.settings, self.nearest_ray = config, settings, nearest_ray
+    def __init__(self, settings: OracleSettings = OracleSettings(), seed: int = 0):
+        self.settings = settings  # the task's constants and the track are the driven simulator's, at each act
         self.rng = np.random.default_rng(check_seed(seed))
         self.planner: RacingSim | None = None  # built for the track driven (``_planner_on``)
         self.reset()
@@ -98,7 +97,7 @@ class Oracle:
         is that track's tables, whatever its size), built again when the car's track changes."""
         track = sim.tracks[car]
         if self.planner is None or self.planner.file_track is not track:
-            self.planner = RacingSim(self.settings.candidates, None, sim.config, nearest_ray=self.nearest_ray,
+            self.planner = RacingSim(self.settings.candidates, None, sim.config, nearest_ray=sim.nearest_ray,
                                      track=track)
             self.planner.seed(0)
             self.planner.reset()  # start states only (a given track): the rollouts set the state
@@ -147,7 +146,7 @@ def score(track_seeds: list[int], episodes: int, seed: int = 0, settings: Oracle
     results = {}
     for track in track_seeds:
         env = RacingEnv(track_seed=track, **dataclasses.asdict(config))
-        oracle = Oracle(env.config, settings, seed=seed)
+        oracle = Oracle(settings, seed=seed)
         start = time.perf_counter()
         totals = [drive(env, oracle, seed + episode) for episode in range(episodes)]
         results[track] = {"mean": float(np.mean(totals)), "episodes": totals,

@@ -162,10 +162,6 @@ class Reading:
         return {"file": self.file, "scale": self.scale, "scale_from": self.scale_from, "closed": self.closed,
                 "closed_from": self.closed_from, "warnings": list(self.warnings)}
 
-    def describe(self) -> str:
-        shape = "a circuit (closed)" if self.closed else "open (start to finish)"
-        return f"{shape}, from {self.closed_from}; scale {self.scale:g} px per file unit, from {self.scale_from}"
-
 
 def scale_for(points: np.ndarray, config: RacingConfig = RacingConfig()) -> float:
     """The scale (pixels per file unit, four significant digits) that gives the road of ``points``

@@ -156,7 +156,7 @@ def test_the_oracle_holds_only_the_driven_track(tmp_path):
     path = write_rows(tmp_path / "long.csv", make_circuit(1200))
     env = racing.RacingEnv(track_file=str(path))
     env.reset(seed=0)
-    oracle = Oracle(env.config, OracleSettings(candidates=16, horizon=5, iterations=1), seed=0)
+    oracle = Oracle(OracleSettings(candidates=16, horizon=5, iterations=1), seed=0)
     assert oracle.planner is None  # nothing planned, nothing built
     env.step(oracle.act(env.unwrapped.sim, 0))
     bank = oracle.planner.bank
@@ -207,3 +207,16 @@ def test_absurd_scales_and_damaged_files_are_refused_in_one_line(tmp_path, circu
         load_track(damaged)
     with pytest.raises(TrackFileError, match="not a regular file"):
         parse_track("--laps-on", "/dev/zero")
+
+
+def test_train_notes_what_the_car_cannot_fit_and_a_run_that_never_learns(monkeypatch, capsys, circuit):
+    import engine.config
+
+    monkeypatch.setattr(engine.config, "_noted", set())
+    RunConfig.compose("env.track=file", f"env.track_file={circuit}", "env.track_scale=1", "algo=sac", "episodes=2")
+    err = capsys.readouterr().err
+    assert f"Note: env.track_file {circuit}: the road is" in err and "narrower than a step at full speed" in err
+    assert "Note: algo.td.warmup_episodes=5 with episodes=2: no gradient step is taken" in err
+    RunConfig.compose("env.track=file", f"env.track_file={circuit}", "algo=sac", "episodes=6")
+    notes = [line for line in capsys.readouterr().err.splitlines() if line.startswith("Note:")]
+    assert not [n for n in notes if "env.track_file" in n or "warmup" in n], notes  # auto scale fits; 6 > 5

@@ -23,7 +23,7 @@ def test_a_planned_rollout_is_what_the_car_then_does():
     env.reset(seed=3)
     for action in np.tile([1.0, 0.3], (25, 1)):  # mid-episode, at speed
         env.step(action)
-    oracle = Oracle(env.config, SMALL, seed=0)
+    oracle = Oracle(SMALL, seed=0)
     sequences = np.random.default_rng(1).uniform(-1, 1, (SMALL.candidates, 40, 2))
     sequences[:, :, 0] = 1.0  # fast enough to crash
     planned = oracle._rollout(env.unwrapped.sim, 0, sequences)
@@ -42,8 +42,8 @@ def test_a_planned_rollout_is_what_the_car_then_does():
 
 def test_the_oracle_is_reproducible_and_beats_the_hand_written_driver():
     env = racing.RacingEnv(track_seed=TRACK)
-    first = drive(env, Oracle(env.config, SMALL, seed=5), seed=0)
-    assert drive(env, Oracle(env.config, SMALL, seed=5), seed=0) == first
+    first = drive(env, Oracle(SMALL, seed=5), seed=0)
+    assert drive(env, Oracle(SMALL, seed=5), seed=0) == first
     obs, _ = env.reset(seed=0)
     driver, done = 0.0, False
     while not done:
