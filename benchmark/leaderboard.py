@@ -25,8 +25,8 @@ from engine import numerics
 
 NAMES = {"ppo": "PPO", "ppo_log": "PPO (log ratio)", "spg": "SPG", "spg_multi": "SPG, multiple epochs",
          "spg_p": "SPG-p", "spg_p_multi": "SPG-p, multiple epochs", "sac": "SAC", "tqc": "TQC",
-         "crossq": "CrossQ", "td3": "TD3", "droq": "DroQ", "sb3_sac": "Stable-Baselines3 SAC",
-         "sb3_ppo": "Stable-Baselines3 PPO"}
+         "crossq": "CrossQ", "td3": "TD3", "droq": "DroQ", "redq": "REDQ", "bro": "BRO-style SAC",
+         "sb3_sac": "Stable-Baselines3 SAC", "sb3_ppo": "Stable-Baselines3 PPO"}
 
 
 def interval(scores: np.ndarray, reps: int = 10000, seed: int = 0) -> tuple[float, float, float]:
