@@ -201,4 +201,6 @@ def _print(rows: list[dict], several: bool) -> None:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from engine.processes import run_tool
+
+    raise SystemExit(run_tool("evaluate", main))

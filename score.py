@@ -193,4 +193,6 @@ def _runs_numerics(folders: list[Path]) -> str:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from engine.processes import run_tool
+
+    raise SystemExit(run_tool("score", main))

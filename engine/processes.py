@@ -13,12 +13,29 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 import threading
 import time
 from pathlib import Path
 
 
 _watching: set[int] = set()  # the parents this process already watches
+
+
+def run_tool(name: str, main) -> int:
+    """A command-line tool's ``main()`` that reads and reports (score.py, evaluate.py, tracks.py,
+    drive.py): SIGINT or SIGTERM ends it with one line and status 130 or 143 instead of a
+    traceback (its files are written whole at its end, so nothing is left half written)."""
+    def stop(number, frame):
+        raise KeyboardInterrupt(signal.Signals(number).name)
+
+    signal.signal(signal.SIGTERM, stop)
+    try:
+        return main()
+    except KeyboardInterrupt as err:
+        received = str(err) or "SIGINT"
+        print(f"{name}: stopped by {received} before it finished", file=sys.stderr)
+        return 143 if received == "SIGTERM" else 130
 
 
 def exit_with_parent(poll_seconds: float = 1.0) -> None:

@@ -116,3 +116,21 @@ def test_a_signal_before_training_starts_is_one_line(tmp_path):
         assert proc.returncode == status, err[-3000:]
         (line,) = _lines(err)
         assert line.startswith(f"Stopped by {name} "), line
+
+
+def test_a_scoring_tool_stopped_by_a_signal_says_so_in_one_line(tmp_path):
+    """score.py (as evaluate.py, tracks.py, drive.py: engine.processes.run_tool) on SIGTERM or SIGINT:
+    one line, status 143 or 130, no traceback, no table."""
+    from racing.track_file import make_circuit, write_rows
+
+    circuit = write_rows(tmp_path / "c.csv", make_circuit(1200))
+    for number, status in ((signal.SIGTERM, 143), (signal.SIGINT, 130)):
+        process = subprocess.Popen([sys.executable, "score.py", "oracle", "--laps-on", str(circuit), "--table",
+                                    str(tmp_path / "laps.csv")], cwd=ROOT, stdout=subprocess.PIPE,
+                                   stderr=subprocess.PIPE, text=True, preexec_fn=_sigint_as_in_a_terminal)
+        time.sleep(4)  # scoring the oracle on a 1,200-point circuit for three laps takes minutes
+        process.send_signal(number)
+        _, err = process.communicate(timeout=60)
+        assert process.returncode == status, err
+        assert err == f"score: stopped by {signal.Signals(number).name} before it finished\n"
+        assert not (tmp_path / "laps.csv").exists()
