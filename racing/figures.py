@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -56,15 +57,17 @@ def tracks_figure(path: str | Path, seeds: Sequence[int] = PAPER_TRACK_SEEDS,
 
 
 def track_file_figure(track: Track, path: str | Path, title: str | None = None) -> Path:
-    """One track (e.g. a file's) with every tenth checkpoint numbered and the start line marked."""
+    """One track (e.g. a file's) with every tenth checkpoint numbered (about forty on a long circuit)
+    and the start line marked."""
     plt = import_pyplot()
     low, high = track.bounds()
     span = np.maximum(high - low, 1.0)
     fig, ax = plt.subplots(figsize=(min(max(6.0 * span[0] / span[1], 3.0), 12.0), 6.0))
     draw_track(ax, track)
-    for i in range(0, track.num_checkpoints, 10):
+    every = max(10, round(track.num_checkpoints / 40, -1))  # about 40 numbers on a long circuit, not 120 overlapping
+    for i in range(0, track.num_checkpoints, int(every)):
         ax.annotate(str(i), track.centres[i], fontsize=7, ha="center", va="center", color="white")
-    ax.set_title(title or track.name or "track", fontsize=9)
+    ax.set_title(textwrap.fill(title or track.name or "track", 70), fontsize=9)
     return _save(plt, fig, path)
 
 
