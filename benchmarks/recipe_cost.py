@@ -84,7 +84,8 @@ def measure(recipe: list[str], members: int, steps: int, episode_steps: int = 20
         short, long = _timed(recipe, members, steps, episode_steps), _timed(recipe, members, 2 * steps, episode_steps)
     finally:
         learner.FUSED_SAC = previous
-    return {"step": max(long["train"] - short["train"], 0.0) / steps, "episode": long["episode"],
+    extra = long["train"] - short["train"]  # None below: noise hid the step (the longer run was not slower)
+    return {"step": extra / steps if extra > 0 else None, "episode": long["episode"],
             "td": probe.algo.td, "episodes": probe.episodes}
 
 
@@ -103,6 +104,10 @@ def main(argv: list[str] | None = None) -> int:
             m = measure(RECIPES[name], members, args.steps, fused=name not in UNFUSED)
             td = m["td"]
             updates = td.updates_before(m["episodes"] - 1, 200)  # a whole run's: before its last episode
+            if m["step"] is None:  # an empty measurement is not a number: say so (more --steps measure it)
+                rows.append([name, " ".join(RECIPES[name]), members, f"{td.updates_per_step:g}", updates]
+                            + ["n/a (noise: more --steps)"] * 4)
+                continue
             seconds = updates * m["step"] + m["episodes"] * m["episode"]  # the population's
             rows.append([name, " ".join(RECIPES[name]), members, f"{td.updates_per_step:g}", updates,
                          f"{m['step'] * 1e3:.1f}", f"{m['step'] / members * 1e3:.2f}",

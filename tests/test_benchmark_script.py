@@ -89,3 +89,16 @@ def test_recipe_cost_benchmark_prints_its_table():
     assert "| sac | algo=sac | 1 | 1 | 39200 |" in result.stdout
     assert "| sac-module | algo=sac | 1 | 1 | 39200 |" in result.stdout  # the same run, its step unfused  # before each episode after the 5 of warm-up
     assert "| droq | algo=droq | 1 | 5 | 196000 |" in result.stdout
+
+
+def test_recipe_cost_says_n_a_where_noise_hid_the_step(monkeypatch, capsys):
+    """A measurement that came out empty (the longer run no slower) is printed as n/a, not 0.0 ms."""
+    from benchmarks import recipe_cost
+    from engine.config import RunConfig
+
+    td = RunConfig.compose("algo=sac").algo.td
+    monkeypatch.setattr(recipe_cost, "measure", lambda *a, **k: {"step": None, "episode": 0.1, "td": td,
+                                                                 "episodes": 201})
+    assert recipe_cost.main(["--sizes", "1", "--recipes", "sac"]) == 0
+    out = capsys.readouterr().out
+    assert "| sac | algo=sac | 1 | 1 | 39200 | n/a (noise: more --steps) |" in out and "| 0.0 |" not in out
