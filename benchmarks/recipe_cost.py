@@ -58,7 +58,7 @@ RECIPES = {  # name: (overrides of the recipe, shown as given)
 }
 
 
-UNFUSED = {"sac-module", "bro-module", "droq-module"}  # recipes measured with learners.td.learner.FUSED_SAC off
+UNFUSED = {"sac-module", "bro-module", "droq-module"}  # recipes measured with learners.td.learner.FUSED off
 
 
 def _timed(recipe: list[str], members: int, steps: int, episode_steps: int) -> dict:
@@ -79,11 +79,11 @@ def measure(recipe: list[str], members: int, steps: int, episode_steps: int = 20
     from learners.td import learner
 
     probe = RunConfig.compose(*recipe)
-    previous, learner.FUSED_SAC = learner.FUSED_SAC, fused
+    previous, learner.FUSED = learner.FUSED, fused
     try:
         short, long = _timed(recipe, members, steps, episode_steps), _timed(recipe, members, 2 * steps, episode_steps)
     finally:
-        learner.FUSED_SAC = previous
+        learner.FUSED = previous
     extra = long["train"] - short["train"]  # None below: noise hid the step (the longer run was not slower)
     return {"step": extra / steps if extra > 0 else None, "episode": long["episode"],
             "td": probe.algo.td, "episodes": probe.episodes}

@@ -187,22 +187,28 @@ def _soft_td_target(loss, actor_net: nn.Module, batch: TensorDictBase, params: T
     transitions) with ``a'`` drawn with the noise under ``("next", ACTION_NOISE_KEY)``, the minimum
     over the Q-networks of ``params`` (``[Q, R, ...]``) and ``alpha`` the temperature ``[R, 1, 1]``;
     and ``log pi(a'|s')`` ``[R, B]``."""
-    keys, following = loss.tensor_keys, batch.get("next")
+    following = batch.get("next")
     next_observation = following.get("observation")
     loc, scale = actor_net(next_observation)
     next_action, next_log_prob = DrawnTanhNormal(loc, scale, following.get(ACTION_NOISE_KEY),
                                                  low=-1.0, high=1.0).rsample_and_log_prob()
     next_values = _stacked_values(loss, torch.cat([next_observation, next_action], -1), params)
     next_value = (next_values - alpha * next_log_prob.unsqueeze(-1)).min(0)[0]
+    return _td0_target(loss, batch, next_value), next_log_prob
+
+
+def _td0_target(loss, batch: TensorDictBase, next_value: torch.Tensor) -> torch.Tensor:
+    """``r + gamma * next_value`` where not terminated, ``[R, B]`` (``gamma ** steps`` over n-step
+    transitions), as the losses' TD(0) value estimator computes it from ``next_value`` ``[R, B, 1]``."""
+    keys, following = loss.tensor_keys, batch.get("next")
     reward = following.get(keys.reward)
     estimator = loss.value_estimator
     gamma = estimator.gamma.to(reward.device)
     steps = batch.get(estimator.tensor_keys.steps_to_next_obs, None)
     if steps is not None:
         gamma = gamma ** steps.view_as(reward)
-    target = td0_return_estimate(gamma=gamma, next_state_value=next_value, reward=reward,
-                                 terminated=following.get(keys.terminated)).squeeze(-1)
-    return target, next_log_prob
+    return td0_return_estimate(gamma=gamma, next_state_value=next_value, reward=reward,
+                               terminated=following.get(keys.terminated)).squeeze(-1)
 
 
 def fused_sac_losses(loss: "MemberSACLoss", actor_net: nn.Module,
@@ -452,6 +458,66 @@ class MemberTD3Loss(TD3Loss):
         noise = member_normal(self.generators, action.shape[1:], action)
         tensordict.set(("next", SMOOTHING_KEY), (noise * self.smoothing).clamp(-self.noise_clip, self.noise_clip))
         tensordict.set(SMOOTHING_KEY, torch.zeros_like(action))
+
+
+def fused_td3_available(loss, actor_net: nn.Module) -> bool:
+    """Whether ``fused_td3_critic_losses`` and ``fused_td3_actor_losses`` compute ``loss``'s steps:
+    TD3 eagerly, with stacked-MLP (plain or DroQ's) or residual Q-networks, and ``actor_net`` the
+    loss's own (``make_actor_net``'s: a stacked MLP, then tanh)."""
+    return (type(loss) is MemberTD3Loss and loss.deactivate_vmap and _stackable_critic(loss)
+            and _owns_actor(loss, actor_net) and isinstance(actor_net, nn.Sequential) and len(actor_net) == 2
+            and hasattr(actor_net[0], "forward_with"))
+
+
+def _pairs(params: TensorDictBase, prefix: tuple, layers: int) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    return [(params.get((*prefix, str(i), "weight")), params.get((*prefix, str(i), "bias"))) for i in range(layers)]
+
+
+def fused_td3_critic_losses(loss: MemberTD3Loss, actor_net: nn.Module,
+                            batch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+    """TD3's critic loss per member (``member_means`` of ``loss.value_loss(batch)[0]``) and the
+    minibatch's priorities (the largest absolute TD error over the Q-networks), on plain tensors:
+    the target actor's smoothed action ``clip(mu'(s') + noise, -1, 1)`` (the noise ``draw`` put under
+    ``("next", SMOOTHING_KEY)``), the target ``r + gamma * min_j Q'_j(s', a')``, each Q-network's
+    distance to it; TorchRL's ``TD3Loss.value_loss`` operation for operation (tested bit for bit)."""
+    _check_no_masks(batch)
+    weights = loss._maybe_get_priority_weight(batch)
+    following = batch.get("next")
+    body = actor_net[0]
+    with torch.no_grad():
+        next_observation = following.get("observation")
+        target_actor = _pairs(loss.target_actor_network_params, ("module", "net", "0", "layers"), len(body.layers))
+        next_action = (torch.tanh(body.forward_with(next_observation, target_actor)) + following.get(SMOOTHING_KEY))
+        next_action = next_action.clamp(loss.min_action, loss.max_action)
+        next_values = _stacked_values(loss, torch.cat([next_observation, next_action], -1),
+                                      loss.target_qvalue_network_params).squeeze(-1)
+    target = _td0_target(loss, batch, next_values.min(0)[0].unsqueeze(-1))
+    predicted = _stacked_values(loss, torch.cat([batch.get("observation"), batch.get("action")], -1),
+                                loss.qvalue_network_params).squeeze(-1)  # [Q, R, B]
+    td_error = (predicted - target).pow(2)
+    loss_qvalue = distance_loss(predicted, target.expand_as(predicted), loss_function=loss.loss_function).sum(0)
+    if weights is not None:
+        loss_qvalue = loss_qvalue * weights
+    return member_means(loss_qvalue), td_error.detach().max(0).values.sqrt()
+
+
+def fused_td3_actor_losses(loss: MemberTD3Loss, actor_net: nn.Module, batch: TensorDictBase) -> torch.Tensor:
+    """TD3's actor loss per member (``member_means`` of ``loss.actor_loss(batch)[0]``): ``-Q_0(s, mu(s))``
+    with the Q-networks detached, on plain tensors (tested bit for bit). TorchRL scores the action with
+    every Q-network and keeps the first; only the first is computed here (the others' gradient is
+    zero), unless the Q-networks draw dropout masks, whose draws must stay as TorchRL's."""
+    _check_no_masks(batch)
+    weights = loss._maybe_get_priority_weight(batch)
+    observation = batch.get("observation")
+    action = actor_net(observation) + batch.get(SMOOTHING_KEY)  # zeros at the root, as SmoothedActor adds them
+    params = loss.qvalue_network_params.detach()
+    critic = loss.qvalue_network.module
+    if not any(getattr(d, "active", False) for d in getattr(getattr(critic, "net", None), "dropouts", ()) or ()):
+        params = params[:1]
+    loss_actor = -_stacked_values(loss, torch.cat([observation, action], -1), params)[0].squeeze(-1)
+    if weights is not None:
+        loss_actor = loss_actor * weights
+    return member_means(loss_actor)
 
 
 class SmoothedActor(nn.Module):

@@ -102,3 +102,53 @@ def test_recipe_cost_says_n_a_where_noise_hid_the_step(monkeypatch, capsys):
     assert recipe_cost.main(["--sizes", "1", "--recipes", "sac"]) == 0
     out = capsys.readouterr().out
     assert "| sac | algo=sac | 1 | 1 | 39200 | n/a (noise: more --steps) |" in out and "| 0.0 |" not in out
+
+
+def test_floor_benchmark_prints_its_table():
+    result = subprocess.run([sys.executable, "-m", "benchmarks.floor", "--sizes", "1", "2", "--steps", "2",
+                             "--learners", "sac", "ppo"], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    rows = [line.split(" | ") for line in result.stdout.splitlines() if line.startswith("| ")][1:]
+    assert [(r[0], r[2], r[3]) for r in rows] == [("| sac", "1", "step"), ("| sac", "2", "step"),
+                                                  ("| ppo", "1", "phase (60 steps)"), ("| ppo", "2", "phase (60 steps)")]
+    products = [int(r[-1].rstrip(" |")) for r in rows]
+    # members are stacked: a step makes the same products whatever R (one call per layer and pass)
+    assert products[0] == products[1] > 0 and products[2] == products[3] > 0
+    assert all(float(r[7].rstrip("x")) > 1.0 for r in rows)  # a step costs more than its products alone
+
+
+def test_floor_records_a_layers_products_and_replays_them():
+    import torch
+
+    from benchmarks.floor import Recorder, replay
+    from learners import kernels
+    from learners.networks import StackedMLP
+
+    if not kernels.active():
+        import pytest
+        pytest.skip(f"the project's kernels are not in use here: {kernels.unavailable_reason()}")
+    recorder = Recorder()
+    undo = recorder.install()
+    try:
+        net = StackedMLP(3, [6, 8, 1], "tanh", linear_output=True)
+        x = torch.randn(3, 5, 6)
+        recorder.on = True
+        net(x).sum().backward()
+        recorder.on = False
+    finally:
+        undo()
+    calls = recorder.calls[0]
+    kinds = [c[0] for c in calls]
+    # two forward products, two weight gradients, one input gradient (x needs none), two bias sums
+    assert kinds.count("gemm") == 5 and kinds.count("colsum") == 2
+    assert all(c[2][0] == 3 for c in calls if c[0] == "gemm")  # the three members in every call
+    assert replay(calls, repeats=1) > 0.0
+
+
+def test_floor_says_why_without_the_kernels(monkeypatch, capsys):
+    from benchmarks import floor
+    from learners import kernels
+
+    monkeypatch.setattr(kernels, "active", lambda: False)
+    assert floor.main(["--sizes", "1", "--learners", "sac"]) == 1
+    assert "not in use here" in capsys.readouterr().out

@@ -303,12 +303,61 @@ def test_fused_sac_step_is_the_torchrl_loss_bit_for_bit(mode, extra):
     assert all(a.any() for a in our_grads) and all(torch.equal(a, b) for a, b in zip(our_grads, their_grads))
 
 
+@pytest.mark.parametrize("mode", ["fma", "portable"])
+@pytest.mark.parametrize("extra", [[], ["er=prioritised", "algo.td.n_step=3", "algo.td.loss_function=smooth_l1",
+                                        "algo.td3.preact_penalty=0"],
+                                   ["algo.td.critic_dropout=0.1", "algo.td.critic_layer_norm=true"]])
+def test_fused_td3_steps_are_the_torchrl_loss_bit_for_bit(mode, extra):
+    """The fused TD3 steps (plain tensors, the Q-networks in one stacked pass, the actor scored by the
+    first Q-network only) give TorchRL's TD3Loss's critic and actor losses, priorities and gradients
+    bit for bit: with the pre-tanh penalty and without, importance weights, n-step discounts, another
+    critic loss, DroQ-style Q-networks (their dropout masks drawn in the module's order, the members'
+    generators left where the module leaves them)."""
+    from learners import kernels
+
+    cfg, t = training("td3", *extra, seeds=(A, B, 7))
+    assert t.phases.fused
+    data = transitions(3, 256)
+    g = torch.Generator().manual_seed(5)
+    if "er=prioritised" in extra:
+        data.set("priority_weight", torch.rand(3, 256, generator=g))
+        data.set("steps_to_next_obs", torch.randint(1, 4, (3, 256, 1), generator=g))
+    t.loss.draw(data)
+    critic = list(t.loss.qvalue_network_params.values(True, True))
+    actor = list(t.loss.actor_network_params.values(True, True))
+    states = [g.get_state() for g in t.loss.generators]  # dropout masks are drawn in the step
+
+    def step(fused):
+        t.phases.fused = fused
+        for p in critic + actor:
+            p.grad = None
+        for g, state in zip(t.loss.generators, states):
+            g.set_state(state)
+        loss_qvalue, priority = t.phases._td3_critic_losses(data.clone())
+        (loss_qvalue * torch.tensor([1.0, 2.0, 3.0])).sum().backward()
+        loss_actor = t.phases._td3_actor_losses(data.clone())
+        (loss_actor * torch.tensor([3.0, 1.0, 2.0])).sum().backward()
+        drawn = [g.get_state() for g in t.loss.generators]  # the next step's masks start there
+        return [loss_qvalue, priority, loss_actor] + [p.grad.clone() for p in critic + actor] + drawn
+
+    previous = kernels.active()
+    try:
+        if kernels.use(mode == "fma"):
+            pytest.skip("the kernels cannot be built here")
+        theirs, ours = step(False), step(True)
+    finally:
+        kernels.use(previous)
+    assert all(a.any() for a in ours[3:3 + len(critic + actor)])
+    assert all(torch.equal(a, b) for a, b in zip(ours, theirs, strict=True))
+
+
 @pytest.mark.parametrize("recipe", [["algo=sac", "algo.td.updates_per_step=0.25", "episodes=2"],
+                                    ["algo=td3", "algo.td.updates_per_step=0.25", "episodes=2"],
                                     ["algo=bro", "algo.td.updates_per_step=0.1", "episodes=4", "algo.td.critic_width=32",
                                      "algo.td.reset_every=3"],
                                     ["algo=droq", "algo.td.updates_per_step=0.25", "episodes=2"]])
 def test_a_run_with_the_fused_sac_step_is_a_run_through_the_loss_module(tmp_path, monkeypatch, recipe):
-    """Whole runs (prioritised replay, two members, 50-60 gradient steps; BRO's Q-networks with a
+    """Whole runs (prioritised replay, two members, 50-60 gradient steps; TD3's; BRO's Q-networks with a
     reset; DroQ's): byte-identical learning curves and weights with and without the fused step."""
     from learners.td import learner
 
@@ -316,7 +365,7 @@ def test_a_run_with_the_fused_sac_step_is_a_run_through_the_loss_module(tmp_path
                "progress=false", "logger=none", "checkpoint_every=0")
     outputs = {}
     for fused in (True, False):
-        monkeypatch.setattr(learner, "FUSED_SAC", fused)
+        monkeypatch.setattr(learner, "FUSED", fused)
         out = tmp_path / str(fused)
         train_population(cfg, out)
         outputs[fused] = sorted((p.relative_to(out), p.read_bytes()) for p in out.rglob("*")
@@ -325,7 +374,7 @@ def test_a_run_with_the_fused_sac_step_is_a_run_through_the_loss_module(tmp_path
 
 
 def test_fused_sac_step_is_taken_only_where_it_computes_the_loss():
-    for algo, extra, fused in [("sac", [], True), ("tqc", [], False), ("crossq", [], False), ("td3", [], False),
+    for algo, extra, fused in [("sac", [], True), ("tqc", [], False), ("crossq", [], False), ("td3", [], True),
                                ("droq", [], True), ("sac", ["compile=true"], False), ("bro", [], True)]:
         assert training(algo, *extra)[1].phases.fused is fused, (algo, extra)
 

@@ -39,10 +39,12 @@ from learners.optim import MemberAdam
 from learners.td import ENTROPY_LOSSES
 from losses.td import (ACTION_NOISE_KEY, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhNormal, MemberCrossQLoss, MemberREDQLoss,
                        MemberSACLoss, MemberTD3Loss, MemberTQCLoss, SmoothedActor, fused_sac_available, fused_sac_losses,
-                       member_means, redq_available, redq_losses)
+                       fused_td3_actor_losses, fused_td3_available, fused_td3_critic_losses, member_means,
+                       redq_available, redq_losses)
 
-FUSED_SAC = True  # SAC's eager step by losses.td.fused_sac_losses (the same bits as TorchRL's SACLoss, faster);
-#                   False: through the loss module (benchmarks/recipe_cost.py's sac-module recipe)
+FUSED = True  # the eager steps of SAC (DroQ, BRO) and TD3 on plain tensors (losses.td.fused_sac_losses,
+#               fused_td3_*: the same bits as TorchRL's loss modules, faster); False: through the loss modules
+#               (benchmarks/recipe_cost.py's *-module recipes)
 
 TD_TRANSITION_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
                       ("next", "terminated"))
@@ -221,9 +223,9 @@ class TDPhaseRunner:
     def __init__(self, cfg, loss, optimisers: Optimisers, generators: Sequence[torch.Generator],
                  memory=None, actor_net: nn.Module | None = None, qvalue_nets: Sequence[nn.Module] = ()):
         """``memory``: the replay memory when its sampler is prioritised (else None). Each step's
-        objective is compiled when ``cfg.compile`` (``learners.compiling``). SAC's eager step
-        computes on plain tensors (``losses.td.fused_sac_losses``: TorchRL's numbers, bit for bit)
-        when ``FUSED_SAC`` and the actor network (``actor_net``) and Q-networks allow it.
+        objective is compiled when ``cfg.compile`` (``learners.compiling``). SAC's and TD3's eager
+        steps compute on plain tensors (``losses.td.fused_sac_losses``, ``fused_td3_*``: TorchRL's
+        numbers, bit for bit) when ``FUSED`` and the actor network (``actor_net``) and Q-networks allow it.
         ``td.reset_every`` re-initialises the networks as they were built: the actor network (the
         loss's own) and the Q-networks ``qvalue_nets`` (whose fresh weights the loss's copies take)."""
         self.loss, self.optimisers, self.generators = loss, optimisers, list(generators)
@@ -242,7 +244,8 @@ class TDPhaseRunner:
         self.actor_net, self.qvalue_nets = actor_net, list(qvalue_nets)
         if self.td.reset_every and (actor_net is None or not self.qvalue_nets):
             raise ValueError("td.reset_every needs the actor network and the Q-networks as built")
-        self.fused = FUSED_SAC and actor_net is not None and not cfg.compile and fused_sac_available(loss, actor_net)
+        available = fused_td3_available if self.kind == "td3" else fused_sac_available
+        self.fused = FUSED and actor_net is not None and not cfg.compile and available(loss, actor_net)
         if self.kind == "redq" and (cfg.compile or actor_net is None or not redq_available(loss, actor_net)):
             raise ValueError("loss redq runs eagerly (compile=false) on the learner's own actor network and plain or "
                              "residual Q-networks (losses.td.redq_losses)")
@@ -313,6 +316,8 @@ class TDPhaseRunner:
     def _td3_critic_losses(self, batch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """TD3's Q loss per member and the minibatch's priorities (the largest error of the Q-networks;
         TorchRL's TD3 reports squared errors per Q-network)."""
+        if self.fused:
+            return fused_td3_critic_losses(self.loss, self.actor_net, batch)
         loss_qvalue, meta = self.loss.value_loss(batch)
         return member_means(loss_qvalue), meta["td_error"].max(0).values.sqrt()
 
@@ -320,8 +325,11 @@ class TDPhaseRunner:
         """TorchRL's actor loss -Q(s, mu(s)) per member, plus ``td3.preact_penalty`` x the mean
         square of the actor's pre-tanh outputs u(s) (mu = tanh(u)): a gradient that pulls u back
         from tanh's flat tails, where -Q's vanishes (TD3's collapse at full brake, docs/beyond.md)."""
-        loss = member_means(self.loss.actor_loss(batch)[0])
-        if self.preact_penalty:
+        if self.fused:
+            loss = fused_td3_actor_losses(self.loss, self.actor_net, batch)
+        else:
+            loss = member_means(self.loss.actor_loss(batch)[0])
+        if self.preact_penalty:  # its own pass through the actor, as before the fused step (the same bits)
             body = self.loss.actor_network.module.net[0]  # the actor before its tanh (make_actor_net)
             loss = loss + self.preact_penalty * member_means(body(batch.get("observation")).square())
         return loss
