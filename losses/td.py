@@ -151,14 +151,36 @@ def fused_sac_available(loss, actor_net: nn.Module) -> bool:
             and not loss.skip_done_states and _stackable_critic(loss) and _owns_actor(loss, actor_net))
 
 
-def _stacked_values(loss, inputs: torch.Tensor, params: TensorDictBase) -> torch.Tensor:
+class _Copies(torch.autograd.Function):
+    """``x`` repeated ``copies`` times along a new first dimension, whose gradient sums the copies'
+    gradients as autograd accumulates those of a loop that feeds ``x`` to each copy in turn: the
+    last copy's first, then each earlier one added (``expand``'s gradient sums in another order)."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, copies: int) -> torch.Tensor:
+        ctx.copies = copies
+        return x.unsqueeze(0).expand(copies, *x.shape).contiguous()
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor, None]:
+        total = grad[ctx.copies - 1]
+        for i in range(ctx.copies - 2, -1, -1):
+            total = total + grad[i]
+        return total, None
+
+
+def _stacked_values(loss, inputs: torch.Tensor, params: TensorDictBase, loop_order: bool = False) -> torch.Tensor:
     """Every Q-network's values ``[Q, R, B, 1]`` for inputs ``[R, B, obs + action]`` and stacked
     parameters ``[Q, R, ...]``, in one pass over ``Q * R`` networks (each computes alone, as in
-    TorchRL's loop over the Q-networks, DroQ's dropout masks drawn in that loop's order)."""
+    TorchRL's loop over the Q-networks, DroQ's dropout masks drawn in that loop's order).
+    ``loop_order``: the inputs' gradient summed over the Q-networks in the order autograd sums the
+    loop's (``_Copies``; needed where more than one Q-network's gradient reaches the inputs, as in
+    TQC's actor loss; REDQ's step, not held to TorchRL's bits, keeps ``expand``'s sum)."""
     critic = loss.qvalue_network.module
     named = {name: value.flatten(0, 1) for name, value in params["module"].flatten_keys(".").items()}
     q, members = next(iter(params["module"].values(True, True))).shape[:2]
-    x = inputs.expand(q, *inputs.shape).reshape(q * members, *inputs.shape[1:])
+    x = (_Copies.apply(inputs, q) if loop_order else inputs.expand(q, *inputs.shape)).reshape(
+        q * members, *inputs.shape[1:])
     if hasattr(critic, "forward_named"):  # BRO's residual Q-network
         values = critic.forward_named(x, named)
     else:
@@ -398,6 +420,61 @@ class MemberTQCLoss(MemberTemperature, TQCLoss):
             self.tensor_keys.state_action_value)  # [Q-nets, R, B, n]
         loss, td_error = quantile_huber_loss(quantiles, targets.unsqueeze(0))
         return self._reduce_loss(loss.sum(0), tensordict=tensordict, weights=weights), {"td_error": td_error.max(0)[0]}
+
+
+def fused_tqc_available(loss, actor_net: nn.Module) -> bool:
+    """Whether ``fused_tqc_losses`` computes ``loss``'s step: TQC eagerly, with stacked-MLP (or
+    residual) Q-networks and the actor network the loss's own."""
+    return (type(loss) is MemberTQCLoss and loss.deactivate_vmap and getattr(loss, "_version", 2) == 2
+            and not loss.skip_done_states and _stackable_critic(loss) and _owns_actor(loss, actor_net))
+
+
+def fused_tqc_losses(loss: "MemberTQCLoss", actor_net: nn.Module,
+                     batch: TensorDictBase) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+    """``MemberTQCLoss``'s three losses per member (``member_means`` of ``loss(batch)``) and the
+    minibatch's priorities on plain tensors, TorchRL's ``TQCLoss`` operation for operation (tested bit
+    for bit): the target pools every target Q-network's quantiles at ``(s', a')``, sorts them and drops
+    the ``top_quantiles_to_drop_per_net * Q`` highest, ``r + gamma * (atom - alpha * log pi(a'|s'))`` per
+    kept atom; each Q-network's quantile Huber loss against those atoms (``quantile_huber_loss``); the
+    actor's ``alpha * log pi(a|s)`` minus the mean of every quantile of every (detached) Q-network."""
+    _check_no_masks(batch)
+    weights = loss._maybe_get_priority_weight(batch)
+    observation = batch.get("observation")
+    members = observation.shape[0]
+    with torch.no_grad():
+        following = batch.get("next")
+        next_observation = following.get("observation")
+        loc, scale = actor_net(next_observation)
+        next_action, next_log_prob = DrawnTanhNormal(loc, scale, following.get(ACTION_NOISE_KEY),
+                                                     low=-1.0, high=1.0).rsample_and_log_prob()
+        atoms = _stacked_values(loss, torch.cat([next_observation, next_action], -1),
+                                loss.target_qvalue_network_params)  # [Q, R, B, n]
+        atoms = atoms.movedim(0, -2).flatten(-2)
+        keep = atoms.shape[-1] - loss.top_quantiles_to_drop_per_net * loss.num_qvalue_nets
+        atoms = torch.sort(atoms, dim=-1).values[..., :keep]
+        next_value = atoms - loss._alpha.reshape(members, 1, 1) * next_log_prob.unsqueeze(-1)
+        keys, estimator = loss.tensor_keys, loss.value_estimator
+        reward = following.get(keys.reward).expand_as(next_value)
+        gamma = estimator.gamma.to(reward.device)
+        steps = batch.get(estimator.tensor_keys.steps_to_next_obs, None)
+        if steps is not None:
+            gamma = gamma ** steps.expand_as(next_value).view_as(reward)
+        target = td0_return_estimate(gamma=gamma, next_state_value=next_value, reward=reward,
+                                     terminated=following.get(keys.terminated).expand_as(next_value))
+    quantiles = _stacked_values(loss, torch.cat([observation, batch.get("action")], -1), loss.qvalue_network_params)
+    loss_qvalue, td_error = quantile_huber_loss(quantiles, target.unsqueeze(0))
+    loss_qvalue = loss_qvalue.sum(0)
+    loc, scale = actor_net(observation)
+    action, log_prob = DrawnTanhNormal(loc, scale, batch.get(ACTION_NOISE_KEY), low=-1.0, high=1.0).rsample_and_log_prob()
+    values = _stacked_values(loss, torch.cat([observation, action], -1), loss.qvalue_network_params.detach(),
+                             loop_order=True)
+    loss_actor = loss._alpha * log_prob - values.mean(dim=(0, -1))
+    loss_alpha = loss._alpha_loss(log_prob.detach())
+    if weights is not None:
+        loss_qvalue, loss_actor, loss_alpha = loss_qvalue * weights, loss_actor * weights, loss_alpha * weights
+    losses = {"loss_qvalue": member_means(loss_qvalue), "loss_actor": member_means(loss_actor),
+              "loss_alpha": member_means(loss_alpha)}
+    return losses, td_error.max(0)[0]
 
 
 class MemberCrossQLoss(MemberTemperature, CrossQLoss):

@@ -256,13 +256,14 @@ def test_td3_preact_penalty_adds_the_mean_square_of_the_pre_tanh_action():
 @pytest.mark.parametrize("mode", ["fma", "portable"])
 @pytest.mark.parametrize("extra", [[], ["er=prioritised", "algo.td.n_step=3", "algo.td.loss_function=smooth_l1"],
                                    ["algo=bro", "er=prioritised", "algo.td.critic_width=48"],
-                                   ["algo=droq", "er=prioritised"], ["algo=droq", "algo.td.critic_layer_norm=false"]])
+                                   ["algo=droq", "er=prioritised"], ["algo=droq", "algo.td.critic_layer_norm=false"],
+                                   ["algo=tqc"], ["algo=tqc", "er=prioritised", "algo.td.n_step=3", "algo.tqc.critics=3"]])
 def test_fused_sac_step_is_the_torchrl_loss_bit_for_bit(mode, extra):
     """The fused SAC step (plain tensors, the Q-networks in one stacked pass) gives TorchRL's loss
     module's losses, priorities and gradients bit for bit: with importance weights, n-step
     discounts, another critic loss, BRO's residual Q-networks, DroQ's (dropout masks drawn from the
-    members' generators in the loss module's order; with and without layer norm), in both numerics
-    that switch after torch loads."""
+    members' generators in the loss module's order; with and without layer norm), TQC's (its pooled,
+    truncated quantile targets), in both numerics that switch after torch loads."""
     from learners import kernels
 
     cfg, t = training("sac", *extra, seeds=(A, B, 7))
@@ -353,11 +354,12 @@ def test_fused_td3_steps_are_the_torchrl_loss_bit_for_bit(mode, extra):
 
 @pytest.mark.parametrize("recipe", [["algo=sac", "algo.td.updates_per_step=0.25", "episodes=2"],
                                     ["algo=td3", "algo.td.updates_per_step=0.25", "episodes=2"],
+                                    ["algo=tqc", "algo.td.updates_per_step=0.25", "episodes=2"],
                                     ["algo=bro", "algo.td.updates_per_step=0.1", "episodes=4", "algo.td.critic_width=32",
                                      "algo.td.reset_every=3"],
                                     ["algo=droq", "algo.td.updates_per_step=0.25", "episodes=2"]])
 def test_a_run_with_the_fused_sac_step_is_a_run_through_the_loss_module(tmp_path, monkeypatch, recipe):
-    """Whole runs (prioritised replay, two members, 50-60 gradient steps; TD3's; BRO's Q-networks with a
+    """Whole runs (prioritised replay, two members, 50-60 gradient steps; TD3's; TQC's; BRO's Q-networks with a
     reset; DroQ's): byte-identical learning curves and weights with and without the fused step."""
     from learners.td import learner
 
@@ -374,7 +376,7 @@ def test_a_run_with_the_fused_sac_step_is_a_run_through_the_loss_module(tmp_path
 
 
 def test_fused_sac_step_is_taken_only_where_it_computes_the_loss():
-    for algo, extra, fused in [("sac", [], True), ("tqc", [], False), ("crossq", [], False), ("td3", [], True),
+    for algo, extra, fused in [("sac", [], True), ("crossq", [], False), ("td3", [], True), ("tqc", [], True),
                                ("droq", [], True), ("sac", ["compile=true"], False), ("bro", [], True)]:
         assert training(algo, *extra)[1].phases.fused is fused, (algo, extra)
 

@@ -39,11 +39,12 @@ from learners.optim import MemberAdam
 from learners.td import ENTROPY_LOSSES
 from losses.td import (ACTION_NOISE_KEY, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhNormal, MemberCrossQLoss, MemberREDQLoss,
                        MemberSACLoss, MemberTD3Loss, MemberTQCLoss, SmoothedActor, fused_sac_available, fused_sac_losses,
-                       fused_td3_actor_losses, fused_td3_available, fused_td3_critic_losses, member_means,
+                       fused_td3_actor_losses, fused_td3_available, fused_td3_critic_losses, fused_tqc_available,
+                       fused_tqc_losses, member_means,
                        redq_available, redq_losses)
 
-FUSED = True  # the eager steps of SAC (DroQ, BRO) and TD3 on plain tensors (losses.td.fused_sac_losses,
-#               fused_td3_*: the same bits as TorchRL's loss modules, faster); False: through the loss modules
+FUSED = True  # the eager steps of SAC (DroQ, BRO), TQC and TD3 on plain tensors (losses.td.fused_sac_losses,
+#               fused_tqc_losses, fused_td3_*: the same bits as TorchRL's loss modules, faster); False: through the loss modules
 #               (benchmarks/recipe_cost.py's *-module recipes)
 
 TD_TRANSITION_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
@@ -224,7 +225,7 @@ class TDPhaseRunner:
                  memory=None, actor_net: nn.Module | None = None, qvalue_nets: Sequence[nn.Module] = ()):
         """``memory``: the replay memory when its sampler is prioritised (else None). Each step's
         objective is compiled when ``cfg.compile`` (``learners.compiling``). SAC's and TD3's eager
-        steps compute on plain tensors (``losses.td.fused_sac_losses``, ``fused_td3_*``: TorchRL's
+        steps (and TQC's) compute on plain tensors (``losses.td.fused_sac_losses``, ``fused_td3_*``: TorchRL's
         numbers, bit for bit) when ``FUSED`` and the actor network (``actor_net``) and Q-networks allow it.
         ``td.reset_every`` re-initialises the networks as they were built: the actor network (the
         loss's own) and the Q-networks ``qvalue_nets`` (whose fresh weights the loss's copies take)."""
@@ -244,7 +245,7 @@ class TDPhaseRunner:
         self.actor_net, self.qvalue_nets = actor_net, list(qvalue_nets)
         if self.td.reset_every and (actor_net is None or not self.qvalue_nets):
             raise ValueError("td.reset_every needs the actor network and the Q-networks as built")
-        available = fused_td3_available if self.kind == "td3" else fused_sac_available
+        available = {"td3": fused_td3_available, "tqc": fused_tqc_available}.get(self.kind, fused_sac_available)
         self.fused = FUSED and actor_net is not None and not cfg.compile and available(loss, actor_net)
         if self.kind == "redq" and (cfg.compile or actor_net is None or not redq_available(loss, actor_net)):
             raise ValueError("loss redq runs eagerly (compile=false) on the learner's own actor network and plain or "
@@ -283,7 +284,8 @@ class TDPhaseRunner:
     def _sac_losses(self, batch: TensorDictBase) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
         """SAC's three losses per member and the minibatch's priorities (TorchRL's loss writes them)."""
         if self.fused:
-            return fused_sac_losses(self.loss, self.actor_net, batch)
+            fused = fused_tqc_losses if self.kind == "tqc" else fused_sac_losses
+            return fused(self.loss, self.actor_net, batch)
         out = self.loss(batch)
         losses = {key: member_means(out[key]) for key in ("loss_qvalue", "loss_actor", "loss_alpha")}
         return losses, batch.get(PRIORITY_KEY)
