@@ -11,7 +11,7 @@ then replayed alone, on buffers of the same layout, outside any network: that is
 time the step could not go below without faster products. The table gives, per learner and R,
 milliseconds per gradient step (the population's; the paper's learners per update phase, of
 ``value_epochs + policy_epochs`` steps), the floor, their ratio, and the products' count. The
-learners with a fused step (``learners.td.learner.FUSED``: SAC, DroQ, BRO, TQC, TD3; the same bits as
+learners with a fused step (``learners.td.learner.FUSED``: SAC, DroQ, BRO, TQC, CrossQ, TD3; the same bits as
 their TorchRL loss modules) take it; ``--module`` adds a row through the loss module for each of
 them, the step before it was fused.
 
@@ -54,7 +54,7 @@ LEARNERS = {
 }
 
 
-FUSED = {"sac", "td3", "tqc", "bro", "droq"}  # learners whose eager step is fused (learners.td.learner.FUSED)
+FUSED = {"sac", "td3", "tqc", "crossq", "bro", "droq"}  # learners whose eager step is fused (learners.td.learner.FUSED)
 
 
 class Recorder:

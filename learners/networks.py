@@ -223,20 +223,28 @@ class StackedBatchNorm(nn.Module):
         self.register_buffer("running_var", torch.ones(members, features))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        flat = x.reshape(self.members, -1, x.shape[-1])
-        if self.training:
-            mean = flat.mean(1)
-            var = (flat - mean.unsqueeze(1)).square().mean(1)
-            with torch.no_grad():
-                rows = flat.shape[1]
-                unbiased = var * (rows / max(rows - 1, 1))
-                self.running_mean.mul_(1 - self.momentum).add_(self.momentum * mean)
-                self.running_var.mul_(1 - self.momentum).add_(self.momentum * unbiased)
-        else:
-            mean, var = self.running_mean, self.running_var
-        std = wide_std(var, self.eps)
-        out = (flat - mean.unsqueeze(1)) / std.unsqueeze(1) * self.weight.unsqueeze(1) + self.bias.unsqueeze(1)
-        return out.reshape(x.shape)
+        return stacked_batch_norm(x, self.weight, self.bias, self.running_mean, self.running_var, self.training,
+                                  self.momentum, self.eps)
+
+
+def stacked_batch_norm(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, running_mean: torch.Tensor,
+                       running_var: torch.Tensor, training: bool, momentum: float, eps: float) -> torch.Tensor:
+    """``StackedBatchNorm``'s computation with the given parameters and running estimates (``[M, F]``;
+    updated in place in training), for ``x`` ``[M, ..., F]``: M may hold any number of stacked networks."""
+    flat = x.reshape(weight.shape[0], -1, x.shape[-1])
+    if training:
+        mean = flat.mean(1)
+        var = (flat - mean.unsqueeze(1)).square().mean(1)
+        with torch.no_grad():
+            rows = flat.shape[1]
+            unbiased = var * (rows / max(rows - 1, 1))
+            running_mean.mul_(1 - momentum).add_(momentum * mean)
+            running_var.mul_(1 - momentum).add_(momentum * unbiased)
+    else:
+        mean, var = running_mean, running_var
+    std = wide_std(var, eps)
+    out = (flat - mean.unsqueeze(1)) / std.unsqueeze(1) * weight.unsqueeze(1) + bias.unsqueeze(1)
+    return out.reshape(x.shape)
 
 
 class StackedBNCriticNet(nn.Module):
@@ -258,6 +266,24 @@ class StackedBNCriticNet(nn.Module):
             x = layer(x)
             if i + 1 < len(self.layers):
                 x = per_member(self.activation, self.norms[i + 1](x))
+        return x
+
+    def forward_stacked(self, x: torch.Tensor, parameters: dict[str, torch.Tensor], training: bool) -> torch.Tensor:
+        """``forward`` on ``x`` ``[S, N, in]`` with the named parameters and running estimates of S
+        stacked networks (``[S, ...]`` each, as ``named_parameters``/``named_buffers`` name them;
+        the estimates updated in place in ``training``): what each computes alone, in one pass."""
+        norms = self.norms
+
+        def norm(i: int, h: torch.Tensor) -> torch.Tensor:
+            return stacked_batch_norm(h, parameters[f"norms.{i}.weight"], parameters[f"norms.{i}.bias"],
+                                      parameters[f"norms.{i}.running_mean"], parameters[f"norms.{i}.running_var"],
+                                      training, norms[i].momentum, norms[i].eps)
+
+        x = norm(0, x)
+        for i in range(len(self.layers)):
+            x = stacked_linear(x, parameters[f"layers.{i}.weight"], parameters[f"layers.{i}.bias"])
+            if i + 1 < len(self.layers):
+                x = per_member(self.activation, norm(i + 1, x))
         return x
 
 

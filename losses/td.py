@@ -507,6 +507,65 @@ class MemberCrossQLoss(MemberTemperature, CrossQLoss):
         return self._alpha_loss(log_prob)
 
 
+def fused_crossq_available(loss, actor_net: nn.Module) -> bool:
+    """Whether ``fused_crossq_critic_losses`` and ``fused_crossq_actor_losses`` compute ``loss``'s
+    steps: CrossQ eagerly, its Q-networks batch-normalised stacked MLPs (``forward_stacked``), the
+    actor network the loss's own."""
+    return (type(loss) is MemberCrossQLoss and loss.deactivate_vmap
+            and hasattr(getattr(loss.qvalue_network, "module", None), "forward_stacked")
+            and _owns_actor(loss, actor_net))
+
+
+def _bn_values(loss, inputs: torch.Tensor, params: TensorDictBase, training: bool) -> torch.Tensor:
+    """CrossQ's Q-networks' values ``[Q, R, N, 1]`` for inputs ``[R, N, obs + action]``, every
+    Q-network and member in one pass (batch statistics per network in ``training``, which updates
+    their running estimates in place; the running estimates otherwise)."""
+    named = {name: value.flatten(0, 1) for name, value in params["module"].flatten_keys(".").items()}
+    q, members = next(iter(params["module"].values(True, True))).shape[:2]
+    x = _Copies.apply(inputs, q).reshape(q * members, *inputs.shape[1:])
+    values = loss.qvalue_network.module.forward_stacked(x, named, training)
+    return values.reshape(q, members, *inputs.shape[1:-1], -1)
+
+
+def fused_crossq_critic_losses(loss: "MemberCrossQLoss", actor_net: nn.Module,
+                               batch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+    """``MemberCrossQLoss.qvalue_loss`` per member (``member_means``) and its priorities, on plain
+    tensors (tested bit for bit, running estimates included): the next action drawn with the noise
+    under ``("next", ACTION_NOISE_KEY)``, (s, a) and (s', a') scored in one batch-normalised pass per
+    Q-network, the target ``r + gamma * (min_j Q_j(s', a') - alpha * log pi(a'|s'))`` detached."""
+    _check_no_masks(batch)
+    following = batch.get("next")
+    with torch.no_grad():
+        next_observation = following.get("observation")
+        loc, scale = actor_net(next_observation)
+        next_action, next_log_prob = DrawnTanhNormal(loc, scale, following.get(ACTION_NOISE_KEY),
+                                                     low=-1.0, high=1.0).rsample_and_log_prob()
+    joint = torch.cat([torch.cat([batch.get("observation"), batch.get("action")], -1),
+                       torch.cat([next_observation, next_action], -1)], dim=1)
+    values = _bn_values(loss, joint, loss.qvalue_network_params, training=True)
+    current, following_values = values.split(batch.batch_size[1], dim=2)  # [Q, R, B, 1] each
+    next_value = (following_values.min(0)[0] - loss._alpha.unsqueeze(-1) * next_log_prob.unsqueeze(-1)).detach()
+    target = _td0_target(loss, batch, next_value)
+    predicted = current.squeeze(-1)
+    loss_qvalue = distance_loss(predicted, target.expand_as(predicted), loss_function=loss.loss_function).sum(0)
+    return member_means(loss_qvalue), (predicted - target).abs().detach().max(0)[0]
+
+
+def fused_crossq_actor_losses(loss: "MemberCrossQLoss", actor_net: nn.Module,
+                              batch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+    """TorchRL's ``CrossQLoss.actor_loss`` and ``MemberCrossQLoss.alpha_loss`` per member, on plain
+    tensors (tested bit for bit): ``alpha * log pi(a|s) - min_j Q_j(s, a)`` with the Q-networks
+    detached and in evaluation mode (their running estimates), and the temperature's loss."""
+    _check_no_masks(batch)
+    observation = batch.get("observation")
+    loc, scale = actor_net(observation)
+    action, log_prob = DrawnTanhNormal(loc, scale, batch.get(ACTION_NOISE_KEY), low=-1.0, high=1.0).rsample_and_log_prob()
+    values = _bn_values(loss, torch.cat([observation, action], -1), loss.qvalue_network_params.detach(),
+                        training=False)
+    loss_actor = loss._alpha * log_prob - values.min(0)[0].squeeze(-1)
+    return member_means(loss_actor), member_means(loss._alpha_loss(log_prob.detach()))
+
+
 def member_means(values: torch.Tensor) -> torch.Tensor:
     """``[R, B]`` per-transition values -> ``[R]``, one mean per member."""
     return values.reshape(values.shape[0], -1).mean(-1)

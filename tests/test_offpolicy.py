@@ -352,18 +352,64 @@ def test_fused_td3_steps_are_the_torchrl_loss_bit_for_bit(mode, extra):
     assert all(torch.equal(a, b) for a, b in zip(ours, theirs, strict=True))
 
 
+@pytest.mark.parametrize("mode", ["fma", "portable"])
+@pytest.mark.parametrize("extra", [[], ["algo.td.n_step=3", "algo.td.loss_function=smooth_l1"]])
+def test_fused_crossq_steps_are_the_torchrl_loss_bit_for_bit(mode, extra):
+    """The fused CrossQ steps (every Q-network and member in one batch-normalised pass) give the loss
+    module's critic loss, priorities, running estimates, actor and temperature losses and every
+    gradient bit for bit (TorchRL's CrossQLoss.actor_loss, MemberCrossQLoss.qvalue_loss)."""
+    from learners import kernels
+
+    cfg, t = training("crossq", *extra, seeds=(A, B, 7))
+    assert t.phases.fused
+    data = transitions(3, 256)
+    if extra:
+        g = torch.Generator().manual_seed(5)
+        data.set("steps_to_next_obs", torch.randint(1, 4, (3, 256, 1), generator=g))
+    t.loss.draw(data)
+    critic = [p for p in t.loss.qvalue_network_params.values(True, True) if p.requires_grad]
+    statistics = [p for p in t.loss.qvalue_network_params.values(True, True) if not p.requires_grad]
+    actor = list(t.loss.actor_network_params.values(True, True)) + [t.loss.log_alpha]
+    before = [p.clone() for p in statistics]
+
+    def step(fused):
+        t.phases.fused = fused
+        for p, value in zip(statistics, before):
+            p.copy_(value)
+        for p in critic + actor:
+            p.grad = None
+        totals = MetricTotals()
+        t.phases.optimisers.critic.step = t.phases.optimisers.actor.step = lambda: None  # gradients only
+        priority = t.phases._crossq_step(data.clone(), t.phases.policy_delay - 1, totals)  # with an actor step
+        running = [p.clone() for p in statistics]
+        return [priority, *running, *[p.grad.clone() for p in critic + actor],
+                *[torch.stack(v) for v in totals.values.values()]]
+
+    previous = kernels.active()
+    try:
+        if kernels.use(mode == "fma"):
+            pytest.skip("the kernels cannot be built here")
+        theirs, ours = step(False), step(True)
+    finally:
+        kernels.use(previous)
+    assert not all(torch.equal(a, b) for a, b in zip(before, ours[1:1 + len(statistics)]))  # estimates moved
+    assert all(g.any() for g in ours[1 + len(statistics):1 + len(statistics) + len(critic + actor)])
+    assert all(torch.equal(a, b) for a, b in zip(ours, theirs, strict=True))
+
+
 @pytest.mark.parametrize("recipe", [["algo=sac", "algo.td.updates_per_step=0.25", "episodes=2"],
+                                    ["algo=crossq", "er=memory", "algo.td.updates_per_step=0.25", "episodes=2"],
                                     ["algo=td3", "algo.td.updates_per_step=0.25", "episodes=2"],
                                     ["algo=tqc", "algo.td.updates_per_step=0.25", "episodes=2"],
                                     ["algo=bro", "algo.td.updates_per_step=0.1", "episodes=4", "algo.td.critic_width=32",
                                      "algo.td.reset_every=3"],
                                     ["algo=droq", "algo.td.updates_per_step=0.25", "episodes=2"]])
 def test_a_run_with_the_fused_sac_step_is_a_run_through_the_loss_module(tmp_path, monkeypatch, recipe):
-    """Whole runs (prioritised replay, two members, 50-60 gradient steps; TD3's; TQC's; BRO's Q-networks with a
+    """Whole runs (prioritised replay but for CrossQ, two members, 50-60 gradient steps; TD3's; TQC's; CrossQ's; BRO's Q-networks with a
     reset; DroQ's): byte-identical learning curves and weights with and without the fused step."""
     from learners.td import learner
 
-    cfg = load(*recipe, "er=prioritised", f"seeds=[{A},{B}]", "algo.td.warmup_episodes=1",
+    cfg = load("er=prioritised", *recipe, f"seeds=[{A},{B}]", "algo.td.warmup_episodes=1",
                "progress=false", "logger=none", "checkpoint_every=0")
     outputs = {}
     for fused in (True, False):
@@ -376,7 +422,7 @@ def test_a_run_with_the_fused_sac_step_is_a_run_through_the_loss_module(tmp_path
 
 
 def test_fused_sac_step_is_taken_only_where_it_computes_the_loss():
-    for algo, extra, fused in [("sac", [], True), ("crossq", [], False), ("td3", [], True), ("tqc", [], True),
+    for algo, extra, fused in [("sac", [], True), ("crossq", [], True), ("td3", [], True), ("tqc", [], True),
                                ("droq", [], True), ("sac", ["compile=true"], False), ("bro", [], True)]:
         assert training(algo, *extra)[1].phases.fused is fused, (algo, extra)
 

@@ -39,12 +39,13 @@ from learners.optim import MemberAdam
 from learners.td import ENTROPY_LOSSES
 from losses.td import (ACTION_NOISE_KEY, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhNormal, MemberCrossQLoss, MemberREDQLoss,
                        MemberSACLoss, MemberTD3Loss, MemberTQCLoss, SmoothedActor, fused_sac_available, fused_sac_losses,
+                       fused_crossq_actor_losses, fused_crossq_available, fused_crossq_critic_losses,
                        fused_td3_actor_losses, fused_td3_available, fused_td3_critic_losses, fused_tqc_available,
                        fused_tqc_losses, member_means,
                        redq_available, redq_losses)
 
-FUSED = True  # the eager steps of SAC (DroQ, BRO), TQC and TD3 on plain tensors (losses.td.fused_sac_losses,
-#               fused_tqc_losses, fused_td3_*: the same bits as TorchRL's loss modules, faster); False: through the loss modules
+FUSED = True  # the eager steps of SAC (DroQ, BRO), TQC, CrossQ and TD3 on plain tensors (losses.td.fused_sac_losses,
+#               fused_tqc_losses, fused_crossq_*, fused_td3_*: the same bits as TorchRL's loss modules, faster); False: through the loss modules
 #               (benchmarks/recipe_cost.py's *-module recipes)
 
 TD_TRANSITION_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
@@ -225,7 +226,7 @@ class TDPhaseRunner:
                  memory=None, actor_net: nn.Module | None = None, qvalue_nets: Sequence[nn.Module] = ()):
         """``memory``: the replay memory when its sampler is prioritised (else None). Each step's
         objective is compiled when ``cfg.compile`` (``learners.compiling``). SAC's and TD3's eager
-        steps (and TQC's) compute on plain tensors (``losses.td.fused_sac_losses``, ``fused_td3_*``: TorchRL's
+        steps (and TQC's and CrossQ's) compute on plain tensors (``losses.td.fused_sac_losses``, ``fused_td3_*``: TorchRL's
         numbers, bit for bit) when ``FUSED`` and the actor network (``actor_net``) and Q-networks allow it.
         ``td.reset_every`` re-initialises the networks as they were built: the actor network (the
         loss's own) and the Q-networks ``qvalue_nets`` (whose fresh weights the loss's copies take)."""
@@ -245,7 +246,8 @@ class TDPhaseRunner:
         self.actor_net, self.qvalue_nets = actor_net, list(qvalue_nets)
         if self.td.reset_every and (actor_net is None or not self.qvalue_nets):
             raise ValueError("td.reset_every needs the actor network and the Q-networks as built")
-        available = {"td3": fused_td3_available, "tqc": fused_tqc_available}.get(self.kind, fused_sac_available)
+        available = {"td3": fused_td3_available, "tqc": fused_tqc_available,
+                     "crossq": fused_crossq_available}.get(self.kind, fused_sac_available)
         self.fused = FUSED and actor_net is not None and not cfg.compile and available(loss, actor_net)
         if self.kind == "redq" and (cfg.compile or actor_net is None or not redq_available(loss, actor_net)):
             raise ValueError("loss redq runs eagerly (compile=false) on the learner's own actor network and plain or "
@@ -350,16 +352,23 @@ class TDPhaseRunner:
     def _crossq_step(self, batch: TensorDictBase, step: int, totals: MetricTotals) -> torch.Tensor:
         """A critic step (current and next state in one batch-normalised pass), then, every
         ``policy_delay`` steps, an actor and temperature step against the updated critics."""
-        loss_qvalue, meta = self.loss.qvalue_loss(batch)
-        loss_qvalue = member_means(loss_qvalue)
+        if self.fused:
+            loss_qvalue, priority = fused_crossq_critic_losses(self.loss, self.actor_net, batch)
+        else:
+            loss_qvalue, meta = self.loss.qvalue_loss(batch)
+            loss_qvalue, priority = member_means(loss_qvalue), meta["td_error"]
         self._minimise(loss_qvalue, self.optimisers.critic)
         totals.add("critic", {"loss_qvalue": loss_qvalue})
         if (step + 1) % self.policy_delay == 0:
-            loss_actor, actor_meta = self.loss.actor_loss(batch)
-            loss_actor, loss_alpha = member_means(loss_actor), member_means(self.loss.alpha_loss(actor_meta["log_prob"]))
+            if self.fused:
+                loss_actor, loss_alpha = fused_crossq_actor_losses(self.loss, self.actor_net, batch)
+            else:
+                loss_actor, actor_meta = self.loss.actor_loss(batch)
+                loss_actor = member_means(loss_actor)
+                loss_alpha = member_means(self.loss.alpha_loss(actor_meta["log_prob"]))
             self._minimise(loss_actor + loss_alpha, self.optimisers.actor)
             totals.add("actor", {"loss_actor": loss_actor, "loss_alpha": loss_alpha, "alpha": self.loss.alpha})
-        return meta["td_error"]
+        return priority
 
     def _minimise(self, per_member: torch.Tensor, *optimisers: MemberAdam) -> None:
         for optimiser in optimisers:
