@@ -23,7 +23,6 @@ actions can be fitted when nothing is hidden.
 from __future__ import annotations
 
 import argparse
-import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -121,4 +120,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from engine.processes import run_tool
+
+    raise SystemExit(run_tool("imitate", main))

@@ -162,4 +162,6 @@ def agent_frame(runs, out: Path, figures) -> list[Path]:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from engine.processes import run_tool
+
+    raise SystemExit(run_tool("report", main))

@@ -23,9 +23,10 @@ _watching: set[int] = set()  # the parents this process already watches
 
 
 def run_tool(name: str, main) -> int:
-    """A command-line tool's ``main()`` that reads and reports (score.py, evaluate.py, tracks.py,
-    drive.py): SIGINT or SIGTERM ends it with one line and status 130 or 143 instead of a
-    traceback (its files are written whole at its end, so nothing is left half written)."""
+    """A command-line tool's ``main()`` (score.py, evaluate.py, tracks.py, drive.py, report.py,
+    imitate.py, baseline.py): SIGINT or SIGTERM ends it with one line and status 130 or 143 instead
+    of a traceback. The readers write their files whole at their end, so nothing is left half
+    written; baseline.py's interrupted run folder stays unfinished (no summary), as train.py's."""
     def stop(number, frame):
         raise KeyboardInterrupt(signal.Signals(number).name)
 

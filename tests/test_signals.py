@@ -134,3 +134,14 @@ def test_a_scoring_tool_stopped_by_a_signal_says_so_in_one_line(tmp_path):
         assert process.returncode == status, err
         assert err == f"score: stopped by {signal.Signals(number).name} before it finished\n"
         assert not (tmp_path / "laps.csv").exists()
+
+
+def test_every_tool_stops_on_a_signal_in_one_line():
+    """Every command-line tool but train.py (its own handling: checkpoints, sweeps) runs its main()
+    through engine.processes.run_tool, which the test above drives with real signals."""
+    import ast
+
+    for tool in ("score", "evaluate", "tracks", "drive", "report", "imitate", "baseline"):
+        tree = ast.parse((ROOT / f"{tool}.py").read_text())
+        (block,) = [node for node in tree.body if isinstance(node, ast.If) and "__main__" in ast.unparse(node.test)]
+        assert f'run_tool({tool!r}, main)' in ast.unparse(block).replace('"', "'"), tool
