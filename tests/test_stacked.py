@@ -122,19 +122,29 @@ def test_member_weights_round_trip_and_bad_shapes_are_refused():
 
 
 def test_exact_sqrt_is_the_correctly_rounded_root():
-    """Against NumPy's float32 sqrt (the CPU's IEEE instruction), over normal and subnormal numbers."""
+    """Against NumPy's float32 sqrt (the CPU's IEEE instruction), over normal and subnormal numbers:
+    the kernels' every path this CPU runs (scalar, AVX2, AVX-512) and the float64 fallback."""
     import numpy as np
 
-    from learners.optim import exact_sqrt
+    from learners import kernels
+    from learners.optim import exact_sqrt, wide_sqrt
 
     g = torch.Generator().manual_seed(0)
     x = torch.rand(1_000_003, generator=g) * 10
     x[::7] *= 1e-20
     x[::11] = torch.rand(x[::11].shape, generator=g) * 1e-40  # subnormal
     x[::13] = 0.0
-    (root,) = exact_sqrt([x])
-    assert root.dtype == torch.float32
-    assert np.array_equal(root.numpy(), np.sqrt(x.numpy()))
+    x[-5:] = torch.tensor([1e-45, 3.4e38, 2.0, 1e-38, 0.25])  # in the scalar tail of the vector paths
+    expected = np.sqrt(x.numpy())
+    roots = [wide_sqrt([x])[0]]
+    if kernels.unavailable_reason() is None:
+        roots += [exact_sqrt([x], isa)[0] for isa in kernels.isas()]
+        roots += [exact_sqrt([x[1:]])[0], exact_sqrt([x.view(1000003, 1).t()])[0]]  # offset; non-contiguous
+        expected_shifted = expected[1:]
+    for root in roots:
+        assert root.dtype == torch.float32
+        want = expected_shifted if root.numel() == x.numel() - 1 else expected
+        assert np.array_equal(root.numpy().ravel(), want)
 
 
 @pytest.mark.parametrize("weight_decay", [0.0, 0.05])

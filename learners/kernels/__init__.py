@@ -105,6 +105,7 @@ def _load() -> tuple[ctypes.CDLL | None, str | None]:
     lib.racing_colsum.restype = None
     lib.racing_colsum.argtypes = [i64, i64, i64, ptr, i64, i64, i64, ptr, i64]
     lib.racing_fma_loop.restype, lib.racing_fma_loop.argtypes = ctypes.c_float, [ctypes.c_int, i64]
+    lib.racing_sqrt.restype, lib.racing_sqrt.argtypes = ctypes.c_int, [ctypes.c_int, i64, ptr, ptr]
     return lib, None
 
 

@@ -324,6 +324,18 @@ double cost(const Isa& isa, i64 lanes, i64 M, i64 N, i64 K, View a, View b, i64 
     return fmas + pack_a + pack_b + double(M) * double(N) * (cn == 1 ? 0.25 : 1.0);
 }
 
+#ifdef RACING_X86
+// Square roots a vector at a time, from i up to the last whole vector; IEEE 754 sqrt, correctly
+// rounded on every path (the scalar tail's std::sqrt too).
+RACING_AVX512 void sqrt512(i64 n, const float* x, float* out, i64& i) {
+    for (; i + 16 <= n; i += 16) _mm512_storeu_ps(out + i, _mm512_sqrt_ps(_mm512_loadu_ps(x + i)));
+}
+
+RACING_AVX2 void sqrt256(i64 n, const float* x, float* out, i64& i) {
+    for (; i + 8 <= n; i += 8) _mm256_storeu_ps(out + i, _mm256_sqrt_ps(_mm256_loadu_ps(x + i)));
+}
+#endif
+
 }  // namespace
 
 extern "C" {
@@ -373,6 +385,23 @@ void racing_colsum(i64 R, i64 M, i64 N, const float* x, i64 sx_r, i64 sx_m, i64 
             for (i64 i = 0; i < M; ++i)
                 for (i64 j = 0; j < N; ++j) o[j] += xr[i * sx_m + j * sx_n];
     }
+}
+
+// out[i] = sqrt(x[i]) for i < n (contiguous float32), correctly rounded (IEEE 754) on every path,
+// so the same bits on every CPU; torch's float32 sqrt on the CPU goes through MKL's vector math,
+// whose last bit depends on the CPU (learners/optim.py: Adam's denominator).
+// isa as racing_gemm's (each path gives the same bits); returns 0, or -1 if this CPU cannot run it.
+int racing_sqrt(int isa, i64 n, const float* x, float* out) {
+    if (isa < 0 || isa > 2 || !(racing_gemm_isas() >> isa & 1)) return -1;
+    i64 i = 0;
+#ifdef RACING_X86
+    if (isa == 2)
+        sqrt512(n, x, out, i);
+    else if (isa == 1)
+        sqrt256(n, x, out, i);
+#endif
+    for (; i < n; ++i) out[i] = std::sqrt(x[i]);
+    return 0;
 }
 
 // The core's FMA peak, for benchmarks: n rounds of 24 independent vector FMAs (enough chains to
