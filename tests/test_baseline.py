@@ -6,20 +6,18 @@ same settings train the same curve again, and bad arguments are refused with a r
 """
 
 import json
-import subprocess
-import sys
 
 import pytest
 
 from tests.test_readme import readme_commands
+from tests import zygote
 from tests.test_train import ENV, ROOT, read_rows
 
 pytest.importorskip("stable_baselines3", reason="Stable-Baselines3 is the baselines extra (pip install -e '.[baselines]')")
 
 
 def baseline(*args):
-    return subprocess.run([sys.executable, str(ROOT / "baseline.py"), *args], cwd=ROOT, env=ENV,
-                          capture_output=True, text=True, timeout=600)
+    return zygote.run([ROOT / "baseline.py", *args], cwd=ROOT, env=ENV, timeout=600)
 
 
 def tiny(args: list[str], out) -> list[str]:
@@ -58,8 +56,7 @@ def test_the_documented_command_writes_runs_the_report_reads_and_reruns_identica
     again = baseline(*tiny(["--algos", "sac", "--tracks", track], tmp_path / "b"))
     assert again.returncode == 0, again.stderr[-3000:]
     assert (tmp_path / "b" / "sb3_sac" / "default" / f"seed{track}" / "metrics.csv").read_bytes() == sac.read_bytes()
-    report = subprocess.run([sys.executable, str(ROOT / "report.py"), str(tmp_path / "a")], cwd=ROOT, env=ENV,
-                            capture_output=True, text=True, timeout=300)
+    report = zygote.run([ROOT / "report.py", tmp_path / "a"], cwd=ROOT, env=ENV, timeout=300)
     assert report.returncode == 0, report.stderr[-3000:]
     assert "sb3_sac" in (tmp_path / "a" / "report" / "runs.csv").read_text()
     assert "Stable-Baselines3 SAC, default" in (tmp_path / "a" / "report" / "beyond.md").read_text()

@@ -2,16 +2,17 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
+import os
 from pathlib import Path
+
+from tests import zygote
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_env_speed_benchmark_prints_its_table():
-    result = subprocess.run([sys.executable, "-m", "benchmarks.env_speed", "--seconds", "0.01", "--max-cars", "64"],
-                            capture_output=True, text=True, timeout=300, cwd=ROOT)
+    result = zygote.run(["-m", "benchmarks.env_speed", "--seconds", "0.01", "--max-cars", "64"],
+                        cwd=ROOT, env=dict(os.environ), timeout=300)
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
     assert len(rows) == 1 + 11  # header and one row per implementation and size up to 64 cars
@@ -21,9 +22,9 @@ def test_env_speed_benchmark_prints_its_table():
 
 
 def test_train_speed_benchmark_prints_its_tables():
-    result = subprocess.run([sys.executable, "-m", "benchmarks.train_speed", "--episodes", "2", "--repeats", "2",
-                             "--cells", "ppo/recent", "spg_p/hybrid", "--baseline", "spg_p/hybrid"],
-                            capture_output=True, text=True, timeout=600, cwd=ROOT)
+    result = zygote.run(["-m", "benchmarks.train_speed", "--episodes", "2", "--repeats", "2",
+                         "--cells", "ppo/recent", "spg_p/hybrid", "--baseline", "spg_p/hybrid"],
+                        cwd=ROOT, env=dict(os.environ), timeout=600)
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
     assert len(rows) == (1 + 2) + (1 + 2) + (1 + 3)
@@ -35,9 +36,9 @@ def test_population_speed_benchmark_prints_its_tables():
 
     # Both modes where a C++ compiler is present (a solo run, to keep the test short), else eager populations.
     sizes = ["--sizes", "1", "--modes", "eager", "compiled"] if unavailable_reason() is None else ["--sizes", "1", "2"]
-    result = subprocess.run([sys.executable, "-m", "benchmarks.population_speed", "--episodes", "2",
-                             "--cells", "ppo/recent", "--collectors", "2", "--processes", "2", *sizes],
-                            capture_output=True, text=True, timeout=600, cwd=ROOT)
+    result = zygote.run(["-m", "benchmarks.population_speed", "--episodes", "2",
+                         "--cells", "ppo/recent", "--collectors", "2", "--processes", "2", *sizes],
+                        cwd=ROOT, env=dict(os.environ), timeout=600)
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
     assert len(rows) == (1 + 2) + (1 + 1) + (1 + 1)
@@ -47,9 +48,9 @@ def test_population_speed_benchmark_prints_its_tables():
 
 
 def test_numerics_speed_benchmark_prints_its_table():
-    result = subprocess.run([sys.executable, "-m", "benchmarks.numerics_speed", "--episodes", "1",
-                             "--members", "2", "--cells", "ppo/recent", "--repeats", "1"],
-                            capture_output=True, text=True, timeout=600, cwd=ROOT)
+    result = zygote.run(["-m", "benchmarks.numerics_speed", "--episodes", "1",
+                         "--members", "2", "--cells", "ppo/recent", "--repeats", "1"],
+                        cwd=ROOT, env=dict(os.environ), timeout=600)
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
     from benchmarks.numerics_speed import SHAPES
@@ -62,17 +63,17 @@ def test_numerics_speed_benchmark_prints_its_table():
 
 
 def test_oracle_convergence_benchmark_prints_its_table():
-    result = subprocess.run([sys.executable, "-m", "benchmarks.oracle_convergence", "--tracks", "1001", "--episodes",
-                             "1", "--horizon", "5", "--iterations", "1", "--candidates", "16", "--ladder", "1"],
-                            capture_output=True, text=True, timeout=300, cwd=ROOT)
+    result = zygote.run(["-m", "benchmarks.oracle_convergence", "--tracks", "1001", "--episodes",
+                         "1", "--horizon", "5", "--iterations", "1", "--candidates", "16", "--ladder", "1"],
+                        cwd=ROOT, env=dict(os.environ), timeout=300)
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
     assert len(rows) == 1 + 2 and rows[1].startswith("| base |") and rows[2].startswith("| candidates=4 |")
 
 
 def test_oracle_circuit_benchmark_prints_its_table():
-    result = subprocess.run([sys.executable, "-m", "benchmarks.oracle_circuit", "--points", "100", "--steps", "2"],
-                            capture_output=True, text=True, timeout=300, cwd=ROOT)
+    result = zygote.run(["-m", "benchmarks.oracle_circuit", "--points", "100", "--steps", "2"],
+                        cwd=ROOT, env=dict(os.environ), timeout=300)
     assert result.returncode == 0, result.stderr
     rows = result.stdout.splitlines()[2:]
     assert rows[0].startswith("generated (seed 1001)") and rows[0].endswith("1.00")
@@ -80,9 +81,8 @@ def test_oracle_circuit_benchmark_prints_its_table():
 
 
 def test_recipe_cost_benchmark_prints_its_table():
-    result = subprocess.run([sys.executable, "-m", "benchmarks.recipe_cost", "--sizes", "1", "--steps", "2",
-                             "--recipes", "sac", "sac-module", "droq", "droq-module"], capture_output=True, text=True,
-                            timeout=300, cwd=ROOT)
+    result = zygote.run(["-m", "benchmarks.recipe_cost", "--sizes", "1", "--steps", "2",
+                         "--recipes", "sac", "sac-module", "droq", "droq-module"], cwd=ROOT, env=dict(os.environ), timeout=300)
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
     assert len(rows) == 1 + 4
@@ -105,8 +105,8 @@ def test_recipe_cost_says_n_a_where_noise_hid_the_step(monkeypatch, capsys):
 
 
 def test_floor_benchmark_prints_its_table():
-    result = subprocess.run([sys.executable, "-m", "benchmarks.floor", "--sizes", "1", "2", "--steps", "2",
-                             "--learners", "sac", "ppo"], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    result = zygote.run(["-m", "benchmarks.floor", "--sizes", "1", "2", "--steps", "2",
+                         "--learners", "sac", "ppo"], cwd=ROOT, env=dict(os.environ), timeout=300)
     assert result.returncode == 0, result.stderr
     rows = [line.split(" | ") for line in result.stdout.splitlines() if line.startswith("| ")][1:]
     assert [(r[0], r[2], r[3]) for r in rows] == [("| sac", "1", "step"), ("| sac", "2", "step"),

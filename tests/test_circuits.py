@@ -6,8 +6,6 @@ the track in use. The circuits are the project's own (``make_circuit``), in that
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +17,7 @@ from racing.sim import RacingSim
 from racing.track_file import (FileTrack, TrackFileError, env_keywords, example, load_track, make_circuit,
                                parse_track, track_config, write_rows)
 from tests.test_train import ENV, ROOT
+from tests import zygote
 
 
 @pytest.fixture(scope="module")
@@ -103,27 +102,25 @@ def test_every_tool_takes_the_same_overrides(tmp_path, circuit):
                      "--track-scale", "15", "--max-steps", "3"],
                     ["evaluate.py", "ray_follower", "--video", str(tmp_path / "b.gif"), "--track-file", str(circuit),
                      "--track-scale", "15"]):
-        result = subprocess.run([sys.executable, *command], cwd=ROOT, env=ENV, capture_output=True, text=True,
-                                timeout=300)
+        result = zygote.run(command, cwd=ROOT, env=ENV, timeout=300)
         assert result.returncode == 0, (command, result.stderr[-2000:])
         if command[0] == "tracks.py":
             assert "read as open (from the caller), scale 15 px per file unit (from the caller)" in result.stdout
-    bad = subprocess.run([sys.executable, "score.py", "ray_follower", "--video", str(tmp_path / "c.gif"),
-                          "--track-scale", "15"], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=300)
+    bad = zygote.run(["score.py", "ray_follower", "--video", str(tmp_path / "c.gif"), "--track-scale", "15"],
+                     cwd=ROOT, env=ENV, timeout=300)
     assert bad.returncode == 2 and "apply to a --video-track or --laps-on file" in bad.stderr
 
 
 def test_tracks_check_says_how_a_file_was_read_and_how_long_a_lap_takes(circuit):
-    result = subprocess.run([sys.executable, "tracks.py", "check", str(circuit)], cwd=ROOT, env=ENV,
-                            capture_output=True, text=True, timeout=300)
+    result = zygote.run(["tracks.py", "check", str(circuit)], cwd=ROOT, env=ENV, timeout=300)
     assert result.returncode == 0, result.stderr
     out = result.stdout
     assert "a circuit (closed), 300 checkpoints" in out and "(median 200)" in out
     assert "read as a circuit (from the geometry), scale" in out and "(from the road's width)" in out
     assert "a lap: " in out and "for the pure-pursuit driver" in out and "for the ray-follower driver" in out
     assert "env.options.laps=1" in out and "warning" not in out
-    narrow = subprocess.run([sys.executable, "tracks.py", "check", str(circuit), "--track-scale", "1", "--no-lap"],
-                            cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=300)
+    narrow = zygote.run(["tracks.py", "check", str(circuit), "--track-scale", "1", "--no-lap"], cwd=ROOT, env=ENV,
+                        timeout=300)
     assert narrow.returncode == 0 and narrow.stdout.count("warning:") == 4, narrow.stdout
 
 

@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import re
 import shlex
-import subprocess
-import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -22,6 +20,7 @@ from racing.track_file import TrackFileError, example, load_track, save_track, t
 from racing.vector_env import RacingVectorEnv
 from tests.test_readme import readme_commands, stand_in_circuits
 from tests.test_train import ENV, ROOT
+from tests import zygote
 
 HEADER = "# x_m,y_m,w_tr_right_m,w_tr_left_m\n"
 
@@ -190,11 +189,9 @@ def test_the_documented_track_commands_run(tmp_path):
         if "--out" in args:
             i = args.index("--out")
             args[i + 1] = str(tmp_path / Path(args[i + 1]).name)
-        result = subprocess.run([sys.executable, "tracks.py", *args], cwd=ROOT, env=ENV, capture_output=True,
-                                text=True, timeout=120)
+        result = zygote.run(["tracks.py", *args], cwd=ROOT, env=ENV, timeout=120)
         assert result.returncode == 0, (shlex.join(args), result.stderr[-2000:])
         assert "checkpoints" in result.stdout
     bad = write(tmp_path, HEADER + "0,0,10,10\n")
-    result = subprocess.run([sys.executable, "tracks.py", "check", str(bad)], cwd=ROOT, env=ENV, capture_output=True,
-                            text=True, timeout=120)
+    result = zygote.run(["tracks.py", "check", str(bad)], cwd=ROOT, env=ENV, timeout=120)
     assert result.returncode == 2 and "1 point(s); a track needs at least 3" in result.stderr

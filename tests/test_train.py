@@ -5,7 +5,6 @@ import csv
 import json
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -20,8 +19,10 @@ ENV = {**os.environ, "RL_LOGGING_LEVEL": "WARNING", "PYTHONWARNINGS": "ignore"}
 
 
 def run_train(*args: str, cwd: Path = ROOT) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(ROOT / "train.py"), *args], cwd=cwd, env=ENV,
-                          capture_output=True, text=True, timeout=600)
+    """``python train.py ARGS`` (forked from a process that has imported torch: tests/zygote.py)."""
+    from tests import zygote
+
+    return zygote.run([ROOT / "train.py", *args], cwd=cwd, env=ENV, timeout=600)
 
 
 def read_rows(path: Path) -> list[dict]:
