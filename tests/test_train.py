@@ -102,3 +102,27 @@ def test_a_finished_run_is_skipped_and_a_different_one_refused(tmp_path):
     assert (tmp_path / "metrics.csv").read_bytes() == before
     replaced = run_train(*args[:-1], "episodes=3", "overwrite=true", f"hydra.run.dir={tmp_path}")
     assert replaced.returncode == 0 and len(read_rows(tmp_path / "metrics.csv")) == 3
+
+
+def test_a_command_forked_from_the_test_zygote_is_a_new_process_run(tmp_path):
+    """tests/zygote.py gives what ``python train.py ...`` gives: the same status, streams and files,
+    a finished run and a refused one."""
+    import subprocess
+    import sys
+
+    from tests import zygote
+
+    def both(*args):
+        real = subprocess.run([sys.executable, str(ROOT / "train.py"), *args, f"hydra.run.dir={tmp_path / 'real'}"],
+                              cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600)
+        forked = zygote.run([ROOT / "train.py", *args, f"hydra.run.dir={tmp_path / 'forked'}"], cwd=ROOT, env=ENV)
+        same = str(tmp_path / "forked"), str(tmp_path / "real")  # the one difference asked for
+        forked.stdout, forked.stderr = forked.stdout.replace(*same), forked.stderr.replace(*same)
+        return real, forked
+
+    real, forked = both("algo=spg_p", "er=hybrid", "seed=3", "episodes=2", "progress=false", "logger=none")
+    assert real.returncode == forked.returncode == 0, (real.stderr[-2000:], forked.stderr[-2000:])
+    assert (tmp_path / "real" / "metrics.csv").read_bytes() == (tmp_path / "forked" / "metrics.csv").read_bytes()
+    assert real.stdout == forked.stdout and real.stderr == forked.stderr
+    real, forked = both("algo=spg_p", "episodes=0")
+    assert real.returncode == forked.returncode == 2 and real.stderr == forked.stderr and real.stderr
