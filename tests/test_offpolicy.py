@@ -253,6 +253,20 @@ def test_td3_preact_penalty_adds_the_mean_square_of_the_pre_tanh_action():
     assert all(g is not None for pair in grads for g in pair) and not all(torch.equal(a, b) for a, b in grads)
 
 
+def module_then_fused(step, mode: str):
+    """``step(False), step(True)`` (through the loss module, then fused) under numerics ``mode``'s
+    products (fma: the project's kernels; portable: torch's), the process's own restored after."""
+    from learners import kernels
+
+    previous = kernels.active()
+    try:
+        if kernels.use(mode == "fma"):
+            pytest.skip("the kernels cannot be built here")
+        return step(False), step(True)
+    finally:
+        kernels.use(previous)
+
+
 @pytest.mark.parametrize("mode", ["fma", "portable"])
 @pytest.mark.parametrize("extra", [[], ["er=prioritised", "algo.td.n_step=3", "algo.td.loss_function=smooth_l1"],
                                    ["algo=bro", "er=prioritised", "algo.td.critic_width=48"],
@@ -264,8 +278,6 @@ def test_fused_sac_step_is_the_torchrl_loss_bit_for_bit(mode, extra):
     discounts, another critic loss, BRO's residual Q-networks, DroQ's (dropout masks drawn from the
     members' generators in the loss module's order; with and without layer norm), TQC's (its pooled,
     truncated quantile targets), in both numerics that switch after torch loads."""
-    from learners import kernels
-
     cfg, t = training("sac", *extra, seeds=(A, B, 7))
     assert t.phases.fused
     data = transitions(3, 256)
@@ -292,13 +304,7 @@ def test_fused_sac_step_is_the_torchrl_loss_bit_for_bit(mode, extra):
         (sum(losses.values()) * torch.tensor([1.0, 2.0, 3.0])).sum().backward()
         return losses, priority, [p.grad.clone() for p in params]
 
-    previous = kernels.active()
-    try:
-        if kernels.use(mode == "fma"):
-            pytest.skip("the kernels cannot be built here")
-        (theirs, their_priority, their_grads), (ours, our_priority, our_grads) = step(False), step(True)
-    finally:
-        kernels.use(previous)
+    (theirs, their_priority, their_grads), (ours, our_priority, our_grads) = module_then_fused(step, mode)
     assert set(ours) == set(theirs) and all(torch.equal(ours[k], theirs[k]) for k in theirs)
     assert torch.equal(our_priority, their_priority)
     assert all(a.any() for a in our_grads) and all(torch.equal(a, b) for a, b in zip(our_grads, their_grads))
@@ -314,8 +320,6 @@ def test_fused_td3_steps_are_the_torchrl_loss_bit_for_bit(mode, extra):
     bit for bit: with the pre-tanh penalty and without, importance weights, n-step discounts, another
     critic loss, DroQ-style Q-networks (their dropout masks drawn in the module's order, the members'
     generators left where the module leaves them)."""
-    from learners import kernels
-
     cfg, t = training("td3", *extra, seeds=(A, B, 7))
     assert t.phases.fused
     data = transitions(3, 256)
@@ -341,13 +345,7 @@ def test_fused_td3_steps_are_the_torchrl_loss_bit_for_bit(mode, extra):
         drawn = [g.get_state() for g in t.loss.generators]  # the next step's masks start there
         return [loss_qvalue, priority, loss_actor] + [p.grad.clone() for p in critic + actor] + drawn
 
-    previous = kernels.active()
-    try:
-        if kernels.use(mode == "fma"):
-            pytest.skip("the kernels cannot be built here")
-        theirs, ours = step(False), step(True)
-    finally:
-        kernels.use(previous)
+    theirs, ours = module_then_fused(step, mode)
     assert all(a.any() for a in ours[3:3 + len(critic + actor)])
     assert all(torch.equal(a, b) for a, b in zip(ours, theirs, strict=True))
 
@@ -358,8 +356,6 @@ def test_fused_crossq_steps_are_the_torchrl_loss_bit_for_bit(mode, extra):
     """The fused CrossQ steps (every Q-network and member in one batch-normalised pass) give the loss
     module's critic loss, priorities, running estimates, actor and temperature losses and every
     gradient bit for bit (TorchRL's CrossQLoss.actor_loss, MemberCrossQLoss.qvalue_loss)."""
-    from learners import kernels
-
     cfg, t = training("crossq", *extra, seeds=(A, B, 7))
     assert t.phases.fused
     data = transitions(3, 256)
@@ -385,13 +381,7 @@ def test_fused_crossq_steps_are_the_torchrl_loss_bit_for_bit(mode, extra):
         return [priority, *running, *[p.grad.clone() for p in critic + actor],
                 *[torch.stack(v) for v in totals.values.values()]]
 
-    previous = kernels.active()
-    try:
-        if kernels.use(mode == "fma"):
-            pytest.skip("the kernels cannot be built here")
-        theirs, ours = step(False), step(True)
-    finally:
-        kernels.use(previous)
+    theirs, ours = module_then_fused(step, mode)
     assert not all(torch.equal(a, b) for a, b in zip(before, ours[1:1 + len(statistics)]))  # estimates moved
     assert all(g.any() for g in ours[1 + len(statistics):1 + len(statistics) + len(critic + actor)])
     assert all(torch.equal(a, b) for a, b in zip(ours, theirs, strict=True))
