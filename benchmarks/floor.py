@@ -36,7 +36,7 @@ from engine import numerics  # noqa: E402
 numerics.apply(numerics.DEFAULT)
 
 from benchmarks.population_speed import member_seeds  # noqa: E402
-from benchmarks.train_speed import table  # noqa: E402
+from benchmarks.train_speed import at_most, table  # noqa: E402
 
 # name: (overrides, off-policy). The off-policy learners with the settings of their results; the
 # paper's learners as the paper grid's best cells and PPO.
@@ -92,6 +92,8 @@ class Recorder:
 
         def timed(run, steps_of):
             def wrapper(phases, data, minibatch_size, totals, episode=0):
+                for earlier in [e for e in recorder.calls if e < episode]:  # only the last episode is replayed
+                    del recorder.calls[earlier]
                 recorder.episode, recorder.on = episode, True
                 recorder.steps[episode] += steps_of(phases, episode)
                 start = time.perf_counter()
@@ -179,8 +181,9 @@ def measure(recipe: list[str], off_policy: bool, members: int, steps: int, fused
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--sizes", type=int, nargs="+", default=[1, 5, 25], help="population sizes R")
-    parser.add_argument("--steps", type=int, default=30,
+    parser.add_argument("--sizes", type=at_most(1_000), nargs="+", default=[1, 5, 25],
+                        help="population sizes R (at most 1,000, a population's ceiling)")
+    parser.add_argument("--steps", type=at_most(5_000), default=30,
                         help="gradient steps timed per off-policy learner and size (the paper's learners: one phase)")
     parser.add_argument("--learners", nargs="+", default=list(LEARNERS), choices=list(LEARNERS))
     parser.add_argument("--module", action="store_true",

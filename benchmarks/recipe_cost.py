@@ -32,7 +32,7 @@ from engine import numerics  # noqa: E402
 numerics.apply(numerics.DEFAULT)
 
 from benchmarks.population_speed import member_seeds  # noqa: E402
-from benchmarks.train_speed import table  # noqa: E402
+from benchmarks.train_speed import at_most, table  # noqa: E402
 from engine.config import RunConfig  # noqa: E402
 from engine.runner import train_population  # noqa: E402
 
@@ -91,8 +91,8 @@ def measure(recipe: list[str], members: int, steps: int, episode_steps: int = 20
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--sizes", type=int, nargs="+", default=[3, 25], help="population sizes R")
-    parser.add_argument("--steps", type=int, default=40, help="gradient steps measured per recipe and size")
+    parser.add_argument("--sizes", type=at_most(1_000), nargs="+", default=[3, 25], help="population sizes R")
+    parser.add_argument("--steps", type=at_most(5_000), default=40, help="gradient steps measured per recipe and size")
     parser.add_argument("--recipes", nargs="+", default=list(RECIPES), choices=list(RECIPES))
     args = parser.parse_args(argv)
     import torch

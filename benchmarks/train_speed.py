@@ -51,6 +51,28 @@ def best_of(fn, repeats: int) -> float:
     return best
 
 
+def positive_int(text: str, high: int | None = None) -> int:
+    """An argparse type: a whole number of at least 1 (and at most ``high``: ``at_most(high)``),
+    refused in one line otherwise."""
+    import argparse
+
+    expected = f"a whole number from 1 to {high:,}" if high else "a whole number >= 1"
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
+    if value < 1 or (high is not None and value > high):
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {value}")
+    return value
+
+
+def at_most(high: int):
+    """``positive_int`` with a ceiling, for argparse's ``type=``."""
+    def parse(text: str) -> int:
+        return positive_int(text, high)
+    return parse
+
+
 def table(title: str, header: list[str], rows: list[list]) -> None:
     print(f"\n{title}\n")
     print("| " + " | ".join(header) + " |")

@@ -5,6 +5,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import pytest
+
 from tests import zygote
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -125,7 +127,6 @@ def test_floor_records_a_layers_products_and_replays_them():
     from learners.networks import StackedMLP
 
     if not kernels.active():
-        import pytest
         pytest.skip(f"the project's kernels are not in use here: {kernels.unavailable_reason()}")
     recorder = Recorder()
     undo = recorder.install()
@@ -152,3 +153,16 @@ def test_floor_says_why_without_the_kernels(monkeypatch, capsys):
     monkeypatch.setattr(kernels, "active", lambda: False)
     assert floor.main(["--sizes", "1", "--learners", "sac"]) == 1
     assert "not in use here" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("args", [["--sizes", "0"], ["--sizes", "1001"], ["--steps", "-1"], ["--steps", "5001"],
+                                  ["--steps", "x"]])
+def test_the_step_benchmarks_refuse_sizes_they_cannot_measure_in_one_line(args, capsys):
+    """A population of 0 or beyond the ceiling, or a step count that would record without end, is
+    refused before anything runs (it ended in a traceback, or in gigabytes of recorded products)."""
+    from benchmarks import floor, recipe_cost
+
+    for tool in (floor, recipe_cost):
+        with pytest.raises(SystemExit) as stop:
+            tool.main(args)
+        assert stop.value.code == 2 and "expected a whole number from 1 to" in capsys.readouterr().err
