@@ -114,6 +114,9 @@ def serve(path: str) -> None:
 
     for name in PRELOAD:
         importlib.import_module(name)
+    from engine.processes import exit_with_parent
+
+    exit_with_parent()  # a test process killed outright (no atexit) leaves no zygote behind
     server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     server.bind(path)
     server.listen(8)
