@@ -12,8 +12,8 @@ time the step could not go below without faster products. The table gives, per l
 milliseconds per gradient step (the population's; the paper's learners per update phase, of
 ``value_epochs + policy_epochs`` steps), the floor, their ratio, and the products' count. The
 learners with a fused step (``learners.td.learner.FUSED``: SAC, DroQ, BRO, TQC, CrossQ, TD3; the same bits as
-their TorchRL loss modules) take it; ``--module`` adds a row through the loss module for each of
-them, the step before it was fused.
+their TorchRL loss modules) take it; ``--module`` adds a row through the loss module for each learner
+whose run took a fused step, the step before it was fused.
 
 A ratio of 1.0 would mean nothing but products; what lies above it is element-wise work,
 autograd's and Python's per-call work and the minibatches. Absolute times depend on the machine
@@ -54,9 +54,6 @@ LEARNERS = {
 }
 
 
-FUSED = {"sac", "td3", "tqc", "crossq", "bro", "droq"}  # learners whose eager step is fused (learners.td.learner.FUSED)
-
-
 class Recorder:
     """The products (``ops._product``) and column sums (``ops.colsum``) made while ``on``, and the
     time and gradient steps of the update phases, per episode."""
@@ -67,6 +64,7 @@ class Recorder:
         self.seconds: dict[int, float] = defaultdict(float)
         self.steps: dict[int, int] = defaultdict(int)
         self.episode = 0
+        self.fused = False  # whether the phases took a fused step (``TDPhaseRunner.fused``)
 
     def install(self):
         """Wrap the kernels' entry points and both families' update phases; returns the undo."""
@@ -95,6 +93,7 @@ class Recorder:
                 for earlier in [e for e in recorder.calls if e < episode]:  # only the last episode is replayed
                     del recorder.calls[earlier]
                 recorder.episode, recorder.on = episode, True
+                recorder.fused = bool(getattr(phases, "fused", False))
                 recorder.steps[episode] += steps_of(phases, episode)
                 start = time.perf_counter()
                 try:
@@ -176,7 +175,7 @@ def measure(recipe: list[str], off_policy: bool, members: int, steps: int, fused
     last = max(e for e in recorder.seconds if recorder.steps[e])
     calls = recorder.calls[last]
     return {"seconds": recorder.seconds[last], "steps": recorder.steps[last], "floor": replay(calls),
-            "products": sum(c[0] == "gemm" for c in calls)}
+            "products": sum(c[0] == "gemm" for c in calls), "fused": recorder.fused}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -201,13 +200,14 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for name in args.learners:
         recipe, off_policy = LEARNERS[name]
-        paths = [True, False] if args.module and name in FUSED else [True]
         for members in args.sizes:
-            for fused in paths:
-                m = measure(recipe, off_policy, members, args.steps, fused)
+            m = measure(recipe, off_policy, members, args.steps)
+            runs = [(name, m)]
+            if args.module and m["fused"]:  # the same step through the loss module
+                runs.append((f"{name} (loss module)", measure(recipe, off_policy, members, args.steps, fused=False)))
+            for label, m in runs:
                 unit = m["steps"] if off_policy else 1  # per gradient step, or per update phase
                 step, floor = m["seconds"] / unit * 1e3, m["floor"] / unit * 1e3
-                label = name if fused else f"{name} (loss module)"
                 rows.append([label, " ".join(recipe), members,
                              "step" if off_policy else f"phase ({m['steps']} steps)", f"{step:.2f}",
                              f"{step / members:.3f}", f"{floor:.2f}", f"{step / floor:.2f}x",

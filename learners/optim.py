@@ -33,17 +33,10 @@ def exact_sqrt(tensors: list[torch.Tensor], isa: str | None = None) -> list[torc
 
     if kernels.unavailable_reason() is not None:
         return wide_sqrt(tensors)
-    sqrt, code = kernels._lib().racing_sqrt, kernels._isa_code(isa)
-    out = []
-    for t in tensors:
-        if t.dtype != torch.float32 or t.device.type != "cpu" or not t.is_contiguous():
-            out.extend(wide_sqrt([t]))
-            continue
-        root = torch.empty_like(t)
-        if sqrt(code, t.numel(), t.data_ptr(), root.data_ptr()):
-            raise kernels.KernelError(f"racing_sqrt refused the instruction set code {code}")
-        out.append(root)
-    return out
+    from learners.kernels import ops
+
+    return [ops.sqrt(t, isa) if t.dtype == torch.float32 and t.device.type == "cpu" and t.is_contiguous()
+            else wide_sqrt([t])[0] for t in tensors]
 
 
 def wide_sqrt(tensors: list[torch.Tensor]) -> list[torch.Tensor]:

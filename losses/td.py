@@ -169,19 +169,24 @@ class _Copies(torch.autograd.Function):
         return total, None
 
 
-def _stacked_values(loss, inputs: torch.Tensor, params: TensorDictBase, loop_order: bool = False) -> torch.Tensor:
+def _stacked_values(loss, inputs: torch.Tensor, params: TensorDictBase, loop_order: bool = False,
+                    training: bool = True) -> torch.Tensor:
     """Every Q-network's values ``[Q, R, B, 1]`` for inputs ``[R, B, obs + action]`` and stacked
     parameters ``[Q, R, ...]``, in one pass over ``Q * R`` networks (each computes alone, as in
     TorchRL's loop over the Q-networks, DroQ's dropout masks drawn in that loop's order).
     ``loop_order``: the inputs' gradient summed over the Q-networks in the order autograd sums the
     loop's (``_Copies``; needed where more than one Q-network's gradient reaches the inputs, as in
-    TQC's actor loss; REDQ's step, not held to TorchRL's bits, keeps ``expand``'s sum)."""
+    TQC's actor loss; REDQ's step, not held to TorchRL's bits, keeps ``expand``'s sum).
+    CrossQ's batch-normalised Q-networks (``forward_stacked``) normalise by each network's batch
+    statistics in ``training`` (updating its running estimates in place), else by those estimates."""
     critic = loss.qvalue_network.module
     named = {name: value.flatten(0, 1) for name, value in params["module"].flatten_keys(".").items()}
     q, members = next(iter(params["module"].values(True, True))).shape[:2]
     x = (_Copies.apply(inputs, q) if loop_order else inputs.expand(q, *inputs.shape)).reshape(
         q * members, *inputs.shape[1:])
-    if hasattr(critic, "forward_named"):  # BRO's residual Q-network
+    if hasattr(critic, "forward_stacked"):  # CrossQ's batch-normalised Q-network
+        values = critic.forward_stacked(x, named, training)
+    elif hasattr(critic, "forward_named"):  # BRO's residual Q-network
         values = critic.forward_named(x, named)
     else:
         pairs = [(named[f"net.layers.{i}.weight"], named[f"net.layers.{i}.bias"]) for i in range(len(critic.net.layers))]
@@ -195,10 +200,24 @@ def _stacked_values(loss, inputs: torch.Tensor, params: TensorDictBase, loop_ord
     return values.reshape(q, members, *inputs.shape[1:-1], -1)
 
 
+def _draws_masks(loss) -> bool:
+    """Whether ``loss``'s Q-networks draw dropout masks when they compute (DroQ's, training)."""
+    dropouts = getattr(getattr(loss.qvalue_network.module, "net", None), "dropouts", None)
+    return bool(dropouts) and dropouts[0].active
+
+
 def _check_no_masks(batch: TensorDictBase) -> None:
     for key in (("collector", "mask"), "shifted_valid"):  # TorchRL's loss masks: not written here
         if key in batch.keys(True):
             raise ValueError(f"the fused off-policy steps do not apply loss masks ({key!r} in the minibatch)")
+
+
+def _policy_sample(actor_net: nn.Module, observation: torch.Tensor,
+                   noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The actor's reparameterised action ``tanh(loc + noise * scale)`` at ``observation`` and its
+    log-probability, as TorchRL's losses draw and score it (``DrawnTanhNormal``)."""
+    loc, scale = actor_net(observation)
+    return DrawnTanhNormal(loc, scale, noise, low=-1.0, high=1.0).rsample_and_log_prob()
 
 
 @torch.no_grad()
@@ -211,9 +230,7 @@ def _soft_td_target(loss, actor_net: nn.Module, batch: TensorDictBase, params: T
     and ``log pi(a'|s')`` ``[R, B]``."""
     following = batch.get("next")
     next_observation = following.get("observation")
-    loc, scale = actor_net(next_observation)
-    next_action, next_log_prob = DrawnTanhNormal(loc, scale, following.get(ACTION_NOISE_KEY),
-                                                 low=-1.0, high=1.0).rsample_and_log_prob()
+    next_action, next_log_prob = _policy_sample(actor_net, next_observation, following.get(ACTION_NOISE_KEY))
     next_values = _stacked_values(loss, torch.cat([next_observation, next_action], -1), params)
     next_value = (next_values - alpha * next_log_prob.unsqueeze(-1)).min(0)[0]
     return _td0_target(loss, batch, next_value), next_log_prob
@@ -222,15 +239,21 @@ def _soft_td_target(loss, actor_net: nn.Module, batch: TensorDictBase, params: T
 def _td0_target(loss, batch: TensorDictBase, next_value: torch.Tensor) -> torch.Tensor:
     """``r + gamma * next_value`` where not terminated, ``[R, B]`` (``gamma ** steps`` over n-step
     transitions), as the losses' TD(0) value estimator computes it from ``next_value`` ``[R, B, 1]``."""
+    return _td0_returns(loss, batch, next_value).squeeze(-1)
+
+
+def _td0_returns(loss, batch: TensorDictBase, next_value: torch.Tensor) -> torch.Tensor:
+    """``_td0_target`` for every entry of ``next_value`` ``[R, B, k]`` (TQC's k target atoms), the
+    reward, termination and steps taken to its shape as TorchRL's losses do: ``[R, B, k]``."""
     keys, following = loss.tensor_keys, batch.get("next")
     reward = following.get(keys.reward)
     estimator = loss.value_estimator
     gamma = estimator.gamma.to(reward.device)
     steps = batch.get(estimator.tensor_keys.steps_to_next_obs, None)
     if steps is not None:
-        gamma = gamma ** steps.view_as(reward)
-    return td0_return_estimate(gamma=gamma, next_state_value=next_value, reward=reward,
-                               terminated=following.get(keys.terminated)).squeeze(-1)
+        gamma = gamma ** steps.view_as(reward).expand_as(next_value)
+    return td0_return_estimate(gamma=gamma, next_state_value=next_value, reward=reward.expand_as(next_value),
+                               terminated=following.get(keys.terminated).expand_as(next_value))
 
 
 def fused_sac_losses(loss: "MemberSACLoss", actor_net: nn.Module,
@@ -252,8 +275,7 @@ def fused_sac_losses(loss: "MemberSACLoss", actor_net: nn.Module,
                                 loss.qvalue_network_params).squeeze(-1)
     td_error = abs(predicted - target)
     loss_qvalue = distance_loss(predicted, target.expand_as(predicted), loss_function=loss.loss_function).sum(0)
-    loc, scale = actor_net(observation)
-    action, log_prob = DrawnTanhNormal(loc, scale, batch.get(ACTION_NOISE_KEY), low=-1.0, high=1.0).rsample_and_log_prob()
+    action, log_prob = _policy_sample(actor_net, observation, batch.get(ACTION_NOISE_KEY))
     min_q = _stacked_values(loss, torch.cat([observation, action], -1),
                             loss.qvalue_network_params.detach()).min(0)[0].squeeze(-1)
     loss_actor = loss._alpha * log_prob - min_q
@@ -341,9 +363,7 @@ def redq_losses(loss: MemberREDQLoss, actor_net: nn.Module, batch: TensorDictBas
     loss_qvalue = distance_loss(predicted, target.expand_as(predicted), loss_function=loss.loss_function).mean(0)
     losses = {"loss_qvalue": loss_qvalue}
     if actor:
-        loc, scale = actor_net(observation)
-        action, log_prob = DrawnTanhNormal(loc, scale, batch.get(ACTION_NOISE_KEY),
-                                           low=-1.0, high=1.0).rsample_and_log_prob()
+        action, log_prob = _policy_sample(actor_net, observation, batch.get(ACTION_NOISE_KEY))
         values = _stacked_values(loss, torch.cat([observation, action], -1),
                                  loss.qvalue_network_params.detach()).squeeze(-1)
         losses["loss_actor"] = -(values - alpha * log_prob).mean(0)
@@ -444,28 +464,18 @@ def fused_tqc_losses(loss: "MemberTQCLoss", actor_net: nn.Module,
     with torch.no_grad():
         following = batch.get("next")
         next_observation = following.get("observation")
-        loc, scale = actor_net(next_observation)
-        next_action, next_log_prob = DrawnTanhNormal(loc, scale, following.get(ACTION_NOISE_KEY),
-                                                     low=-1.0, high=1.0).rsample_and_log_prob()
+        next_action, next_log_prob = _policy_sample(actor_net, next_observation, following.get(ACTION_NOISE_KEY))
         atoms = _stacked_values(loss, torch.cat([next_observation, next_action], -1),
                                 loss.target_qvalue_network_params)  # [Q, R, B, n]
         atoms = atoms.movedim(0, -2).flatten(-2)
         keep = atoms.shape[-1] - loss.top_quantiles_to_drop_per_net * loss.num_qvalue_nets
         atoms = torch.sort(atoms, dim=-1).values[..., :keep]
         next_value = atoms - loss._alpha.reshape(members, 1, 1) * next_log_prob.unsqueeze(-1)
-        keys, estimator = loss.tensor_keys, loss.value_estimator
-        reward = following.get(keys.reward).expand_as(next_value)
-        gamma = estimator.gamma.to(reward.device)
-        steps = batch.get(estimator.tensor_keys.steps_to_next_obs, None)
-        if steps is not None:
-            gamma = gamma ** steps.expand_as(next_value).view_as(reward)
-        target = td0_return_estimate(gamma=gamma, next_state_value=next_value, reward=reward,
-                                     terminated=following.get(keys.terminated).expand_as(next_value))
+        target = _td0_returns(loss, batch, next_value)
     quantiles = _stacked_values(loss, torch.cat([observation, batch.get("action")], -1), loss.qvalue_network_params)
     loss_qvalue, td_error = quantile_huber_loss(quantiles, target.unsqueeze(0))
     loss_qvalue = loss_qvalue.sum(0)
-    loc, scale = actor_net(observation)
-    action, log_prob = DrawnTanhNormal(loc, scale, batch.get(ACTION_NOISE_KEY), low=-1.0, high=1.0).rsample_and_log_prob()
+    action, log_prob = _policy_sample(actor_net, observation, batch.get(ACTION_NOISE_KEY))
     values = _stacked_values(loss, torch.cat([observation, action], -1), loss.qvalue_network_params.detach(),
                              loop_order=True)
     loss_actor = loss._alpha * log_prob - values.mean(dim=(0, -1))
@@ -516,17 +526,6 @@ def fused_crossq_available(loss, actor_net: nn.Module) -> bool:
             and _owns_actor(loss, actor_net))
 
 
-def _bn_values(loss, inputs: torch.Tensor, params: TensorDictBase, training: bool) -> torch.Tensor:
-    """CrossQ's Q-networks' values ``[Q, R, N, 1]`` for inputs ``[R, N, obs + action]``, every
-    Q-network and member in one pass (batch statistics per network in ``training``, which updates
-    their running estimates in place; the running estimates otherwise)."""
-    named = {name: value.flatten(0, 1) for name, value in params["module"].flatten_keys(".").items()}
-    q, members = next(iter(params["module"].values(True, True))).shape[:2]
-    x = _Copies.apply(inputs, q).reshape(q * members, *inputs.shape[1:])
-    values = loss.qvalue_network.module.forward_stacked(x, named, training)
-    return values.reshape(q, members, *inputs.shape[1:-1], -1)
-
-
 def fused_crossq_critic_losses(loss: "MemberCrossQLoss", actor_net: nn.Module,
                                batch: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
     """``MemberCrossQLoss.qvalue_loss`` per member (``member_means``) and its priorities, on plain
@@ -537,12 +536,10 @@ def fused_crossq_critic_losses(loss: "MemberCrossQLoss", actor_net: nn.Module,
     following = batch.get("next")
     with torch.no_grad():
         next_observation = following.get("observation")
-        loc, scale = actor_net(next_observation)
-        next_action, next_log_prob = DrawnTanhNormal(loc, scale, following.get(ACTION_NOISE_KEY),
-                                                     low=-1.0, high=1.0).rsample_and_log_prob()
+        next_action, next_log_prob = _policy_sample(actor_net, next_observation, following.get(ACTION_NOISE_KEY))
     joint = torch.cat([torch.cat([batch.get("observation"), batch.get("action")], -1),
                        torch.cat([next_observation, next_action], -1)], dim=1)
-    values = _bn_values(loss, joint, loss.qvalue_network_params, training=True)
+    values = _stacked_values(loss, joint, loss.qvalue_network_params, loop_order=True, training=True)
     current, following_values = values.split(batch.batch_size[1], dim=2)  # [Q, R, B, 1] each
     next_value = (following_values.min(0)[0] - loss._alpha.unsqueeze(-1) * next_log_prob.unsqueeze(-1)).detach()
     target = _td0_target(loss, batch, next_value)
@@ -558,10 +555,9 @@ def fused_crossq_actor_losses(loss: "MemberCrossQLoss", actor_net: nn.Module,
     detached and in evaluation mode (their running estimates), and the temperature's loss."""
     _check_no_masks(batch)
     observation = batch.get("observation")
-    loc, scale = actor_net(observation)
-    action, log_prob = DrawnTanhNormal(loc, scale, batch.get(ACTION_NOISE_KEY), low=-1.0, high=1.0).rsample_and_log_prob()
-    values = _bn_values(loss, torch.cat([observation, action], -1), loss.qvalue_network_params.detach(),
-                        training=False)
+    action, log_prob = _policy_sample(actor_net, observation, batch.get(ACTION_NOISE_KEY))
+    values = _stacked_values(loss, torch.cat([observation, action], -1), loss.qvalue_network_params.detach(),
+                             loop_order=True, training=False)
     loss_actor = loss._alpha * log_prob - values.min(0)[0].squeeze(-1)
     return member_means(loss_actor), member_means(loss._alpha_loss(log_prob.detach()))
 
@@ -647,8 +643,7 @@ def fused_td3_actor_losses(loss: MemberTD3Loss, actor_net: nn.Module, batch: Ten
     observation = batch.get("observation")
     action = actor_net(observation) + batch.get(SMOOTHING_KEY)  # zeros at the root, as SmoothedActor adds them
     params = loss.qvalue_network_params.detach()
-    critic = loss.qvalue_network.module
-    if not any(getattr(d, "active", False) for d in getattr(getattr(critic, "net", None), "dropouts", ()) or ()):
+    if not _draws_masks(loss):
         params = params[:1]
     loss_actor = -_stacked_values(loss, torch.cat([observation, action], -1), params)[0].squeeze(-1)
     if weights is not None:

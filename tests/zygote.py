@@ -84,18 +84,16 @@ def _child(request: dict) -> None:
                 sys.path[0] = os.path.dirname(os.path.abspath(command[0]))
                 runpy.run_path(command[0], run_name="__main__")
             code = 0
-        except SystemExit as exit:
-            code = exit.code if isinstance(exit.code, int) else (0 if exit.code is None else 1)
-            if exit.code is not None and not isinstance(exit.code, int):
+        except SystemExit as exit:  # as the interpreter ends: None is 0, a message goes to stderr with 1
+            code = exit.code if isinstance(exit.code, int) else 0 if exit.code is None else 1
+            if code == 1 and not isinstance(exit.code, int):
                 print(exit.code, file=sys.stderr)
         except BaseException:
             import traceback
 
             traceback.print_exc()
             code = 1
-        import atexit as child_exit
-
-        child_exit._run_exitfuncs()
+        atexit._run_exitfuncs()
     finally:
         for stream in (sys.stdout, sys.stderr):
             try:

@@ -54,6 +54,18 @@ def _gemm():
     return _GEMM
 
 
+def sqrt(x: torch.Tensor, isa: str | None = None) -> torch.Tensor:
+    """The correctly rounded square roots of a contiguous float32 tensor (the CPU's IEEE 754 sqrt;
+    every ``isa`` path gives the same bits, torch's float32 sqrt need not)."""
+    if x.dtype != torch.float32 or x.device.type != "cpu" or not x.is_contiguous():
+        raise TypeError(f"x must be a contiguous float32 CPU tensor, got {x.dtype} on {x.device}")
+    root = torch.empty_like(x)
+    code = _isa_code(isa)
+    if _lib().racing_sqrt(code, x.numel(), x.data_ptr(), root.data_ptr()):
+        raise KernelError(f"racing_sqrt refused the instruction set code {code}")
+    return root
+
+
 def colsum(x: torch.Tensor) -> torch.Tensor:
     """``x [R, M, N]`` summed over M in row order from zero -> ``[R, N]`` (a bias gradient)."""
     _check("x", x, 3)

@@ -38,15 +38,14 @@ from learners.networks import (BlockSampler, StackedBNCriticNet, StackedCriticNe
 from learners.optim import MemberAdam
 from learners.td import ENTROPY_LOSSES
 from losses.td import (ACTION_NOISE_KEY, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhNormal, MemberCrossQLoss, MemberREDQLoss,
-                       MemberSACLoss, MemberTD3Loss, MemberTQCLoss, SmoothedActor, fused_sac_available, fused_sac_losses,
-                       fused_crossq_actor_losses, fused_crossq_available, fused_crossq_critic_losses,
+                       MemberSACLoss, MemberTD3Loss, MemberTQCLoss, SmoothedActor, fused_crossq_actor_losses,
+                       fused_crossq_available, fused_crossq_critic_losses, fused_sac_available, fused_sac_losses,
                        fused_td3_actor_losses, fused_td3_available, fused_td3_critic_losses, fused_tqc_available,
-                       fused_tqc_losses, member_means,
-                       redq_available, redq_losses)
+                       fused_tqc_losses, member_means, redq_available, redq_losses)
 
-FUSED = True  # the eager steps of SAC (DroQ, BRO), TQC, CrossQ and TD3 on plain tensors (losses.td.fused_sac_losses,
-#               fused_tqc_losses, fused_crossq_*, fused_td3_*: the same bits as TorchRL's loss modules, faster); False: through the loss modules
-#               (benchmarks/recipe_cost.py's *-module recipes)
+FUSED = True  # the eager steps of SAC (DroQ, BRO), TQC, CrossQ and TD3 on plain tensors (losses.td.fused_*: the
+#               same bits as TorchRL's loss modules, faster); False: through the loss modules (benchmarks.floor
+#               --module, benchmarks/recipe_cost.py's *-module recipes)
 
 TD_TRANSITION_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
                       ("next", "terminated"))
@@ -225,9 +224,9 @@ class TDPhaseRunner:
     def __init__(self, cfg, loss, optimisers: Optimisers, generators: Sequence[torch.Generator],
                  memory=None, actor_net: nn.Module | None = None, qvalue_nets: Sequence[nn.Module] = ()):
         """``memory``: the replay memory when its sampler is prioritised (else None). Each step's
-        objective is compiled when ``cfg.compile`` (``learners.compiling``). SAC's and TD3's eager
-        steps (and TQC's and CrossQ's) compute on plain tensors (``losses.td.fused_sac_losses``, ``fused_td3_*``: TorchRL's
-        numbers, bit for bit) when ``FUSED`` and the actor network (``actor_net``) and Q-networks allow it.
+        objective is compiled when ``cfg.compile`` (``learners.compiling``). The eager steps of SAC,
+        TQC, CrossQ and TD3 compute on plain tensors (``losses.td.fused_*``: TorchRL's numbers, bit
+        for bit) when ``FUSED`` and the actor network (``actor_net``) and Q-networks allow it.
         ``td.reset_every`` re-initialises the networks as they were built: the actor network (the
         loss's own) and the Q-networks ``qvalue_nets`` (whose fresh weights the loss's copies take)."""
         self.loss, self.optimisers, self.generators = loss, optimisers, list(generators)
