@@ -158,9 +158,13 @@ def test_the_fma_peak_is_measured():
 
 
 def test_without_a_compiler_fma_falls_back_to_portable_and_says_so(tmp_path):
+    """... and Adam's correctly rounded square root to its float64 round trip (the same bits)."""
     code = ("import json, warnings\nwarnings.simplefilter('always')\nfrom engine import numerics\n"
             "with warnings.catch_warnings(record=True) as caught:\n    numerics.apply('fma')\n"
-            "import torch\nprint(json.dumps({'effect': numerics.in_effect(), 'warnings': [str(w.message) for w in caught]}))")
+            "import numpy as np, torch\nfrom learners.optim import exact_sqrt\n"
+            "x = torch.rand(1003) * 10\nsame = bool(np.array_equal(exact_sqrt([x])[0].numpy(), np.sqrt(x.numpy())))\n"
+            "print(json.dumps({'effect': numerics.in_effect(), 'warnings': [str(w.message) for w in caught], "
+            "'sqrt': same}))")
     env = {**os.environ, "CXX": "", "PATH": str(tmp_path), "RACING_KERNEL_CACHE": str(tmp_path / "cache")}
     result = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True,
                             timeout=300)
@@ -169,3 +173,4 @@ def test_without_a_compiler_fma_falls_back_to_portable_and_says_so(tmp_path):
     assert report["effect"]["mode"] == "portable" and report["effect"]["products"] == "torch"
     assert "no C++ compiler found" in report["effect"]["fallback"]
     assert any("running numerics=portable instead" in w for w in report["warnings"])
+    assert report["sqrt"]  # Adam's square root falls back to the float64 round trip: still correctly rounded
