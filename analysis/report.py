@@ -14,6 +14,7 @@ import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from engine.config import algo_titles
 from engine.outputs import METRICS_FILE, SUMMARY_FILE
 
 PAPER_TABLE = Path(__file__).resolve().parent / "data" / "paper_table1.csv"
@@ -24,9 +25,10 @@ ER_ROWS = ("recent", "memory", "hybrid")
 ALGO_COLUMNS = ("ppo", "ppo_log", "spg", "spg_multi", "spg_p", "spg_p_multi")
 COLUMN_TITLES = {"ppo": "PPO linear", "ppo_log": "PPO log", "spg": "SPG single", "spg_multi": "SPG multiple",
                  "spg_p": "SPG-p single", "spg_p_multi": "SPG-p multiple"}
-# every algorithm a run folder can name, for tables that list cells beyond the paper's
-ALGO_TITLES = {**COLUMN_TITLES, "sac": "SAC", "sac_sb3": "SAC at SB3's settings", "td3": "TD3", "tqc": "TQC",
-               "crossq": "CrossQ", "droq": "DroQ", "sb3_sac": "Stable-Baselines3 SAC", "sb3_ppo": "Stable-Baselines3 PPO"}
+# every algorithm a run folder can name, for tables that list cells beyond the paper's: conf/algo's titles
+# (the paper's with Table 1's column titles), a cell's own name and the baselines'
+ALGO_TITLES = {**algo_titles(), **COLUMN_TITLES, "sac_sb3": "SAC at SB3's settings",
+               "sb3_sac": "Stable-Baselines3 SAC", "sb3_ppo": "Stable-Baselines3 PPO"}
 
 
 @dataclass

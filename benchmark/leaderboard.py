@@ -22,11 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from engine import numerics
+from engine.config import algo_titles
 
-NAMES = {"ppo": "PPO", "ppo_log": "PPO (log ratio)", "spg": "SPG", "spg_multi": "SPG, multiple epochs",
-         "spg_p": "SPG-p", "spg_p_multi": "SPG-p, multiple epochs", "sac": "SAC", "tqc": "TQC",
-         "crossq": "CrossQ", "td3": "TD3", "droq": "DroQ", "redq": "REDQ", "bro": "BRO-style SAC",
-         "sb3_sac": "Stable-Baselines3 SAC", "sb3_ppo": "Stable-Baselines3 PPO"}
+NAMES = {**algo_titles(), "sb3_sac": "Stable-Baselines3 SAC", "sb3_ppo": "Stable-Baselines3 PPO"}  # conf/algo's, the baselines'
 
 
 def interval(scores: np.ndarray, reps: int = 10000, seed: int = 0) -> tuple[float, float, float]:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import learners  # torch-free: each family's keys and option blocks
@@ -54,10 +55,13 @@ def _note(message: str) -> None:
 def config_mapping(cfg) -> dict:
     """A composed Hydra config as the plain mapping a run records and validates: resolved, and
     ``env.options`` without the keys left null (conf/config.yaml lists every RacingConfig field
-    as null so that ``env.options={...}`` merges on the command line; null means its default)."""
+    as null so that ``env.options={...}`` merges on the command line; null means its default), without
+    ``algo.title``, a label for tables (``algo_titles``), not part of what a run is."""
     from omegaconf import OmegaConf
 
     mapping = OmegaConf.to_container(cfg, resolve=True)
+    if isinstance(mapping.get("algo"), dict):
+        mapping["algo"].pop("title", None)
     env = mapping.get("env")
     if isinstance(env, dict) and isinstance(env.get("options"), dict):
         env["options"] = {k: v for k, v in env["options"].items() if v is not None}
@@ -135,7 +139,7 @@ def _check_device(device: str) -> None:
 class AlgoConfig:
     """One algorithm (``conf/algo/*.yaml``) of one learner family (``learners``): the paper's
     (``loss: ppo|spg``, a critic phase then an actor phase per episode on Monte-Carlo returns) or
-    TorchRL's off-policy losses (``loss: sac|tqc|crossq|redq|td3``, bootstrapped TD targets, options in ``td:``).
+    the off-policy losses (``loss: sac|tqc|crossq|redq|td3|naf``, bootstrapped TD targets, options in ``td:``).
     The family decides which of the optional keys and blocks are required (``KEYS``, ``BLOCKS``)."""
 
     name: str
@@ -150,12 +154,13 @@ class AlgoConfig:
     joint_log_prob: bool | None = None
     ppo: dict | None = None  # options of the PPO losses (loss: ppo only)
     spg: dict | None = None  # options of the SPG losses (loss: spg only)
-    td: dict | None = None  # the off-policy schedule and targets (loss: sac, tqc, crossq, redq or td3)
+    td: dict | None = None  # the off-policy schedule and targets (loss: sac, tqc, crossq, redq, td3 or naf)
     sac: dict | None = None  # options of TorchRL's SACLoss (loss: sac, and tqc, crossq, redq: built like it)
     tqc: dict | None = None  # options of TorchRL's TQCLoss (loss: tqc only)
     crossq: dict | None = None  # options of TorchRL's CrossQLoss (loss: crossq only)
     redq: dict | None = None  # options of TorchRL's REDQLoss (loss: redq only)
     td3: dict | None = None  # options of TorchRL's TD3Loss (loss: td3 only)
+    naf: dict | None = None  # options of NAF (loss: naf only; losses.naf.NAFLoss)
 
     def __post_init__(self) -> None:
         w = f"algo {self.name}"
@@ -185,8 +190,24 @@ class AlgoConfig:
 
     @property
     def bootstrapped(self) -> bool:
-        """A family that bootstraps off-policy from a replay memory only (TorchRL's sac and td3)."""
+        """Trained off-policy from a replay memory only, on bootstrapped targets (every loss of ``learners.td``)."""
         return learners.family(self.loss).OFF_POLICY
+
+
+CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+
+
+def algo_titles() -> dict[str, str]:
+    """Every algorithm of ``conf/algo/`` by name, as tables name it (its ``title:``; else its name).
+    The one list of algorithms the report and the leaderboard read: a new ``conf/algo/*.yaml``
+    joins them by itself."""
+    import yaml
+
+    titles = {}
+    for path in sorted((CONF_DIR / "algo").glob("*.yaml")):
+        node = yaml.safe_load(path.read_text()) or {}
+        titles[node.get("name", path.stem)] = node.get("title") or node.get("name", path.stem)
+    return titles
 
 
 @dataclass(frozen=True)
@@ -429,7 +450,7 @@ class RunConfig:
 
         from hydra import compose, initialize_config_dir
 
-        conf = Path(__file__).resolve().parent.parent / "conf"
+        conf = CONF_DIR
         register_resolvers()
         with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
             cfg = compose("config", overrides=list(overrides))

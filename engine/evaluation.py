@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+import learners.td
 from learners.solo import GaussianPolicyNet
 from engine.outputs import RunFolderError, first_line  # RunFolderError: part of this module's interface
 from racing.config import RacingConfig
@@ -17,8 +18,8 @@ from racing.gym_env import RacingEnv
 class Policy:
     """A trained run's deterministic policy: ``observation (numpy) -> action in [-1, 1]``.
 
-    The paper's algorithms act with the Gaussian's mean (clipped); SAC, TQC and CrossQ with tanh of their
-    Gaussian's mean; TD3 with its actor's output. Their actors are rebuilt as a
+    The paper's algorithms act with the Gaussian's mean (clipped); SAC, TQC, CrossQ and REDQ with tanh of
+    their Gaussian's mean; TD3 and NAF with their actor's output. Their actors are rebuilt as a
     population of one (``learners.td.learner``), the networks they were trained as."""
 
     def __init__(self, net: torch.nn.Module, kind: str):
@@ -78,7 +79,7 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
 
 def make_policy(loss: str, network: dict, obs_size: int, state: dict) -> Policy:
     """The deterministic policy of an actor's saved weights (``actor.pt``) for ``algo.loss``."""
-    if loss in ("sac", "tqc", "crossq", "redq", "td3"):
+    if loss in learners.td.LOSSES:  # the off-policy family's actors
         from learners.td.learner import make_actor_net
         from learners.networks import load_member_state_dict
 

@@ -101,8 +101,10 @@ def estimate(cfg) -> dict[str, int]:
 
         checkpoints = len(read_rows(cfg.env.track_file)[0])
     algo, net = cfg.algo, cfg.network
-    critics, outputs = 1, 1  # the paper's: one critic network of one value
-    if algo.loss in ("sac", "td3", "crossq"):
+    critics, outputs, critic_inputs = 1, 1, obs + 2  # the paper's: one critic network of one value
+    if algo.loss == "naf":  # one value network of the observation: V and the advantage's three entries of L
+        outputs, critic_inputs = 4, obs
+    elif algo.loss in ("sac", "td3", "crossq"):
         critics = 2
     elif algo.loss == "tqc":
         critics, outputs = algo.tqc.critics, algo.tqc.quantiles
@@ -113,7 +115,7 @@ def estimate(cfg) -> dict[str, int]:
         width = algo.td.critic_width or net.critic_hidden[0]
         critic_layers = [width] * (1 + 2 * algo.td.critic_blocks)
     actor = _mlp_parameters([obs, *net.actor_hidden, 4])
-    critic = _mlp_parameters([obs + 2, *critic_layers, outputs])
+    critic = _mlp_parameters([critic_inputs, *critic_layers, outputs])
     stored = cfg.er.buffer_size if cfg.er.train_on_memory else 0  # allocated whole, saved whole by checkpoints
     transition = TRANSITION_BYTES + OBSERVATION_BYTES * obs
     minibatch = max(1, round(algo.minibatch_size * cfg.er.minibatch_fraction))

@@ -1,5 +1,6 @@
-"""TorchRL's off-policy learners (``loss: sac|tqc|crossq|redq|td3``): bootstrapped TD targets, gradient steps
-paid per environment step, target networks, a replay memory.
+"""The off-policy learners (``loss: sac|tqc|crossq|redq|td3|naf``): bootstrapped TD targets, gradient steps
+paid per environment step, target networks, a replay memory. TorchRL's losses, and NAF's
+(``losses.naf.NAFLoss``, which TorchRL does not ship).
 
 The family's torch-free half: its losses, option blocks (validated before torch loads) and
 ``build``, which imports the torch half (``learners.td.learner``) on first use.
@@ -12,9 +13,9 @@ from dataclasses import dataclass
 
 from learners.options import ACTIVATIONS, ConfigError, at_least, choice, positive
 
-LOSSES = ("sac", "tqc", "crossq", "redq", "td3")
+LOSSES = ("sac", "tqc", "crossq", "redq", "td3", "naf")
 ENTROPY_LOSSES = ("sac", "tqc", "crossq", "redq")  # a tanh-Gaussian actor and a learned entropy temperature (the sac: block)
-DESCRIPTION = "TorchRL's off-policy losses (loss sac, tqc, crossq, redq or td3)"
+DESCRIPTION = "the off-policy losses (loss sac, tqc, crossq, redq, td3 or naf)"
 OFF_POLICY = True  # trains on a replay memory only: er=memory or er=prioritised
 KEYS = ()  # its schedule is in the td: block
 LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
@@ -22,7 +23,7 @@ LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
 
 @dataclass(frozen=True)
 class TDOptions:
-    """The off-policy schedule of ``loss: sac|tqc|crossq|redq|td3`` (``conf/algo/sac.yaml`` explains each key)."""
+    """The off-policy schedule of ``loss: sac|tqc|crossq|redq|td3|naf`` (``conf/algo/sac.yaml`` explains each key)."""
 
     updates_per_step: float
     warmup_episodes: int
@@ -162,8 +163,19 @@ class REDQOptions:
         return self.policy_delay if self.policy_delay is not None else max(1, round(updates_per_step))
 
 
+@dataclass(frozen=True)
+class NAFOptions:
+    """``algo.naf`` (``losses.naf.NAFLoss``): the acting policy's exploration."""
+
+    exploration_noise: float  # standard deviation of the Gaussian noise added to mu(s) when acting
+
+    def __post_init__(self) -> None:
+        at_least("algo.naf.exploration_noise", self.exploration_noise, 0)
+
+
 BLOCKS = {"td": (LOSSES, TDOptions), "sac": (ENTROPY_LOSSES, SACOptions), "tqc": (("tqc",), TQCOptions),
-          "crossq": (("crossq",), CrossQOptions), "redq": (("redq",), REDQOptions), "td3": (("td3",), TD3Options)}
+          "crossq": (("crossq",), CrossQOptions), "redq": (("redq",), REDQOptions), "td3": (("td3",), TD3Options),
+          "naf": (("naf",), NAFOptions)}
 
 
 def check(algo) -> None:
@@ -182,6 +194,10 @@ def check(algo) -> None:
     if algo.loss == "redq" and (td.get("critic_dropout") or td.get("critic_layer_norm")):
         raise ConfigError(f"algo {algo.name}: loss redq's step computes plain or residual Q-networks (algo.td.critic_blocks); "
                           "set algo.td.critic_dropout: 0.0 and algo.td.critic_layer_norm: false")
+    if algo.loss == "naf" and (td.get("critic_dropout") or td.get("critic_layer_norm") or td.get("critic_blocks")):
+        raise ConfigError(f"algo {algo.name}: loss naf's value network (V and the advantage's L) is a plain MLP of "
+                          "network.critic_hidden; set algo.td.critic_dropout: 0.0, algo.td.critic_layer_norm: false "
+                          "and algo.td.critic_blocks: 0")
     given = td.get("loss_function")
     if algo.loss == "tqc" and given is not None and given != "smooth_l1":
         raise ConfigError(f"algo {algo.name}: loss tqc trains its critics with the quantile Huber loss; set "

@@ -1,14 +1,16 @@
-"""SAC and TD3 (TorchRL's losses) in a population: the torch half of ``learners.td``.
+"""The off-policy learners in a population (TorchRL's SAC, TQC, CrossQ, REDQ and TD3 losses, and
+NAF's): the torch half of ``learners.td``.
 
 The same run as the paper's algorithms (``engine.runner``: env, collector, replay memory,
 run folders, checkpoints, divergence, populations); what differs is built here:
 
 - networks: stacked members (``learners.networks``) of the sizes in ``network.*``; SAC's actor
-  outputs a tanh-squashed Gaussian (``TanhNormal``), TD3's a deterministic tanh action; two
-  Q-networks Q(s, a), each member's initial weights drawn from its own generator;
+  outputs a tanh-squashed Gaussian (``TanhNormal``), TD3's and NAF's a deterministic tanh action; two
+  Q-networks Q(s, a) (NAF: one network of V(s) and the advantage's L(s)), each member's initial
+  weights drawn from its own generator;
 - the acting policy (``OffPolicySampler``): uniform random actions for ``td.warmup_episodes``
-  episodes, then SAC samples its policy and TD3 adds Gaussian noise, each member's noise from
-  its own generator;
+  episodes, then SAC samples its policy and TD3 and NAF add Gaussian noise, each member's noise
+  from its own generator;
 - the updates (``TDPhaseRunner``): before each episode, the gradient steps owed to the
   environment steps collected since the last ones (``td.updates_per_step``), each on a
   minibatch per member from its memory (uniform or prioritised) and the loss's noise drawn from
@@ -37,6 +39,7 @@ from learners.networks import (BlockSampler, StackedBNCriticNet, StackedCriticNe
                                reset_parameters)
 from learners.optim import MemberAdam
 from learners.td import ENTROPY_LOSSES
+from losses.naf import NAFLoss, lower_entries
 from losses.td import (ACTION_NOISE_KEY, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhNormal, MemberCrossQLoss, MemberREDQLoss,
                        MemberSACLoss, MemberTD3Loss, MemberTQCLoss, SmoothedActor, fused_crossq_actor_losses,
                        fused_crossq_available, fused_crossq_critic_losses, fused_sac_available, fused_sac_losses,
@@ -53,8 +56,9 @@ TD_TRANSITION_KEYS = ("observation", "action", ("next", "observation"), ("next",
 
 @dataclass
 class Networks:
-    actor_net: nn.Module  # stacked: observation -> SAC (loc, scale) / TD3 action
-    qvalue_nets: list[nn.Module]  # the Q-networks as built (their trained copies live in the loss)
+    actor_net: nn.Module  # stacked: observation -> SAC (loc, scale) / TD3 and NAF action
+    qvalue_nets: list[nn.Module]  # the Q-networks as built (their trained copies live in the loss; NAF: its one
+    #                               value network, observation -> [V, L's entries], trained as built)
     actor: nn.Module  # the TensorDict actor TorchRL's loss takes
     qvalues: list[TensorDictModule]
     sampler: "OffPolicySampler"
@@ -72,7 +76,7 @@ class _Tanh(nn.Module):
 def make_actor_net(loss: str, members: int, obs_dim: int, action_dim: int, hidden: Sequence[int],
                    activation: str) -> nn.Module:
     """The members' stacked actor: SAC's, TQC's and CrossQ's ``[R, ..., obs] -> (loc, scale)`` of a Gaussian
-    (squashed by tanh when sampled), TD3's ``[R, ..., obs] -> tanh action``."""
+    (squashed by tanh when sampled), TD3's and NAF's ``[R, ..., obs] -> tanh action``."""
     if loss in ENTROPY_LOSSES:
         body = StackedMLP(members, [obs_dim, *hidden, 2 * action_dim], activation, linear_output=True)
         return nn.Sequential(body, NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4))
@@ -92,10 +96,19 @@ def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
                                    in_keys={"loc": "loc", "scale": "scale", "noise": ACTION_NOISE_KEY},
                                    distribution_class=DrawnTanhNormal,
                                    distribution_kwargs={"low": -1.0, "high": 1.0}, return_log_prob=False)
+    elif algo.loss == "naf":  # mu(s): the greedy action
+        actor = TensorDictModule(actor_net, ["observation"], ["action"])
     else:  # the target actor adds the smoothing noise the loss draws per member
         actor = TensorDictModule(SmoothedActor(actor_net), ["observation", SMOOTHING_KEY], ["action"])
     reset_parameters(actor_net, generators)
     qvalue_nets = []
+    if algo.loss == "naf":  # one network: V(s), then the advantage's lower-triangular L(s)
+        value_net = StackedCriticNet(members, obs_dim, net.critic_hidden, net.activation,
+                                     outputs=1 + lower_entries(action_dim)).to(device)
+        reset_parameters(value_net, generators)
+        sampler = OffPolicySampler(actor_net, generators, action_dim, block=cfg.env.episode_steps,
+                                   warmup_blocks=algo.td.warmup_episodes, noise=algo.naf.exploration_noise)
+        return Networks(actor_net, [value_net], actor, [TensorDictModule(value_net, ["observation"], ["naf"])], sampler)
     if algo.loss == "tqc":
         critics, outputs = algo.tqc.critics, algo.tqc.quantiles
     else:
@@ -175,7 +188,9 @@ def make_loss(cfg, networks: Networks, generators: Sequence[torch.Generator]):
     spec = Bounded(-1.0, 1.0, (action_dim,), device=generators[0].device)
     # Eagerly, looping over the Q-networks is faster than vmap; compiled, the loop's pytree
     # bookkeeping would recompile the graph on every call, and vmap compiles into one graph.
-    if algo.loss in ENTROPY_LOSSES:
+    if algo.loss == "naf":
+        loss = NAFLoss(networks.actor, networks.qvalues[0], action_dim, loss_function=td.loss_function)
+    elif algo.loss in ENTROPY_LOSSES:
         sac = algo.sac
         target_entropy = sac.target_entropy if sac.target_entropy is not None else -float(action_dim)
         common = dict(members=members, generators=generators, num_qvalue_nets=len(networks.qvalues),
@@ -203,17 +218,29 @@ def make_loss(cfg, networks: Networks, generators: Sequence[torch.Generator]):
     return loss.to(generators[0].device)
 
 
+def critic_layout(loss) -> tuple[str, int]:
+    """(name, member dimension) of the critic's parameters as ``loss`` holds them: TorchRL's ensembles of
+    Q-networks ``qvalue_network`` stacked ``[Q-net, member, ...]``; a single critic (NAF's value
+    network) ``value_network``, ``[member, ...]``. Its target network is ``target_<name>_params``."""
+    return ("qvalue_network", 1) if hasattr(loss, "qvalue_network_params") else ("value_network", 0)
+
+
+def critic_params(loss, target: bool = False) -> TensorDictBase:
+    name, _ = critic_layout(loss)
+    return getattr(loss, f"target_{name}_params" if target else f"{name}_params")
+
+
 def make_optimisers(cfg, loss) -> Optimisers:
-    """Adam over the actor's parameters (and SAC's per-member temperature) and over the Q-networks'
-    as the loss holds them (stacked ``[Q-net, member, ...]``)."""
+    """Adam over the actor's parameters (and SAC's per-member temperature) and over the critic's as
+    the loss holds them (``critic_layout``)."""
     algo = cfg.algo
     actor = list(loss.actor_network_params.values(True, True))
     if isinstance(getattr(loss, "log_alpha", None), nn.Parameter):
         actor.append(loss.log_alpha)
-    critic = [p for p in loss.qvalue_network_params.values(True, True) if p.requires_grad]  # not batch-norm statistics
+    critic = [p for p in critic_params(loss).values(True, True) if p.requires_grad]  # not batch-norm statistics
     return Optimisers(
         actor=MemberAdam(actor, lr=algo.actor_lr, eps=algo.adam_eps),
-        critic=MemberAdam(critic, lr=algo.critic_lr, eps=algo.adam_eps, member_dims=[1] * len(critic),
+        critic=MemberAdam(critic, lr=algo.critic_lr, eps=algo.adam_eps, member_dims=[critic_layout(loss)[1]] * len(critic),
                           weight_decay=algo.td.critic_weight_decay))
 
 
@@ -239,14 +266,15 @@ class TDPhaseRunner:
         self.updater = SoftUpdate(loss, tau=self.td.tau) if self.td.tau is not None else None  # crossq: no targets
         self.sampler = memory.sampler if memory is not None else None  # prioritised replay, or None
         self.active = torch.ones(len(self.generators), device=optimisers.critic.params[0].device)
-        self.critic_metrics = ("loss_qvalue",)
+        self.critic_metrics = ("loss_qvalue", "value", "advantage") if self.kind == "naf" else ("loss_qvalue",)
         self.entropy = self.kind in ENTROPY_LOSSES  # SAC's step (TQC's loss is a SACLoss)
-        self.actor_metrics = ("loss_actor", "loss_alpha", "alpha") if self.entropy else ("loss_actor",)
+        self.actor_metrics = (("loss_actor", "loss_alpha", "alpha") if self.entropy
+                              else () if self.kind == "naf" else ("loss_actor",))  # NAF: one loss, the critic's
         self.actor_net, self.qvalue_nets = actor_net, list(qvalue_nets)
         if self.td.reset_every and (actor_net is None or not self.qvalue_nets):
             raise ValueError("td.reset_every needs the actor network and the Q-networks as built")
-        available = {"td3": fused_td3_available, "tqc": fused_tqc_available,
-                     "crossq": fused_crossq_available}.get(self.kind, fused_sac_available)
+        available = {"td3": fused_td3_available, "tqc": fused_tqc_available, "crossq": fused_crossq_available,
+                     "naf": lambda *_: False}.get(self.kind, fused_sac_available)  # NAF's loss is on plain tensors
         self.fused = FUSED and actor_net is not None and not cfg.compile and available(loss, actor_net)
         if self.kind == "redq" and (cfg.compile or actor_net is None or not redq_available(loss, actor_net)):
             raise ValueError("loss redq runs eagerly (compile=false) on the learner's own actor network and plain or "
@@ -254,6 +282,7 @@ class TDPhaseRunner:
         self._sac_objective = compile_step(self._sac_losses, cfg.compile)
         self._critic_objective = compile_step(self._td3_critic_losses, cfg.compile)
         self._actor_objective = compile_step(self._td3_actor_losses, cfg.compile)
+        self._naf_objective = compile_step(self._naf_losses, cfg.compile)
 
     def updates(self, episode: int) -> tuple[int, int]:
         """(steps taken before, steps to take now) before episode ``episode``."""
@@ -274,6 +303,8 @@ class TDPhaseRunner:
                 priority = self._crossq_step(batch, step, totals)
             elif self.kind == "redq":
                 priority = self._redq_step(batch, step, totals)
+            elif self.kind == "naf":
+                priority = self._naf_step(batch, totals)
             elif self.entropy:
                 priority = self._sac_step(batch, totals)
             else:
@@ -298,6 +329,19 @@ class TDPhaseRunner:
         totals.add("critic", {"loss_qvalue": losses["loss_qvalue"]})
         totals.add("actor", {"loss_actor": losses["loss_actor"], "loss_alpha": losses["loss_alpha"],
                              "alpha": self.loss.alpha})
+        return priority
+
+    def _naf_losses(self, batch: TensorDictBase) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """NAF's loss per member, its V and A means (diagnostics), and the minibatch's priorities |y - Q|."""
+        out = self.loss(batch)
+        return {key: member_means(out[key]) for key in ("loss_qvalue", "value", "advantage")}, batch.get(PRIORITY_KEY)
+
+    def _naf_step(self, batch: TensorDictBase, totals: MetricTotals) -> torch.Tensor:
+        """One step of NAF's one loss, which trains mu (the actor's optimiser) and V and L (the critic's)."""
+        losses, priority = self._naf_objective(batch)
+        self._minimise(losses["loss_qvalue"], self.optimisers.critic, self.optimisers.actor)
+        self.updater.step()
+        totals.add("critic", losses)
         return priority
 
     def _redq_step(self, batch: TensorDictBase, step: int, totals: MetricTotals) -> torch.Tensor:
@@ -383,12 +427,14 @@ class TDPhaseRunner:
         drawn: actor, then the Q-networks one by one), and both optimisers restarted; the replay
         memory stays. Frozen members stay frozen (zero)."""
         reset_parameters(self.actor_net, self.generators)  # the loss's actor parameters themselves
-        online = self.loss.qvalue_network_params
+        online, ensemble = critic_params(self.loss), critic_layout(self.loss)[1] == 1
         for i, q in enumerate(self.qvalue_nets):
-            reset_parameters(q, self.generators)
-            for name, value in q.state_dict().items():  # batch-norm statistics (CrossQ) too: never run, as built
-                online.get(("module", *name.split(".")))[i].copy_(value)
-        pairs = [("qvalue_network_params", "target_qvalue_network_params"),
+            reset_parameters(q, self.generators)  # a single critic (NAF's): the loss's parameters themselves
+            if ensemble:
+                for name, value in q.state_dict().items():  # batch-norm statistics (CrossQ) too: never run, as built
+                    online.get(("module", *name.split(".")))[i].copy_(value)
+        name = critic_layout(self.loss)[0]
+        pairs = [(f"{name}_params", f"target_{name}_params"),
                  ("actor_network_params", "target_actor_network_params")]
         for source, target in pairs:
             if hasattr(self.loss, target):
@@ -403,20 +449,22 @@ class TDPhaseRunner:
     def freeze(self, member: int) -> None:
         """As ``PhaseRunner.freeze``, target networks included."""
         self.active[member] = 0.0
+        dim = critic_layout(self.loss)[1]
         targets = [(t, 0) for t in getattr(self.loss, "target_actor_network_params", {}).values(True, True)]
-        targets += [(t, 1) for t in getattr(self.loss, "target_qvalue_network_params", {}).values(True, True)]
-        targets += [(t, 1) for t in self.loss.qvalue_network_params.values(True, True)  # batch-norm statistics
+        targets += [(t, dim) for t in critic_params(self.loss, target=True).values(True, True)]
+        targets += [(t, dim) for t in critic_params(self.loss).values(True, True)  # batch-norm statistics
                     if not t.requires_grad]
         freeze_member(self.optimisers, member, targets)
 
     def member_critic(self, member: int) -> dict[str, torch.Tensor]:
-        """Member ``member``'s trained Q-networks (``[Q-net, ...]`` per entry), on the CPU."""
-        return {k: v[:, member].detach().cpu().clone()
-                for k, v in self.loss.qvalue_network_params.flatten_keys(".").items()}
+        """Member ``member``'s trained critic (an ensemble's: ``[Q-net, ...]`` per entry), on the CPU."""
+        dim = critic_layout(self.loss)[1]
+        return {k: v.select(dim, member).detach().cpu().clone()
+                for k, v in critic_params(self.loss).flatten_keys(".").items()}
 
 
 def build(cfg, env, generators: Sequence[torch.Generator], memory: ReplayMemory) -> Learner:
-    """Networks, loss, optimisers and update phase of ``cfg.algo`` (loss sac, tqc, crossq, redq or td3) for one
+    """Networks, loss, optimisers and update phase of ``cfg.algo`` (loss sac, tqc, crossq, redq, td3 or naf) for one
     member per generator."""
     networks = make_networks(cfg, env, generators)
     loss = make_loss(cfg, networks, generators)
