@@ -107,6 +107,31 @@ def sample_minibatch(data: TensorDictBase, size: int,
     return TensorDict({key: value[index] for key, value in data.items()}, batch_size=[size])
 
 
+def sample_sub_episodes(data: TensorDictBase, size: int, length: int, episode_steps: int,
+                        generators: list[torch.Generator]) -> TensorDictBase:
+    """``size`` sub-episodes of up to ``length`` consecutive steps per member, their first steps drawn
+    uniformly WITH replacement from member r's transitions with ``generators[r]``: ``[R, size, length]``,
+    with ``"mask"`` marking each one's steps inside its episode (a prefix: a sub-episode that reaches its
+    episode's end is shorter).
+
+    ``data`` is a population's memory ``[R, n]`` in slot order whose episodes of ``episode_steps``
+    transitions sit in whole blocks (slot ``e * episode_steps + t`` is step t of an episode), as a
+    memory whose capacity is a multiple of the episode length keeps them when it is filled an
+    episode at a time (one-step transitions)."""
+    members, n = data.batch_size
+    if n % episode_steps:
+        raise ValueError(f"sub-episodes need whole episodes of {episode_steps} transitions in the memory, "
+                         f"got {n} transitions")
+    start = torch.stack([torch.randint(n, (size,), generator=g, device=g.device) for g in generators])
+    offset = torch.arange(length, device=start.device)
+    mask = (start % episode_steps).unsqueeze(-1) + offset < episode_steps  # [R, size, length]
+    index = torch.where(mask, start.unsqueeze(-1) + offset, start.unsqueeze(-1))  # outside: the first step again
+    rows = torch.arange(members, device=start.device).view(members, 1, 1)
+    batch = data[rows, index]
+    batch.set("mask", mask)
+    return batch
+
+
 def _to_device(state, device: torch.device):
     """A (nested) state dict with its tensors moved to ``device`` (checkpoints load on the CPU);
     mappings are updated in place."""

@@ -139,7 +139,7 @@ def _check_device(device: str) -> None:
 class AlgoConfig:
     """One algorithm (``conf/algo/*.yaml``) of one learner family (``learners``): the paper's
     (``loss: ppo|spg``, a critic phase then an actor phase per episode on Monte-Carlo returns) or
-    the off-policy losses (``loss: sac|tqc|crossq|redq|td3|naf``, bootstrapped TD targets, options in ``td:``).
+    the off-policy losses (``loss: sac|tqc|crossq|redq|td3|naf|trust_pcl``, bootstrapped targets, options in ``td:``).
     The family decides which of the optional keys and blocks are required (``KEYS``, ``BLOCKS``)."""
 
     name: str
@@ -154,13 +154,14 @@ class AlgoConfig:
     joint_log_prob: bool | None = None
     ppo: dict | None = None  # options of the PPO losses (loss: ppo only)
     spg: dict | None = None  # options of the SPG losses (loss: spg only)
-    td: dict | None = None  # the off-policy schedule and targets (loss: sac, tqc, crossq, redq, td3 or naf)
+    td: dict | None = None  # the off-policy schedule and targets (loss: sac, tqc, crossq, redq, td3, naf, trust_pcl)
     sac: dict | None = None  # options of TorchRL's SACLoss (loss: sac, and tqc, crossq, redq: built like it)
     tqc: dict | None = None  # options of TorchRL's TQCLoss (loss: tqc only)
     crossq: dict | None = None  # options of TorchRL's CrossQLoss (loss: crossq only)
     redq: dict | None = None  # options of TorchRL's REDQLoss (loss: redq only)
     td3: dict | None = None  # options of TorchRL's TD3Loss (loss: td3 only)
     naf: dict | None = None  # options of NAF (loss: naf only; losses.naf.NAFLoss)
+    trust_pcl: dict | None = None  # options of Trust-PCL (loss: trust_pcl only; losses.trust_pcl.TrustPCLLoss)
 
     def __post_init__(self) -> None:
         w = f"algo {self.name}"
@@ -387,6 +388,13 @@ class RunConfig:
         if self.algo.bootstrapped and (self.er.train_on_recent or not self.er.train_on_memory):
             raise ConfigError(f"algo {self.algo.name} trains off-policy on a replay memory; use er=memory or "
                               f"er=prioritised, not er={self.er.name}")
+        if self.algo.loss == "trust_pcl" and self.er.priority is not None:
+            raise ConfigError(f"algo {self.algo.name}: loss trust_pcl draws whole sub-episodes, not prioritised "
+                              "transitions; use er=memory")
+        if self.algo.loss == "trust_pcl" and self.er.buffer_size % self.env.episode_steps:
+            raise ConfigError(f"algo {self.algo.name}: loss trust_pcl keeps whole episodes in its memory; "
+                              f"er.buffer_size ({self.er.buffer_size}) must be a multiple of the episode's "
+                              f"{self.env.episode_steps} steps")
         if self.algo.loss == "crossq" and self.er.priority is not None:
             raise ConfigError(f"algo {self.algo.name}: TorchRL's CrossQLoss does not weight by priority; "
                               "use er=memory")

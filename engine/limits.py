@@ -104,6 +104,8 @@ def estimate(cfg) -> dict[str, int]:
     critics, outputs, critic_inputs = 1, 1, obs + 2  # the paper's: one critic network of one value
     if algo.loss == "naf":  # one value network of the observation: V and the advantage's three entries of L
         outputs, critic_inputs = 4, obs
+    elif algo.loss == "trust_pcl":  # one value network of the observation; an actor and value pair lagging behind
+        critics, critic_inputs = 2, obs
     elif algo.loss in ("sac", "td3", "crossq"):
         critics = 2
     elif algo.loss == "tqc":
@@ -120,6 +122,8 @@ def estimate(cfg) -> dict[str, int]:
     transition = TRANSITION_BYTES + OBSERVATION_BYTES * obs
     minibatch = max(1, round(algo.minibatch_size * cfg.er.minibatch_fraction))
     rows = minibatch * max(1, algo.spg.num_samples if algo.spg is not None else 1)  # SPG scores sampled actions
+    if algo.trust_pcl is not None:  # Trust-PCL's minibatch counts sub-episodes
+        rows = minibatch * algo.trust_pcl.rollout
     widest = max((*net.actor_hidden, *critic_layers))
     layers = max(len(net.actor_hidden), len(critic_layers))
     return {

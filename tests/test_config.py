@@ -46,7 +46,7 @@ def test_the_groups_hold_the_papers_columns_and_rows():
     assert ALGOS == ["ppo", "ppo_log", "spg", "spg_multi", "spg_p", "spg_p_multi"]
     assert ERS == ["hybrid", "memory", "recent"]
     assert len(CELLS) == 15
-    assert BEYOND_CELLS == ["memory-crossq", "memory-naf", "memory-sac", "memory-sac_sb3", "memory-td3", "memory-tqc", "prioritised-sac", "prioritised-spg_p_multi",
+    assert BEYOND_CELLS == ["memory-crossq", "memory-naf", "memory-sac", "memory-sac_sb3", "memory-td3", "memory-tqc", "memory-trust_pcl", "prioritised-sac", "prioritised-spg_p_multi",
                             "prioritised-td3"]
 
 

@@ -1,6 +1,6 @@
-"""The off-policy learners (``loss: sac|tqc|crossq|redq|td3|naf``): bootstrapped TD targets, gradient steps
-paid per environment step, target networks, a replay memory. TorchRL's losses, and NAF's
-(``losses.naf.NAFLoss``, which TorchRL does not ship).
+"""The off-policy learners (``loss: sac|tqc|crossq|redq|td3|naf|trust_pcl``): bootstrapped targets, gradient
+steps paid per environment step, target (or lagged) networks, a replay memory. TorchRL's losses, and
+NAF's and Trust-PCL's (``losses.naf.NAFLoss``, ``losses.trust_pcl.TrustPCLLoss``), which TorchRL does not ship.
 
 The family's torch-free half: its losses, option blocks (validated before torch loads) and
 ``build``, which imports the torch half (``learners.td.learner``) on first use.
@@ -13,9 +13,10 @@ from dataclasses import dataclass
 
 from learners.options import ACTIVATIONS, ConfigError, at_least, choice, positive
 
-LOSSES = ("sac", "tqc", "crossq", "redq", "td3", "naf")
+LOSSES = ("sac", "tqc", "crossq", "redq", "td3", "naf", "trust_pcl")
 ENTROPY_LOSSES = ("sac", "tqc", "crossq", "redq")  # a tanh-Gaussian actor and a learned entropy temperature (the sac: block)
-DESCRIPTION = "the off-policy losses (loss sac, tqc, crossq, redq, td3 or naf)"
+GAUSSIAN_ACTORS = (*ENTROPY_LOSSES, "trust_pcl")  # a tanh-Gaussian actor (the others: a deterministic tanh action)
+DESCRIPTION = "the off-policy losses (loss sac, tqc, crossq, redq, td3, naf or trust_pcl)"
 OFF_POLICY = True  # trains on a replay memory only: er=memory or er=prioritised
 KEYS = ()  # its schedule is in the td: block
 LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
@@ -23,7 +24,7 @@ LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
 
 @dataclass(frozen=True)
 class TDOptions:
-    """The off-policy schedule of ``loss: sac|tqc|crossq|redq|td3|naf`` (``conf/algo/sac.yaml`` explains each key)."""
+    """The off-policy schedule of ``loss: sac|tqc|crossq|redq|td3|naf|trust_pcl`` (``conf/algo/sac.yaml`` explains each key)."""
 
     updates_per_step: float
     warmup_episodes: int
@@ -173,9 +174,33 @@ class NAFOptions:
         at_least("algo.naf.exploration_noise", self.exploration_noise, 0)
 
 
+@dataclass(frozen=True)
+class TrustPCLOptions:
+    """``algo.trust_pcl`` (``losses.trust_pcl.TrustPCLLoss``): the sub-episodes, the trust region and the
+    consistency's gradients (``conf/algo/trust_pcl.yaml`` explains each key)."""
+
+    rollout: int  # d: steps per sub-episode (fewer where the episode ends first)
+    max_divergence: float  # the trust region: the relative entropy allowed per episode step
+    divergence_episodes: int  # the newest this-many episodes of the memory estimate the divergence
+    entropy: float  # tau: the entropy coefficient
+    clip: float | None  # the consistency is clipped to [-clip, clip] in the gradients (None: not clipped)
+    critic_weight: float  # the value loss's weight
+    initial_coefficient: float = 0.0  # lambda before its first move
+
+    def __post_init__(self) -> None:
+        at_least("algo.trust_pcl.rollout", self.rollout, 1)
+        positive("algo.trust_pcl.max_divergence", self.max_divergence)
+        at_least("algo.trust_pcl.divergence_episodes", self.divergence_episodes, 1)
+        at_least("algo.trust_pcl.entropy", self.entropy, 0)
+        if self.clip is not None:
+            positive("algo.trust_pcl.clip", self.clip)
+        positive("algo.trust_pcl.critic_weight", self.critic_weight)
+        at_least("algo.trust_pcl.initial_coefficient", self.initial_coefficient, 0)
+
+
 BLOCKS = {"td": (LOSSES, TDOptions), "sac": (ENTROPY_LOSSES, SACOptions), "tqc": (("tqc",), TQCOptions),
           "crossq": (("crossq",), CrossQOptions), "redq": (("redq",), REDQOptions), "td3": (("td3",), TD3Options),
-          "naf": (("naf",), NAFOptions)}
+          "naf": (("naf",), NAFOptions), "trust_pcl": (("trust_pcl",), TrustPCLOptions)}
 
 
 def check(algo) -> None:
@@ -198,6 +223,17 @@ def check(algo) -> None:
         raise ConfigError(f"algo {algo.name}: loss naf's value network (V and the advantage's L) is a plain MLP of "
                           "network.critic_hidden; set algo.td.critic_dropout: 0.0, algo.td.critic_layer_norm: false "
                           "and algo.td.critic_blocks: 0")
+    if algo.loss == "trust_pcl":
+        if td.get("critic_dropout") or td.get("critic_layer_norm") or td.get("critic_blocks"):
+            raise ConfigError(f"algo {algo.name}: loss trust_pcl's value network is a plain MLP of network.critic_hidden; "
+                              "set algo.td.critic_dropout: 0.0, algo.td.critic_layer_norm: false and "
+                              "algo.td.critic_blocks: 0")
+        if td.get("n_step", 1) != 1:
+            raise ConfigError(f"algo {algo.name}: loss trust_pcl draws sub-episodes of algo.trust_pcl.rollout steps from "
+                              f"one-step transitions; set algo.td.n_step: 1 (got {td.get('n_step')})")
+        if td.get("loss_function", "l2") != "l2":
+            raise ConfigError(f"algo {algo.name}: loss trust_pcl minimises the square of its path consistency; set "
+                              f"algo.td.loss_function: l2 (got {td.get('loss_function')})")
     given = td.get("loss_function")
     if algo.loss == "tqc" and given is not None and given != "smooth_l1":
         raise ConfigError(f"algo {algo.name}: loss tqc trains its critics with the quantile Huber loss; set "

@@ -1,5 +1,5 @@
-"""The off-policy learners in a population (TorchRL's SAC, TQC, CrossQ, REDQ and TD3 losses, and
-NAF's): the torch half of ``learners.td``.
+"""The off-policy learners in a population (TorchRL's SAC, TQC, CrossQ, REDQ and TD3 losses, NAF's and
+Trust-PCL's): the torch half of ``learners.td``.
 
 The same run as the paper's algorithms (``engine.runner``: env, collector, replay memory,
 run folders, checkpoints, divergence, populations); what differs is built here:
@@ -32,14 +32,15 @@ from torchrl.data import Bounded
 from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import SoftUpdate
 
-from collectors import ReplayMemory, sample_minibatch
+from collectors import ReplayMemory, sample_minibatch, sample_sub_episodes
 from learners.base import Learner, MetricTotals, Optimisers, diverged_members, freeze_member, prioritised_minibatch
 from learners.compiling import compile_step
 from learners.networks import (BlockSampler, StackedBNCriticNet, StackedCriticNet, StackedMLP, StackedResidualCriticNet,
                                reset_parameters)
 from learners.optim import MemberAdam
-from learners.td import ENTROPY_LOSSES
+from learners.td import ENTROPY_LOSSES, GAUSSIAN_ACTORS
 from losses.naf import NAFLoss, lower_entries
+from losses.trust_pcl import TrustPCLLoss
 from losses.td import (ACTION_NOISE_KEY, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhNormal, MemberCrossQLoss, MemberREDQLoss,
                        MemberSACLoss, MemberTD3Loss, MemberTQCLoss, SmoothedActor, fused_crossq_actor_losses,
                        fused_crossq_available, fused_crossq_critic_losses, fused_sac_available, fused_sac_losses,
@@ -75,9 +76,9 @@ class _Tanh(nn.Module):
 
 def make_actor_net(loss: str, members: int, obs_dim: int, action_dim: int, hidden: Sequence[int],
                    activation: str) -> nn.Module:
-    """The members' stacked actor: SAC's, TQC's and CrossQ's ``[R, ..., obs] -> (loc, scale)`` of a Gaussian
-    (squashed by tanh when sampled), TD3's and NAF's ``[R, ..., obs] -> tanh action``."""
-    if loss in ENTROPY_LOSSES:
+    """The members' stacked actor: SAC's (TQC's, CrossQ's, REDQ's) and Trust-PCL's ``[R, ..., obs] -> (loc, scale)``
+    of a Gaussian (squashed by tanh when sampled), TD3's and NAF's ``[R, ..., obs] -> tanh action``."""
+    if loss in GAUSSIAN_ACTORS:
         body = StackedMLP(members, [obs_dim, *hidden, 2 * action_dim], activation, linear_output=True)
         return nn.Sequential(body, NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4))
     body = StackedMLP(members, [obs_dim, *hidden, action_dim], activation, linear_output=True)
@@ -98,6 +99,8 @@ def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
                                    distribution_kwargs={"low": -1.0, "high": 1.0}, return_log_prob=False)
     elif algo.loss == "naf":  # mu(s): the greedy action
         actor = TensorDictModule(actor_net, ["observation"], ["action"])
+    elif algo.loss == "trust_pcl":  # its loss scores the memory's actions under pi and the lagged pi~
+        actor = TensorDictModule(actor_net, ["observation"], ["loc", "scale"])
     else:  # the target actor adds the smoothing noise the loss draws per member
         actor = TensorDictModule(SmoothedActor(actor_net), ["observation", SMOOTHING_KEY], ["action"])
     reset_parameters(actor_net, generators)
@@ -109,6 +112,13 @@ def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
         sampler = OffPolicySampler(actor_net, generators, action_dim, block=cfg.env.episode_steps,
                                    warmup_blocks=algo.td.warmup_episodes, noise=algo.naf.exploration_noise)
         return Networks(actor_net, [value_net], actor, [TensorDictModule(value_net, ["observation"], ["naf"])], sampler)
+    if algo.loss == "trust_pcl":  # V(s)
+        value_net = StackedCriticNet(members, obs_dim, net.critic_hidden, net.activation).to(device)
+        reset_parameters(value_net, generators)
+        sampler = OffPolicySampler(actor_net, generators, action_dim, block=cfg.env.episode_steps,
+                                   warmup_blocks=algo.td.warmup_episodes)
+        return Networks(actor_net, [value_net], actor, [TensorDictModule(value_net, ["observation"], ["state_value"])],
+                        sampler)
     if algo.loss == "tqc":
         critics, outputs = algo.tqc.critics, algo.tqc.quantiles
     else:
@@ -190,6 +200,11 @@ def make_loss(cfg, networks: Networks, generators: Sequence[torch.Generator]):
     # bookkeeping would recompile the graph on every call, and vmap compiles into one graph.
     if algo.loss == "naf":
         loss = NAFLoss(networks.actor, networks.qvalues[0], action_dim, loss_function=td.loss_function)
+    elif algo.loss == "trust_pcl":
+        pcl = algo.trust_pcl
+        loss = TrustPCLLoss(networks.actor, networks.qvalues[0], gamma=cfg.gamma, rollout=pcl.rollout,
+                            entropy=pcl.entropy, max_divergence=pcl.max_divergence, clip=pcl.clip,
+                            critic_weight=pcl.critic_weight, members=members, coefficient=pcl.initial_coefficient)
     elif algo.loss in ENTROPY_LOSSES:
         sac = algo.sac
         target_entropy = sac.target_entropy if sac.target_entropy is not None else -float(action_dim)
@@ -266,15 +281,20 @@ class TDPhaseRunner:
         self.updater = SoftUpdate(loss, tau=self.td.tau) if self.td.tau is not None else None  # crossq: no targets
         self.sampler = memory.sampler if memory is not None else None  # prioritised replay, or None
         self.active = torch.ones(len(self.generators), device=optimisers.critic.params[0].device)
-        self.critic_metrics = ("loss_qvalue", "value", "advantage") if self.kind == "naf" else ("loss_qvalue",)
+        self.critic_metrics = {"naf": ("loss_qvalue", "value", "advantage"),
+                               "trust_pcl": ("loss_value", "consistency")}.get(self.kind, ("loss_qvalue",))
         self.entropy = self.kind in ENTROPY_LOSSES  # SAC's step (TQC's loss is a SACLoss)
         self.actor_metrics = (("loss_actor", "loss_alpha", "alpha") if self.entropy
-                              else () if self.kind == "naf" else ("loss_actor",))  # NAF: one loss, the critic's
+                              else () if self.kind == "naf"  # NAF: one loss, the critic's
+                              else ("loss_actor", "lambda") if self.kind == "trust_pcl" else ("loss_actor",))
+        if self.kind == "trust_pcl":
+            self.pcl, self.capacity = cfg.algo.trust_pcl, cfg.er.buffer_size
         self.actor_net, self.qvalue_nets = actor_net, list(qvalue_nets)
         if self.td.reset_every and (actor_net is None or not self.qvalue_nets):
             raise ValueError("td.reset_every needs the actor network and the Q-networks as built")
         available = {"td3": fused_td3_available, "tqc": fused_tqc_available, "crossq": fused_crossq_available,
-                     "naf": lambda *_: False}.get(self.kind, fused_sac_available)  # NAF's loss is on plain tensors
+                     "naf": lambda *_: False, "trust_pcl": lambda *_: False,  # their losses are on plain tensors
+                     }.get(self.kind, fused_sac_available)
         self.fused = FUSED and actor_net is not None and not cfg.compile and available(loss, actor_net)
         if self.kind == "redq" and (cfg.compile or actor_net is None or not redq_available(loss, actor_net)):
             raise ValueError("loss redq runs eagerly (compile=false) on the learner's own actor network and plain or "
@@ -283,6 +303,7 @@ class TDPhaseRunner:
         self._critic_objective = compile_step(self._td3_critic_losses, cfg.compile)
         self._actor_objective = compile_step(self._td3_actor_losses, cfg.compile)
         self._naf_objective = compile_step(self._naf_losses, cfg.compile)
+        self._pcl_objective = compile_step(self._pcl_losses, cfg.compile)
 
     def updates(self, episode: int) -> tuple[int, int]:
         """(steps taken before, steps to take now) before episode ``episode``."""
@@ -293,6 +314,10 @@ class TDPhaseRunner:
         done, todo = self.updates(episode)
         if self.td.reset_every and episode > 0 and episode % self.td.reset_every == 0:
             self.reset_networks()
+        if self.kind == "trust_pcl":
+            if todo:
+                self._pcl_phase(data, minibatch_size, totals, episode, todo)
+            return diverged_members(self.optimisers, totals, self.active)
         for step in range(done, done + todo):
             if self.sampler is not None:
                 batch, index = prioritised_minibatch(data, minibatch_size, self.generators, self.sampler)
@@ -343,6 +368,39 @@ class TDPhaseRunner:
         self.updater.step()
         totals.add("critic", losses)
         return priority
+
+    def recent_returns(self, data: TensorDictBase, episode: int) -> list[list[float]]:
+        """Each member's total rewards of the newest ``trust_pcl.divergence_episodes`` episodes of its memory
+        ``data`` (``[R, n]``, slot order) before episode ``episode``: episodes 0 .. episode - 1 were written an
+        episode at a time into a ring of whole episodes, so episode j sits in block j mod (capacity / steps)."""
+        steps, (members, n) = self.steps, data.batch_size
+        if n != min(episode * steps, self.capacity):
+            raise ValueError(f"the memory holds {n} transitions before episode {episode}; trust_pcl expects every "
+                             f"episode so far, {episode} x {steps} (at most its {self.capacity})")
+        blocks = self.capacity // steps
+        totals = data.get(("next", "reward")).reshape(members, n // steps, steps).double().sum(-1)
+        newest = range(max(0, episode - self.pcl.divergence_episodes, episode - blocks), episode)
+        index = torch.tensor([j % blocks for j in newest], device=totals.device)
+        return totals[:, index].tolist()
+
+    def _pcl_losses(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+        out = self.loss(batch)
+        return {key: member_means(out[key]) for key in ("loss_actor", "loss_value", "consistency")}
+
+    def _pcl_phase(self, data: TensorDictBase, minibatch_size: int, totals: MetricTotals, episode: int,
+                   todo: int) -> None:
+        """Trust-PCL's steps before an episode: the trust region's coefficient for each member from its newest
+        episodes (``losses.trust_pcl.relative_entropy_coefficient``), then per step: lambda moves 1% towards it,
+        a minibatch of sub-episodes, one step of both losses, the lagged networks follow by ``td.tau``."""
+        targets = self.loss.coefficient_targets(self.recent_returns(data, episode), self.steps)
+        for _ in range(todo):
+            batch = sample_sub_episodes(data, minibatch_size, self.pcl.rollout, self.steps, self.generators)
+            self.loss.move_coefficient(targets)
+            losses = self._pcl_objective(batch)
+            self._minimise(losses["loss_actor"] + losses["loss_value"], self.optimisers.critic, self.optimisers.actor)
+            self.updater.step()
+            totals.add("critic", {"loss_value": losses["loss_value"], "consistency": losses["consistency"]})
+            totals.add("actor", {"loss_actor": losses["loss_actor"], "lambda": self.loss.coefficient.float()})
 
     def _redq_step(self, batch: TensorDictBase, step: int, totals: MetricTotals) -> torch.Tensor:
         """A critic step of the ensemble; every ``policy_delay`` steps the same pass also gives the
@@ -464,7 +522,7 @@ class TDPhaseRunner:
 
 
 def build(cfg, env, generators: Sequence[torch.Generator], memory: ReplayMemory) -> Learner:
-    """Networks, loss, optimisers and update phase of ``cfg.algo`` (loss sac, tqc, crossq, redq, td3 or naf) for one
+    """Networks, loss, optimisers and update phase of ``cfg.algo`` (an off-policy loss, ``learners.td.LOSSES``) for one
     member per generator."""
     networks = make_networks(cfg, env, generators)
     loss = make_loss(cfg, networks, generators)
