@@ -177,3 +177,13 @@ def test_the_paper_sweeps_expand_to_the_papers_cells_only(experiment, key, expec
     values = (value.filter([p.stem for p in (CONF / group).glob("*.yaml")]) if hasattr(value, "filter")  # a glob
               else list(override.sweep_string_iterator()))
     assert sorted(values) == expected
+
+
+def test_every_key_of_every_algorithm_is_commented_on_its_line():
+    """A reader of conf/algo/*.yaml finds what each key does where it is set (its name aside)."""
+    import re
+
+    bare = [f"{path.name}:{i}: {line.strip()}" for path in sorted((CONF / "algo").glob("*.yaml"))
+            for i, line in enumerate(path.read_text().splitlines(), 1)
+            if re.match(r"\s*\w+:\s*\S", line) and "#" not in line and not line.startswith("name:")]
+    assert not bare, bare
