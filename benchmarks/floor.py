@@ -48,6 +48,8 @@ LEARNERS = {
     "redq": (["algo=redq", "er=prioritised"], True),
     "bro": (["algo=bro", "er=prioritised"], True),
     "droq": (["algo=droq", "er=prioritised"], True),
+    "naf": (["algo=naf", "er=memory"], True),
+    "trust_pcl": (["algo=trust_pcl", "er=memory"], True),
     "spg_p": (["algo=spg_p", "er=hybrid"], False),
     "spg_p_multi": (["algo=spg_p_multi", "er=memory"], False),
     "ppo": (["algo=ppo", "er=recent"], False),

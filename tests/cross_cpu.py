@@ -29,6 +29,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from analysis.report import ALGO_COLUMNS  # the paper's algorithms (the others are off-policy: warm-up overrides)
+
 ROOT = Path(__file__).resolve().parent.parent
 CELLS = ["spg_p_multi/hybrid", "ppo_log/recent", "sac/memory"]
 SEEDS = "[2067791,5468063]"
@@ -38,7 +40,7 @@ def run_here_or_emulated(cpu: str | None, cells: list[str], episodes: int, out: 
                          mode: str = "fma", max_steps: int = 200) -> dict[str, str]:
     """metrics.csv hash per run of ``cells`` in numerics ``mode``, on ``cpu`` (None: this machine)."""
     overrides = [[f"algo={c.split('/')[0]}", f"er={c.split('/')[1]}", f"env.options.max_steps={max_steps}"]
-                 + (["algo.td.warmup_episodes=1", "algo.td.updates_per_step=0.25"] if c.startswith(("sac", "tqc", "crossq", "td3", "droq", "bro", "redq"))
+                 + (["algo.td.warmup_episodes=1", "algo.td.updates_per_step=0.25"] if c.split("/")[0] not in ALGO_COLUMNS
                     else [f"algo.minibatch_size={max_steps}"] if max_steps < 200 else []) for c in cells]
     code = ("import json, sys\nfrom pathlib import Path\nfrom engine import numerics\n"
             f"numerics.apply('{mode}')\n"

@@ -187,3 +187,13 @@ def test_every_key_of_every_algorithm_is_commented_on_its_line():
             for i, line in enumerate(path.read_text().splitlines(), 1)
             if re.match(r"\s*\w+:\s*\S", line) and "#" not in line and not line.startswith("name:")]
     assert not bare, bare
+
+
+def test_the_future_work_comparison_runs_the_papers_best_cell_beside_the_methods_it_names_on_25_tracks():
+    wide = load("+experiment=wide_grid").seeds
+    params = yaml.safe_load((CONF / "experiment" / "future_work.yaml").read_text())["hydra"]["sweeper"]["params"]
+    cells = params["+cell"].split(",")
+    assert cells == ["memory-spg_p_multi", "memory-td3", "memory-naf", "memory-trust_pcl"]
+    for cell in cells:
+        cfg = load("+experiment=future_work", f"+cell={cell}")
+        assert cfg.seeds == wide and cfg.episodes == 201 and cfg.er.name == "memory"

@@ -14,6 +14,8 @@ from engine import rundir
 from engine.outputs import DIGEST_KEY, RunFolderError, read_summary, seal
 from tests.test_run_folders import TINY, train
 
+ROOT = Path(__file__).resolve().parent.parent
+
 
 @pytest.fixture(scope="module")
 def finished(tmp_path_factory) -> Path:
@@ -251,7 +253,7 @@ def test_the_memory_estimate_allows_every_shipped_configuration_and_names_its_pa
     from engine.config import RunConfig
     from engine.limits import check_memory, estimate
 
-    for algo in ("spg_p_multi", "ppo", "sac", "redq", "bro", "droq", "tqc", "td3", "crossq"):
+    for algo in sorted(p.stem for p in (ROOT / "conf" / "algo").glob("*.yaml")):  # every shipped algorithm
         cfg = RunConfig.compose(f"algo={algo}", "er=memory", f"seeds=[{','.join(map(str, range(25)))}]")
         check_memory(cfg, available=2 * 2**30)  # a population of 25 of every learner fits in 2 GB
         assert sum(estimate(cfg).values()) < 2 * 2**30

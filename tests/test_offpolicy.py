@@ -707,3 +707,17 @@ def test_the_critic_loss_is_importance_weighted_and_reports_errors():
     torch.testing.assert_close(weighted["loss_critic"], (weights * error ** 2).mean(-1))
     torch.testing.assert_close(weighted[PRIORITY_KEY], error.abs().detach())
     torch.testing.assert_close(plain["loss_critic"], (error ** 2).mean(-1))
+
+
+def test_every_off_policy_loss_has_a_step_and_an_unbuilt_one_fails_loudly():
+    """A loss added to learners.td.LOSSES without its branches raises, naming where, instead of
+    running as another loss (each part of learners.td.learner names every loss it serves)."""
+    import learners.td
+    from learners.td.learner import STEPS, make_loss
+
+    assert set(STEPS) == set(learners.td.LOSSES)
+    cfg = load("algo=td3")
+    object.__setattr__(cfg.algo, "loss", "ddpg")
+    networks = type("Networks", (), {"sampler": type("Sampler", (), {"action_dim": 2})()})()
+    with pytest.raises(NotImplementedError, match="make_loss has no branch for loss 'ddpg'"):
+        make_loss(cfg, networks, [torch.Generator()])

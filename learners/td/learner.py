@@ -85,6 +85,13 @@ def make_actor_net(loss: str, members: int, obs_dim: int, action_dim: int, hidde
     return nn.Sequential(body, _Tanh())
 
 
+def unbuilt(loss: str, where: str) -> NotImplementedError:
+    """The error of a loss listed in ``learners.td.LOSSES`` that a part of this module does not build yet:
+    each part names every loss it serves, so a new one fails here instead of running as another."""
+    return NotImplementedError(f"learners.td.learner.{where} has no branch for loss {loss!r}; add one "
+                               "(docs/learners.md lists every place a new loss needs)")
+
+
 def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
     """Actor, then the Q-networks, each member's weights from its generator (Glorot, zero biases)."""
     algo, net, members = cfg.algo, cfg.network, len(generators)
@@ -101,8 +108,10 @@ def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
         actor = TensorDictModule(actor_net, ["observation"], ["action"])
     elif algo.loss == "trust_pcl":  # its loss scores the memory's actions under pi and the lagged pi~
         actor = TensorDictModule(actor_net, ["observation"], ["loc", "scale"])
-    else:  # the target actor adds the smoothing noise the loss draws per member
+    elif algo.loss == "td3":  # the target actor adds the smoothing noise the loss draws per member
         actor = TensorDictModule(SmoothedActor(actor_net), ["observation", SMOOTHING_KEY], ["action"])
+    else:
+        raise unbuilt(algo.loss, "make_networks")
     reset_parameters(actor_net, generators)
     qvalue_nets = []
     if algo.loss == "naf":  # one network: V(s), then the advantage's lower-triangular L(s)
@@ -121,7 +130,7 @@ def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
                         sampler)
     if algo.loss == "tqc":
         critics, outputs = algo.tqc.critics, algo.tqc.quantiles
-    else:
+    else:  # twin Q-networks (sac, crossq, td3) or REDQ's ensemble
         critics, outputs = (algo.redq.critics if algo.loss == "redq" else 2), 1
     for _ in range(critics):
         if algo.loss == "crossq":  # batch-normalised
@@ -222,13 +231,15 @@ def make_loss(cfg, networks: Networks, generators: Sequence[torch.Generator]):
             loss = MemberREDQLoss(networks.actor, networks.qvalues, loss_function=td.loss_function, subset=redq.subset,
                                   min_alpha=redq.min_alpha if redq.min_alpha is not None else 0.0,
                                   max_alpha=redq.max_alpha if redq.max_alpha is not None else math.inf, **common)
-        else:  # its critic loss is the quantile Huber loss (td.loss_function smooth_l1, checked)
+        else:  # tqc: its critic loss is the quantile Huber loss (td.loss_function smooth_l1, checked)
             loss = MemberTQCLoss(networks.actor, networks.qvalues,
                                  top_quantiles_to_drop_per_net=algo.tqc.drop_per_critic, **common)
-    else:
+    elif algo.loss == "td3":
         loss = MemberTD3Loss(networks.actor, networks.qvalues, spec, policy_noise=algo.td3.policy_noise,
                              noise_clip=algo.td3.noise_clip, loss_function=td.loss_function, generators=generators,
                              deactivate_vmap=not cfg.compile)
+    else:
+        raise unbuilt(algo.loss, "make_loss")
     loss.make_value_estimator(gamma=cfg.gamma)
     return loss.to(generators[0].device)
 
@@ -259,6 +270,16 @@ def make_optimisers(cfg, loss) -> Optimisers:
                           weight_decay=algo.td.critic_weight_decay))
 
 
+# Every loss TDPhaseRunner steps, with its diagnostics (metrics.csv's critic/... and actor/... columns).
+STEPS = {"sac": (("loss_qvalue",), ("loss_actor", "loss_alpha", "alpha")),
+         "tqc": (("loss_qvalue",), ("loss_actor", "loss_alpha", "alpha")),
+         "crossq": (("loss_qvalue",), ("loss_actor", "loss_alpha", "alpha")),
+         "redq": (("loss_qvalue",), ("loss_actor", "loss_alpha", "alpha")),
+         "td3": (("loss_qvalue",), ("loss_actor",)),
+         "naf": (("loss_qvalue", "value", "advantage"), ()),  # one loss trains mu, V and L
+         "trust_pcl": (("loss_value", "consistency"), ("loss_actor", "lambda"))}
+
+
 class TDPhaseRunner:
     """The gradient steps of SAC or TD3 before an episode (``run``), with ``PhaseRunner``'s
     interface (``active``, ``freeze``, the metrics' names)."""
@@ -273,6 +294,8 @@ class TDPhaseRunner:
         loss's own) and the Q-networks ``qvalue_nets`` (whose fresh weights the loss's copies take)."""
         self.loss, self.optimisers, self.generators = loss, optimisers, list(generators)
         self.kind, self.td = cfg.algo.loss, cfg.algo.td
+        if self.kind not in STEPS:
+            raise unbuilt(self.kind, "TDPhaseRunner")
         self.steps = cfg.env.episode_steps
         self.policy_delay = getattr(cfg.algo, self.kind).policy_delay if self.kind in ("td3", "crossq") else 1
         if self.kind == "redq":
@@ -281,20 +304,15 @@ class TDPhaseRunner:
         self.updater = SoftUpdate(loss, tau=self.td.tau) if self.td.tau is not None else None  # crossq: no targets
         self.sampler = memory.sampler if memory is not None else None  # prioritised replay, or None
         self.active = torch.ones(len(self.generators), device=optimisers.critic.params[0].device)
-        self.critic_metrics = {"naf": ("loss_qvalue", "value", "advantage"),
-                               "trust_pcl": ("loss_value", "consistency")}.get(self.kind, ("loss_qvalue",))
+        self.critic_metrics, self.actor_metrics = STEPS[self.kind]
         self.entropy = self.kind in ENTROPY_LOSSES  # SAC's step (TQC's loss is a SACLoss)
-        self.actor_metrics = (("loss_actor", "loss_alpha", "alpha") if self.entropy
-                              else () if self.kind == "naf"  # NAF: one loss, the critic's
-                              else ("loss_actor", "lambda") if self.kind == "trust_pcl" else ("loss_actor",))
         if self.kind == "trust_pcl":
             self.pcl, self.capacity = cfg.algo.trust_pcl, cfg.er.buffer_size
         self.actor_net, self.qvalue_nets = actor_net, list(qvalue_nets)
         if self.td.reset_every and (actor_net is None or not self.qvalue_nets):
             raise ValueError("td.reset_every needs the actor network and the Q-networks as built")
-        available = {"td3": fused_td3_available, "tqc": fused_tqc_available, "crossq": fused_crossq_available,
-                     "naf": lambda *_: False, "trust_pcl": lambda *_: False,  # their losses are on plain tensors
-                     }.get(self.kind, fused_sac_available)
+        available = {"sac": fused_sac_available, "td3": fused_td3_available, "tqc": fused_tqc_available,
+                     "crossq": fused_crossq_available}.get(self.kind, lambda *_: False)  # others: no fused step
         self.fused = FUSED and actor_net is not None and not cfg.compile and available(loss, actor_net)
         if self.kind == "redq" and (cfg.compile or actor_net is None or not redq_available(loss, actor_net)):
             raise ValueError("loss redq runs eagerly (compile=false) on the learner's own actor network and plain or "
@@ -330,9 +348,9 @@ class TDPhaseRunner:
                 priority = self._redq_step(batch, step, totals)
             elif self.kind == "naf":
                 priority = self._naf_step(batch, totals)
-            elif self.entropy:
+            elif self.kind in ("sac", "tqc"):
                 priority = self._sac_step(batch, totals)
-            else:
+            else:  # td3 (STEPS lists every loss with a step)
                 priority = self._td3_step(batch, step, totals)
             if self.sampler is not None:
                 self.sampler.update_priority(index.cpu(), priority.detach().cpu())
