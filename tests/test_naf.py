@@ -205,3 +205,19 @@ def test_bad_naf_settings_are_refused_with_a_reason(override, message):
 
     with pytest.raises(ConfigError, match=message):
         load("algo=naf", *override)
+
+
+def test_the_pre_tanh_penalty_adds_its_mean_square_to_mus_objective_only():
+    cfg, t = training("naf", "algo.naf.preact_penalty=0.5")
+    data = transitions(2, 32)
+    losses, _, penalty = t.phases._naf_losses(data.clone())
+    body = t.networks.actor_net[0]
+    expected = 0.5 * body(data["observation"]).square().reshape(2, -1).mean(-1)
+    torch.testing.assert_close(penalty, expected, rtol=0, atol=0)
+    critic = t.optimisers.critic.params
+    for p in critic:
+        p.grad = None
+    penalty.sum().backward()
+    assert all(p.grad is None or not p.grad.any() for p in critic)
+    _, _, none = training("naf")[1].phases._naf_losses(data.clone())
+    assert not none.any()

@@ -166,12 +166,14 @@ class REDQOptions:
 
 @dataclass(frozen=True)
 class NAFOptions:
-    """``algo.naf`` (``losses.naf.NAFLoss``): the acting policy's exploration."""
+    """``algo.naf`` (``losses.naf.NAFLoss``): the acting policy's exploration, mu's pre-tanh penalty."""
 
     exploration_noise: float  # standard deviation of the Gaussian noise added to mu(s) when acting
+    preact_penalty: float = 0.0  # the loss adds this x the mean square of mu's pre-tanh outputs (TD3's)
 
     def __post_init__(self) -> None:
         at_least("algo.naf.exploration_noise", self.exploration_noise, 0)
+        at_least("algo.naf.preact_penalty", self.preact_penalty, 0)
 
 
 @dataclass(frozen=True)

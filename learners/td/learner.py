@@ -300,7 +300,8 @@ class TDPhaseRunner:
         self.policy_delay = getattr(cfg.algo, self.kind).policy_delay if self.kind in ("td3", "crossq") else 1
         if self.kind == "redq":
             self.policy_delay = cfg.algo.redq.actor_every(self.td.updates_per_step)
-        self.preact_penalty = cfg.algo.td3.preact_penalty if self.kind == "td3" else 0.0
+        self.preact_penalty = (cfg.algo.td3.preact_penalty if self.kind == "td3"
+                               else cfg.algo.naf.preact_penalty if self.kind == "naf" else 0.0)
         self.updater = SoftUpdate(loss, tau=self.td.tau) if self.td.tau is not None else None  # crossq: no targets
         self.sampler = memory.sampler if memory is not None else None  # prioritised replay, or None
         self.active = torch.ones(len(self.generators), device=optimisers.critic.params[0].device)
@@ -374,15 +375,23 @@ class TDPhaseRunner:
                              "alpha": self.loss.alpha})
         return priority
 
-    def _naf_losses(self, batch: TensorDictBase) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
-        """NAF's loss per member, its V and A means (diagnostics), and the minibatch's priorities |y - Q|."""
+    def _naf_losses(self, batch: TensorDictBase) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor]:
+        """NAF's loss per member, its V and A means (diagnostics), the minibatch's priorities |y - Q|, and
+        ``naf.preact_penalty`` x the mean square of mu's pre-tanh outputs (TD3's remedy for a policy stuck
+        in tanh's flat tails; zero by default)."""
         out = self.loss(batch)
-        return {key: member_means(out[key]) for key in ("loss_qvalue", "value", "advantage")}, batch.get(PRIORITY_KEY)
+        losses = {key: member_means(out[key]) for key in ("loss_qvalue", "value", "advantage")}
+        penalty = torch.zeros_like(losses["loss_qvalue"])
+        if self.preact_penalty:
+            body = self.actor_net[0]  # mu before its tanh (make_actor_net)
+            penalty = self.preact_penalty * member_means(body(batch.get("observation")).square())
+        return losses, batch.get(PRIORITY_KEY), penalty
 
     def _naf_step(self, batch: TensorDictBase, totals: MetricTotals) -> torch.Tensor:
         """One step of NAF's one loss, which trains mu (the actor's optimiser) and V and L (the critic's)."""
-        losses, priority = self._naf_objective(batch)
-        self._minimise(losses["loss_qvalue"], self.optimisers.critic, self.optimisers.actor)
+        losses, priority, penalty = self._naf_objective(batch)
+        self._minimise(losses["loss_qvalue"] + penalty if self.preact_penalty else losses["loss_qvalue"],
+                       self.optimisers.critic, self.optimisers.actor)
         self.updater.step()
         totals.add("critic", losses)
         return priority
