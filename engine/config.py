@@ -395,6 +395,9 @@ class RunConfig:
             raise ConfigError(f"algo {self.algo.name}: loss trust_pcl keeps whole episodes in its memory; "
                               f"er.buffer_size ({self.er.buffer_size}) must be a multiple of the episode's "
                               f"{self.env.episode_steps} steps")
+        if self.algo.loss == "trust_pcl" and self.algo.trust_pcl.rollout > self.env.episode_steps:
+            raise ConfigError(f"algo {self.algo.name}: algo.trust_pcl.rollout ({self.algo.trust_pcl.rollout}) is longer "
+                              f"than an episode ({self.env.episode_steps} steps); a sub-episode lies inside one")
         if self.algo.loss == "crossq" and self.er.priority is not None:
             raise ConfigError(f"algo {self.algo.name}: TorchRL's CrossQLoss does not weight by priority; "
                               "use er=memory")

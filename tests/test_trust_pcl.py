@@ -254,6 +254,7 @@ def test_the_lagged_networks_follow_by_tau_and_both_losses_reach_their_networks(
     (["algo.trust_pcl.rollout=0"], "algo.trust_pcl.rollout must be"),
     (["algo.trust_pcl.max_divergence=0"], "algo.trust_pcl.max_divergence must be"),
     (["algo.td.critic_blocks=2"], "plain MLP"),
+    (["algo.trust_pcl.rollout=1000000000"], "longer than an episode"),
 ])
 def test_bad_trust_pcl_settings_are_refused_with_a_reason(override, message):
     with pytest.raises(ConfigError, match=message):
