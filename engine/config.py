@@ -386,8 +386,9 @@ class RunConfig:
                 raise ConfigError("logger=tensorboard needs the tensorboard package: "
                                   "pip install -c constraints/cpu.txt -e '.[tensorboard]' (or use logger=csv)")
         if self.algo.bootstrapped and (self.er.train_on_recent or not self.er.train_on_memory):
-            raise ConfigError(f"algo {self.algo.name} trains off-policy on a replay memory; use er=memory or "
-                              f"er=prioritised, not er={self.er.name}")
+            modes = "er=memory" if self.algo.loss == "trust_pcl" else "er=memory or er=prioritised"
+            raise ConfigError(f"algo {self.algo.name} trains off-policy on a replay memory; use {modes}, "
+                              f"not er={self.er.name}")
         if self.algo.loss == "trust_pcl" and self.er.priority is not None:
             raise ConfigError(f"algo {self.algo.name}: loss trust_pcl draws whole sub-episodes, not prioritised "
                               "transitions; use er=memory")
@@ -395,6 +396,14 @@ class RunConfig:
             raise ConfigError(f"algo {self.algo.name}: loss trust_pcl keeps whole episodes in its memory; "
                               f"er.buffer_size ({self.er.buffer_size}) must be a multiple of the episode's "
                               f"{self.env.episode_steps} steps")
+        if self.algo.loss == "trust_pcl" and self.er.buffer_size // self.env.episode_steps < self.algo.trust_pcl.divergence_episodes:
+            raise ConfigError(f"algo {self.algo.name}: the trust region is estimated from the newest "
+                              f"{self.algo.trust_pcl.divergence_episodes} episodes of the memory "
+                              f"(algo.trust_pcl.divergence_episodes), but er.buffer_size ({self.er.buffer_size}) holds "
+                              f"{self.er.buffer_size // self.env.episode_steps}; give a larger memory or fewer episodes")
+        if self.algo.td is not None and self.algo.td.n_step > self.env.episode_steps:
+            raise ConfigError(f"algo {self.algo.name}: algo.td.n_step ({self.algo.td.n_step}) is longer than an episode "
+                              f"({self.env.episode_steps} steps); at most {self.env.episode_steps}")
         if self.algo.loss == "trust_pcl" and self.algo.trust_pcl.rollout > self.env.episode_steps:
             raise ConfigError(f"algo {self.algo.name}: algo.trust_pcl.rollout ({self.algo.trust_pcl.rollout}) is longer "
                               f"than an episode ({self.env.episode_steps} steps); a sub-episode lies inside one")

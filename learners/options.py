@@ -40,6 +40,9 @@ def build(cls, where: str, values: Mapping[str, Any]):
     return cls(**kwargs)
 
 
+FLOAT32_MAX = 3.4028234663852886e38  # the largest finite float32
+
+
 def coerce(where: str, value: Any, hint: Any) -> Any:
     options = typing.get_args(hint)
     if type(None) in options and len(options) == 2 and not str(hint).startswith(("tuple", "dict")):
@@ -84,11 +87,19 @@ def choice(where: str, value: str, choices: tuple[str, ...]) -> None:
         raise ConfigError(f"{where} must be one of {', '.join(choices)}; got {value!r}")
 
 
+def _in_float32(where: str, value: float) -> None:
+    if isinstance(value, float) and abs(value) > FLOAT32_MAX:
+        raise ConfigError(f"{where} must be a number float32 holds (at most {FLOAT32_MAX:.4g}: the learners compute "
+                          f"in float32), got {value!r}")
+
+
 def positive(where: str, value: float) -> None:
     if not value > 0:
         raise ConfigError(f"{where} must be > 0, got {value!r}")
+    _in_float32(where, value)
 
 
 def at_least(where: str, value: float, low: float, note: str = "") -> None:
     if not value >= low:
         raise ConfigError(f"{where} must be >= {low}{note}, got {value}")
+    _in_float32(where, value)

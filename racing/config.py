@@ -76,6 +76,8 @@ class RacingConfig:
             for name in ("max_turn_deg", "start_heading_deg", "crash_penalty"):
                 if getattr(self, name) < 0:
                     problems.append(f"{name} must be >= 0, got {getattr(self, name)!r}")
+            if self.crash_penalty > 3.4028234663852886e38:
+                problems.append(f"crash_penalty must fit the float32 reward (at most 3.4e38), got {self.crash_penalty!r}")
         if problems:
             raise ValueError("Invalid RacingConfig: " + "; ".join(problems))
 

@@ -267,7 +267,8 @@ def test_every_ceiling_is_documented_in_conf():
     conf = "\n".join(p.read_text() for p in Path(__file__).resolve().parent.parent.glob("conf/**/*.yaml"))
     for name, (ceiling, _) in CEILINGS.items():
         if name in ("algo.minibatch_size", "algo.tqc.critics", "algo.redq.critics", "algo.tqc.quantiles",
-                    "algo.spg.num_samples", "algo.td.critic_blocks", "algo.td.critic_width", "algo.td.n_step"):
+                    "algo.spg.num_samples", "algo.td.critic_blocks", "algo.td.critic_width", "algo.td.n_step",
+                    "algo.td.updates_per_step"):
             key = name.split(".")[-1]
             assert any(line.lstrip().startswith(f"{key}:") and f"at most {ceiling:,}" in line
                        for line in conf.splitlines()), name

@@ -199,6 +199,11 @@ def test_a_naf_member_equals_its_solo_run_resumes_exactly_and_its_policy_loads(t
     (["algo.naf.exploration_noise=-0.1"], "algo.naf.exploration_noise must be"),
     (["algo.td.tau=null"], "updates target networks"),
     (["er=hybrid"], "replay memory"),
+    (["algo.td.updates_per_step=1e12"], "above its ceiling"),
+    (["algo.td.critic_weight_decay=4000"], "must be below 1"),
+    (["algo.naf.preact_penalty=1e39"], "float32"),
+    (["algo.td.n_step=300"], "longer than an episode"),
+    (["env.options.crash_penalty=1e39"], "float32 reward"),
 ])
 def test_bad_naf_settings_are_refused_with_a_reason(override, message):
     from engine.config import ConfigError

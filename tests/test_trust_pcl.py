@@ -202,16 +202,20 @@ def test_sub_episodes_are_consecutive_steps_of_one_episode_from_each_members_gen
 
 
 def test_the_divergence_reads_the_newest_episodes_of_the_ring_in_the_order_they_were_written():
-    cfg, t = training("trust_pcl", "er.buffer_size=600", "env.options.max_steps=200", "algo.trust_pcl.divergence_episodes=2")
+    cfg, t = training("trust_pcl", "er.buffer_size=2000", "algo.trust_pcl.divergence_episodes=9")
     phases = t.phases
-    # seven episodes written into a ring of three: episodes 4, 5, 6 sit in blocks 1, 2, 0
-    reward = torch.zeros(2, 600, 1)
-    for episode, block in ((6, 0), (4, 1), (5, 2)):
+    # 23 episodes written into a ring of ten: episode j in block j mod 10, so the newest nine (14-22) sit
+    # in blocks 4-9 and 0-2 (block 3 holds episode 13)
+    reward = torch.zeros(2, 2000, 1)
+    for block in range(10):
+        episode = 20 + block if block < 3 else 10 + block
         reward[:, block * 200:(block + 1) * 200] = episode * 0.25  # exact in float32: totals 50 x episode
     reward[1] *= 10
-    data = TensorDict({"next": TensorDict({"reward": reward}, batch_size=[2, 600])}, batch_size=[2, 600])
-    returns = phases.recent_returns(data, 7)
-    assert returns == [[250.0, 300.0], [2500.0, 3000.0]]
+    data = TensorDict({"next": TensorDict({"reward": reward}, batch_size=[2, 2000])}, batch_size=[2, 2000])
+    returns = phases.recent_returns(data, 23)
+    assert returns == [[50.0 * e for e in range(14, 23)], [500.0 * e for e in range(14, 23)]]
+    early = phases.recent_returns(data[:, :800], 4)  # four episodes so far: blocks 0-3, oldest first
+    assert early == [[1000.0, 1050.0, 1100.0, 650.0], [10000.0, 10500.0, 11000.0, 6500.0]]
     with pytest.raises(ValueError, match="expects every episode so far"):
         phases.recent_returns(data[:, :400], 7)
 
@@ -255,7 +259,18 @@ def test_the_lagged_networks_follow_by_tau_and_both_losses_reach_their_networks(
     (["algo.trust_pcl.max_divergence=0"], "algo.trust_pcl.max_divergence must be"),
     (["algo.td.critic_blocks=2"], "plain MLP"),
     (["algo.trust_pcl.rollout=1000000000"], "longer than an episode"),
+    (["algo.trust_pcl.divergence_episodes=8"], "must be at least 9"),
+    (["er.buffer_size=1000"], "holds 5"),
+    (["algo.trust_pcl.initial_coefficient=1e12"], "lambda's range"),
+    (["er=hybrid"], "use er=memory, not"),
 ])
 def test_bad_trust_pcl_settings_are_refused_with_a_reason(override, message):
     with pytest.raises(ConfigError, match=message):
         load("algo=trust_pcl", *override)
+
+
+def test_the_options_torch_free_copies_of_the_coefficients_range_are_the_losss():
+    import learners.td
+    from losses import trust_pcl
+
+    assert learners.td.LAMBDA_MAX == trust_pcl.LAMBDA_RANGE[1] and learners.td.FEWEST_EPISODES == trust_pcl.FEWEST_EPISODES

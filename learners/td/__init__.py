@@ -176,6 +176,10 @@ class NAFOptions:
         at_least("algo.naf.preact_penalty", self.preact_penalty, 0)
 
 
+LAMBDA_MAX = 1000.0  # losses.trust_pcl.LAMBDA_RANGE's top (kept torch-free here; a test holds them equal)
+FEWEST_EPISODES = 9  # losses.trust_pcl.FEWEST_EPISODES
+
+
 @dataclass(frozen=True)
 class TrustPCLOptions:
     """``algo.trust_pcl`` (``losses.trust_pcl.TrustPCLLoss``): the sub-episodes, the trust region and the
@@ -198,6 +202,13 @@ class TrustPCLOptions:
             positive("algo.trust_pcl.clip", self.clip)
         positive("algo.trust_pcl.critic_weight", self.critic_weight)
         at_least("algo.trust_pcl.initial_coefficient", self.initial_coefficient, 0)
+        if self.initial_coefficient > LAMBDA_MAX:
+            raise ConfigError(f"algo.trust_pcl.initial_coefficient must be in lambda's range [0, {LAMBDA_MAX:g}], "
+                              f"got {self.initial_coefficient}")
+        if self.divergence_episodes < FEWEST_EPISODES:
+            raise ConfigError(f"algo.trust_pcl.divergence_episodes must be at least {FEWEST_EPISODES}: with fewer "
+                              f"episodes the trust region is not estimated (lambda stays at {LAMBDA_MAX / 2:g}), got "
+                              f"{self.divergence_episodes}")
 
 
 BLOCKS = {"td": (LOSSES, TDOptions), "sac": (ENTROPY_LOSSES, SACOptions), "tqc": (("tqc",), TQCOptions),
@@ -236,6 +247,10 @@ def check(algo) -> None:
         if td.get("loss_function", "l2") != "l2":
             raise ConfigError(f"algo {algo.name}: loss trust_pcl minimises the square of its path consistency; set "
                               f"algo.td.loss_function: l2 (got {td.get('loss_function')})")
+    decay = td.get("critic_weight_decay") or 0.0
+    if isinstance(decay, (int, float)) and isinstance(algo.critic_lr, (int, float)) and decay * algo.critic_lr >= 1:
+        raise ConfigError(f"algo {algo.name}: algo.td.critic_weight_decay x critic_lr must be below 1 (each step scales "
+                          f"the Q-networks by 1 - lr x decay), got {decay} x {algo.critic_lr}")
     given = td.get("loss_function")
     if algo.loss == "tqc" and given is not None and given != "smooth_l1":
         raise ConfigError(f"algo {algo.name}: loss tqc trains its critics with the quantile Huber loss; set "
