@@ -226,3 +226,17 @@ def test_the_pre_tanh_penalty_adds_its_mean_square_to_mus_objective_only():
     assert all(p.grad is None or not p.grad.any() for p in critic)
     _, _, none = training("naf", "algo.naf.preact_penalty=0")[1].phases._naf_losses(data.clone())
     assert not none.any()
+
+
+def test_analysis_naf_reads_the_advantages_curvature_along_the_runs_own_track(tmp_path, capsys):
+    """``python -m analysis.naf`` (docs/results.md's diagnosis of NAF) on a train.py run and a population."""
+    from analysis.naf import curvature, main
+    from tests.test_train import run_train
+
+    result = run_train("algo=naf", "seeds=[3,4]", "episodes=3", "algo.td.warmup_episodes=1",
+                       "algo.td.updates_per_step=0.05", "progress=false", f"hydra.run.dir={tmp_path}")
+    assert result.returncode == 0, result.stderr[-2000:]
+    figures = curvature(tmp_path / "seed3")
+    assert figures["trace_median"] > 0 and figures["initial_median"] > 0 and -1 <= figures["throttle"] <= 1
+    assert main([str(tmp_path)]) == 0  # a population's folder: each member
+    assert capsys.readouterr().out.count("| " + str(tmp_path)) == 2
