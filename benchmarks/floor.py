@@ -119,17 +119,22 @@ def _extent(shape: tuple, strides: tuple) -> int:
     return 1 + sum((size - 1) * stride for size, stride in zip(shape, strides))
 
 
-def replay(calls: list, repeats: int = 3) -> float:
-    """Seconds the recorded products take alone (best of ``repeats``), on random buffers of their
-    layouts, the outputs written to buffers made once."""
+REPLAY_BYTES = 512 * 2**20  # the random buffers replayed at once (a chunk of the calls): bounds the memory
+
+
+def replay(calls: list, repeats: int = 3, budget: int = REPLAY_BYTES) -> float:
+    """Seconds the recorded products take alone, on random buffers of their layouts (each call its
+    own, as each product of a step reads fresh activations), the outputs written to buffers made
+    once: the calls in chunks whose buffers fit ``budget`` bytes (a population of 25 records
+    gigabytes of operands over a few hundred steps), each chunk the best of ``repeats``, summed."""
     import torch
 
     from learners.kernels import _lib
     from learners.kernels.ops import _gemm
 
     gemm, colsum = _gemm(), _lib().racing_colsum
-    prepared = []
-    for call in calls:
+    total, prepared, held = 0.0, [], 0
+    for index, call in enumerate(calls):
         if call[0] == "gemm":
             _, code, (R, M, K), sa, sb, n, bias_stride = call
             a = torch.randn(_extent((R, M, K), sa))
@@ -138,18 +143,23 @@ def replay(calls: list, repeats: int = 3) -> float:
             bias = None if bias_stride is None else torch.randn(_extent((R, n), bias_stride))
             args = (code, R, M, n, K, a.data_ptr(), *sa, b.data_ptr(), *sb, out.data_ptr(), M * n, n, 1,
                     None if bias is None else bias.data_ptr(), *(bias_stride or (0, 0)))
-            prepared.append((gemm, args, (a, b, out, bias)))
+            buffers = (a, b, out, bias)
+            prepared.append((gemm, args, buffers))
         else:
             _, (R, M, N), s = call
             x, out = torch.randn(_extent((R, M, N), s)), torch.empty(R * N)
-            prepared.append((colsum, (R, M, N, x.data_ptr(), *s, out.data_ptr(), N), (x, out)))
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.perf_counter()
-        for fn, args, _keep in prepared:
-            fn(*args)
-        best = min(best, time.perf_counter() - start)
-    return best
+            buffers = (x, out)
+            prepared.append((colsum, (R, M, N, x.data_ptr(), *s, out.data_ptr(), N), buffers))
+        held += sum(t.numel() * t.element_size() for t in buffers if t is not None)
+        if held >= budget or index == len(calls) - 1:
+            best = float("inf")
+            for _ in range(repeats):
+                start = time.perf_counter()
+                for fn, args, _keep in prepared:
+                    fn(*args)
+                best = min(best, time.perf_counter() - start)
+            total, prepared, held = total + best, [], 0
+    return total
 
 
 def measure(recipe: list[str], off_policy: bool, members: int, steps: int, fused: bool = True) -> dict:

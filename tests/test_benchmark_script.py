@@ -144,6 +144,7 @@ def test_floor_records_a_layers_products_and_replays_them():
     assert kinds.count("gemm") == 5 and kinds.count("colsum") == 2
     assert all(c[2][0] == 3 for c in calls if c[0] == "gemm")  # the three members in every call
     assert replay(calls, repeats=1) > 0.0
+    assert replay(calls * 50, repeats=1, budget=1) > 0.0  # a chunk per call: memory bounded whatever the steps
 
 
 def test_floor_says_why_without_the_kernels(monkeypatch, capsys):
