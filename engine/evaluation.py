@@ -50,6 +50,11 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
     if found.kind == "damaged":
         raise RunFolderError(f"{run_dir} is damaged: {found.problem}")
     if found.kind != "finished":
+        members = sorted(p.name for p in run_dir.glob("seed*") if (p / "summary.json").is_file())
+        if members:
+            shown = ", ".join(members[:3]) + (", ..." if len(members) > 3 else "")
+            raise RunFolderError(f"{run_dir} is a population's folder, not a run: give one of its members' folders "
+                                 f"({shown})")
         raise RunFolderError(f"{run_dir} holds no finished run (no summary.json): give the folder of a finished "
                              "train.py run (e.g. outputs/runs/spg_p_multi/memory/seed2067791)")
     actor_path = run_dir / "actor.pt"

@@ -240,3 +240,8 @@ def test_analysis_naf_reads_the_advantages_curvature_along_the_runs_own_track(tm
     assert figures["trace_median"] > 0 and figures["initial_median"] > 0 and -1 <= figures["throttle"] <= 1
     assert main([str(tmp_path)]) == 0  # a population's folder: each member
     assert capsys.readouterr().out.count("| " + str(tmp_path)) == 2
+    from engine.evaluation import RunFolderError, load_policy
+
+    with pytest.raises(RunFolderError, match=r"a population's folder, not a run: give one of its members' folders "
+                                             r"\(seed3, seed4\)"):
+        load_policy(tmp_path)  # evaluate.py and score.py read a run through it
