@@ -22,6 +22,12 @@ episodes' total rewards R_j as ``E_p[R / lambda] - log mean_j exp(R_j / lambda)`
 ``p_j ~ exp(R_j / lambda)``, equals ``max_divergence`` times the episode length, found by bisection
 on [0, 1000]; lambda moves to it by 1% per gradient step (``coefficient_targets``, ``move_coefficient``).
 
+What differs from the authors' code, deliberately: the policy and the value network have an Adam
+optimiser each (theirs: one for both), gradients are not clipped by their global norm (theirs: at 40),
+sub-episodes are drawn uniformly from the memory (theirs: nearly uniform, a slight preference for the
+newest), the actor is this project's tanh-squashed Gaussian with a state-dependent scale (theirs: a
+Gaussian with a learned state-independent deviation).
+
 Populations: every tensor has the members first; a sub-episode batch is ``[R, B, d]`` with a
 ``mask`` of its valid steps (``collectors.replay.sample_sub_episodes``), lambda is one per member.
 """
