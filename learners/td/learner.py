@@ -280,6 +280,24 @@ STEPS = {"sac": (("loss_qvalue",), ("loss_actor", "loss_alpha", "alpha")),
          "trust_pcl": (("loss_value", "consistency"), ("loss_actor", "lambda"))}
 
 
+class MemberSoftUpdate(SoftUpdate):
+    """TorchRL's ``SoftUpdate`` with its step in one ``torch._foreach_lerp_`` over every target tensor: the
+    call TensorDict's ``lerp_`` makes per network (``target <- target + tau (online - target)``, pairing
+    the tensors in ``_values_list`` order as it does), the same bits, without building a TensorDict of
+    ``.data`` per network and step (about 1 ms a step at these sizes, a third of a small step)."""
+
+    @torch.no_grad()
+    def step(self) -> None:
+        if not self.initialized:
+            raise RuntimeError(f"{type(self).__name__} must be initialized (init_()) before step()")
+        targets, sources = [], []
+        for key, source in self._sources.items():
+            target = self._targets.get(f"target_{key}")
+            targets += target._values_list(True, True)
+            sources += source._values_list(True, True)
+        torch._foreach_lerp_(targets, sources, 1 - self.eps)
+
+
 class TDPhaseRunner:
     """The gradient steps of SAC or TD3 before an episode (``run``), with ``PhaseRunner``'s
     interface (``active``, ``freeze``, the metrics' names)."""
@@ -302,7 +320,7 @@ class TDPhaseRunner:
             self.policy_delay = cfg.algo.redq.actor_every(self.td.updates_per_step)
         self.preact_penalty = (cfg.algo.td3.preact_penalty if self.kind == "td3"
                                else cfg.algo.naf.preact_penalty if self.kind == "naf" else 0.0)
-        self.updater = SoftUpdate(loss, tau=self.td.tau) if self.td.tau is not None else None  # crossq: no targets
+        self.updater = MemberSoftUpdate(loss, tau=self.td.tau) if self.td.tau is not None else None  # crossq: none
         self.sampler = memory.sampler if memory is not None else None  # prioritised replay, or None
         self.active = torch.ones(len(self.generators), device=optimisers.critic.params[0].device)
         self.critic_metrics, self.actor_metrics = STEPS[self.kind]
