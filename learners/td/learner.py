@@ -14,8 +14,9 @@ run folders, checkpoints, divergence, populations); what differs is built here:
 - the updates (``TDPhaseRunner``): before each episode, the gradient steps owed to the
   environment steps collected since the last ones (``td.updates_per_step``), each on a
   minibatch per member from its memory (uniform or prioritised) and the loss's noise drawn from
-  the member's generator (``draw``), with TorchRL's soft target
-  updates (``SoftUpdate``); TD3 steps its actor (and targets) every ``policy_delay`` critic steps.
+  the member's generator (``draw``), with TorchRL's soft target updates (``SoftUpdate``, its step
+  in one foreach call: ``MemberSoftUpdate``); TD3 steps its actor (and targets) every
+  ``policy_delay`` critic steps.
 """
 
 from __future__ import annotations
