@@ -39,6 +39,16 @@ def value_function(module: TensorDictModule) -> Callable[[TensorDictBase], torch
     return lambda td: module(td.copy()).get(out_key)
 
 
+def module_call(module, x: torch.Tensor, params: TensorDictBase | None = None):
+    """``module``'s network (a ``TensorDictModule``'s inner ``nn.Module``, else the module) on the tensor
+    ``x``, with ``params`` (e.g. a loss's target parameters) swapped in for the call when given."""
+    net = getattr(module, "module", module)
+    if params is None:
+        return net(x)
+    with params.to_module(module):
+        return net(x)
+
+
 def distribution_function(actor: ProbabilisticTensorDictSequential) -> Callable[[TensorDictBase],
                                                                                 torch.distributions.Distribution]:
     """``td -> actor.get_dist(td)``."""

@@ -30,7 +30,7 @@ from torchrl.objectives.utils import ValueEstimators, distance_loss
 from torchrl.objectives.value import TD0Estimator
 from torchrl.objectives.value.functional import td0_return_estimate
 
-from losses.common import PRIORITY_KEY, PRIORITY_WEIGHT_KEY
+from losses.common import PRIORITY_KEY, PRIORITY_WEIGHT_KEY, module_call
 
 
 def lower_entries(action_dim: int) -> int:
@@ -128,23 +128,13 @@ class NAFLoss(LossModule):
         self._value_estimator = TD0Estimator(value_network=None, **hyperparams)
         return self
 
-    def _net(self, module: TensorDictModule):
-        return getattr(module, "module", module)
-
-    def _outputs(self, observation: torch.Tensor, params: TensorDictBase | None = None) -> torch.Tensor:
-        """``value_network``'s ``[..., 1 + E]`` at ``observation``, with ``params`` if given (the target's)."""
-        net = self._net(self.value_network)
-        if params is None:
-            return net(observation)
-        with params.to_module(self.value_network):
-            return net(observation)
-
     def target(self, tensordict: TensorDictBase) -> torch.Tensor:
         """``r + gamma * V'(s')`` where not terminated, ``[..., B]`` (``gamma ** steps`` over n-step
         transitions), without gradient."""
         keys, following = self.tensor_keys, tensordict.get("next")
         with torch.no_grad():
-            next_value = self._outputs(following.get(keys.observation), self.target_value_network_params)[..., :1]
+            next_value = module_call(self.value_network, following.get(keys.observation),
+                                     self.target_value_network_params)[..., :1]
             reward = following.get(keys.reward)
             estimator = self.value_estimator
             gamma = estimator.gamma.to(reward.device)
@@ -157,8 +147,8 @@ class NAFLoss(LossModule):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         keys = self.tensor_keys
         observation = tensordict.get(keys.observation)
-        mu = self._net(self.actor_network)(observation)
-        outputs = self._outputs(observation)
+        mu = module_call(self.actor_network, observation)
+        outputs = module_call(self.value_network, observation)  # [..., 1 + E]: V, then L's entries
         value = outputs[..., 0]
         advantage = naf_advantage(outputs[..., 1:], mu, tensordict.get(keys.action))
         predicted = value + advantage

@@ -46,6 +46,8 @@ from torchrl.modules import TanhNormal
 from torchrl.objectives import LossModule
 from torchrl.objectives.utils import ValueEstimators
 
+from losses.common import module_call
+
 MASK_KEY = "mask"  # a sub-episode's valid steps ([..., d], a prefix)
 LAMBDA_RANGE = (0.0, 1000.0)  # the bisection's bracket (the authors')
 LAMBDA_TOLERANCE = 0.1  # its resolution: 14 halvings of the bracket
@@ -166,20 +168,9 @@ class TrustPCLLoss(LossModule):
     def draw(self, tensordict: TensorDictBase) -> None:
         """Trust-PCL's loss draws no random numbers (the project's learners call ``draw`` before each step)."""
 
-    @staticmethod
-    def _net(module: TensorDictModule):
-        return getattr(module, "module", module)
-
-    def _call(self, module: TensorDictModule, params: TensorDictBase | None, x: torch.Tensor):
-        net = self._net(module)
-        if params is None:
-            return net(x)
-        with params.to_module(module):
-            return net(x)
-
     def log_prob(self, observation: torch.Tensor, action: torch.Tensor, lagged: bool = False) -> torch.Tensor:
         """log pi(action | observation) (the lagged policy's with ``lagged``), summed over action dimensions."""
-        loc, scale = self._call(self.actor_network, self.target_actor_network_params if lagged else None, observation)
+        loc, scale = module_call(self.actor_network, observation, self.target_actor_network_params if lagged else None)
         return TanhNormal(loc, scale, low=-1.0, high=1.0).log_prob(action)
 
     def coefficient_targets(self, returns: Sequence[Sequence[float]], episode_steps: int) -> torch.Tensor:
@@ -207,9 +198,9 @@ class TrustPCLLoss(LossModule):
             final_observation = following.get(keys.observation).gather(
                 -2, last.unsqueeze(-1).expand(*last.shape, observation.shape[-1])).squeeze(-2)
             terminated = following.get(keys.terminated).squeeze(-1).gather(-1, last).squeeze(-1)
-            final_value = self._call(self.value_network, self.target_value_network_params,
-                                     final_observation).squeeze(-1) * (~terminated)
-        value = self._call(self.value_network, None, observation[..., 0, :]).squeeze(-1)
+            final_value = module_call(self.value_network, final_observation,
+                                      self.target_value_network_params).squeeze(-1) * (~terminated)
+        value = module_call(self.value_network, observation[..., 0, :]).squeeze(-1)
         coefficient = self.coefficient.to(value.dtype)
         if value.dim() > 1:  # a population's [R, B]: each member's own lambda
             coefficient = coefficient.reshape(-1, *([1] * (value.dim() - 1)))

@@ -325,7 +325,6 @@ class TDPhaseRunner:
         self.sampler = memory.sampler if memory is not None else None  # prioritised replay, or None
         self.active = torch.ones(len(self.generators), device=optimisers.critic.params[0].device)
         self.critic_metrics, self.actor_metrics = STEPS[self.kind]
-        self.entropy = self.kind in ENTROPY_LOSSES  # SAC's step (TQC's loss is a SACLoss)
         if self.kind == "trust_pcl":
             self.pcl, self.capacity = cfg.algo.trust_pcl, cfg.er.buffer_size
         self.actor_net, self.qvalue_nets = actor_net, list(qvalue_nets)
@@ -402,8 +401,7 @@ class TDPhaseRunner:
         losses = {key: member_means(out[key]) for key in ("loss_qvalue", "value", "advantage")}
         penalty = torch.zeros_like(losses["loss_qvalue"])
         if self.preact_penalty:
-            body = self.actor_net[0]  # mu before its tanh (make_actor_net)
-            penalty = self.preact_penalty * member_means(body(batch.get("observation")).square())
+            penalty = self._preact(self.actor_net[0], batch)
         return losses, batch.get(PRIORITY_KEY), penalty
 
     def _naf_step(self, batch: TensorDictBase, totals: MetricTotals) -> torch.Tensor:
@@ -481,9 +479,13 @@ class TDPhaseRunner:
         else:
             loss = member_means(self.loss.actor_loss(batch)[0])
         if self.preact_penalty:  # its own pass through the actor, as before the fused step (the same bits)
-            body = self.loss.actor_network.module.net[0]  # the actor before its tanh (make_actor_net)
-            loss = loss + self.preact_penalty * member_means(body(batch.get("observation")).square())
+            loss = loss + self._preact(self.loss.actor_network.module.net[0], batch)
         return loss
+
+    def _preact(self, body: nn.Module, batch: TensorDictBase) -> torch.Tensor:
+        """The pre-tanh penalty per member (TD3's and NAF's): ``preact_penalty`` x the mean square of the
+        actor's outputs before its tanh, ``body`` (``make_actor_net``'s first part), at the minibatch's states."""
+        return self.preact_penalty * member_means(body(batch.get("observation")).square())
 
     def _td3_step(self, batch: TensorDictBase, step: int, totals: MetricTotals) -> torch.Tensor:
         loss_qvalue, priority = self._critic_objective(batch)
