@@ -86,11 +86,13 @@ def make_policy(loss: str, network: dict, obs_size: int, state: dict) -> Policy:
     """The deterministic policy of an actor's saved weights (``actor.pt``) for ``algo.loss``."""
     if loss in learners.td.LOSSES:  # the off-policy family's actors
         from learners.td.learner import make_actor_net
-        from learners.networks import load_member_state_dict
+        from learners.networks import NormalisedActor, ObservationNorm, load_member_state_dict
 
         net = make_actor_net(loss, 1, obs_size, 2, network["actor_hidden"], network["activation"])
         if all(k.startswith("module.") for k in state):  # the layout of TorchRL's parameters (until da21af2)
             state = {k.removeprefix("module."): v for k, v in state.items()}
+        if any(k.startswith("norm.") for k in state):  # algo.td.observation_norm: the statistics it acted with
+            net = NormalisedActor(ObservationNorm(1, obs_size), net)
         load_member_state_dict(net, 0, state)
         kind = loss
     else:

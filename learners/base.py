@@ -62,7 +62,8 @@ class Learner:
         """Member ``member``'s trained weights, {"actor": ..., "critic": ...}, on the CPU."""
         critic = (self.phases.member_critic(member) if hasattr(self.phases, "member_critic")  # TorchRL's Q ensemble
                   else member_state_dict(self.networks.critic_net, member))
-        return {"actor": member_state_dict(self.networks.actor_net, member), "critic": critic}
+        actor = getattr(self.networks, "policy_net", self.networks.actor_net)  # as it acts (learners.td: normalised)
+        return {"actor": member_state_dict(actor, member), "critic": critic}
 
     def state_parts(self) -> dict:
         """The stateful parts a checkpoint saves, by name."""

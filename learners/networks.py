@@ -503,6 +503,54 @@ class MemberNormal(torch.distributions.Normal):
 _LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
 
 
+class ObservationNorm(nn.Module):
+    """Running normalisation of the members' observations (SimBa's, Welford's update): member r's inputs
+    become ``(x - mean_r) / sqrt(var_r + eps)`` with the mean and variance of every observation member r
+    has acted on so far (``update``, once per environment step; never from the replay memory).
+
+    The statistics are float64 and updated and applied element-wise (IEEE's correctly rounded +, -, x, /,
+    sqrt): the same bits on every CPU, and member r's numbers depend on its own observations alone.
+    ``forward`` takes ``[R, ..., obs]`` and returns float32, clipped to [-CLIP, CLIP] as Stable-Baselines3's
+    ``VecNormalize`` clips: an input that hardly varied in training (a ray that always read its range) does
+    not become thousands on another track."""
+
+    EPS = 1e-8  # added to the variance (a constant input becomes 0, not a division by 0)
+    CLIP = 10.0
+
+    def __init__(self, members: int, size: int):
+        super().__init__()
+        self.register_buffer("count", torch.zeros(members, dtype=torch.float64))
+        self.register_buffer("mean", torch.zeros(members, size, dtype=torch.float64))
+        self.register_buffer("m2", torch.zeros(members, size, dtype=torch.float64))
+
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> None:
+        """One observation per member, ``[R, obs]``."""
+        x = x.double()
+        self.count += 1
+        delta = x - self.mean
+        self.mean += delta / self.count.unsqueeze(-1)
+        self.m2 += delta * (x - self.mean)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        shape = (self.mean.shape[0], *[1] * (x.dim() - 2), self.mean.shape[1])
+        var = self.m2 / self.count.clamp(min=1).unsqueeze(-1)
+        scale = (var + self.EPS).sqrt()
+        return ((x.double() - self.mean.view(shape)) / scale.view(shape)).clamp(-self.CLIP, self.CLIP).to(x.dtype)
+
+
+class NormalisedActor(nn.Module):
+    """An actor network behind its observations' running normalisation: the policy a run with
+    ``algo.td.observation_norm`` saves (``actor.pt``: entries ``norm.*`` and ``net.*``) and evaluates."""
+
+    def __init__(self, norm: ObservationNorm, net: nn.Module):
+        super().__init__()
+        self.norm, self.net = norm, net
+
+    def forward(self, x: torch.Tensor):
+        return self.net(self.norm(x))
+
+
 def reset_parameters(net: nn.Module, generators: Sequence[torch.Generator | None]) -> nn.Module:
     """Initialise every ``StackedLinear`` of ``net`` in registration order, member by member
     from its own generator (so a member's weights depend on its generator alone), and every

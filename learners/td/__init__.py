@@ -39,6 +39,7 @@ class TDOptions:
     critic_weight_decay: float = 0.0  # decoupled weight decay of the Q-networks (AdamW's)
     reset_every: int = 0  # re-initialise every network, temperature and optimiser every this-many episodes
     #                       (0: never); the replay memory is kept
+    observation_norm: bool = False  # actor and critics see running-normalised observations (learners.networks.ObservationNorm)
 
     def __post_init__(self) -> None:
         positive("algo.td.updates_per_step", self.updates_per_step)
@@ -74,6 +75,13 @@ class TDOptions:
         return math.floor(max(0, episode - first + 1) * steps * self.updates_per_step + 1e-9)
 
 
+def linear_schedule(start: float, end: float, episode: int, first: int, last: int) -> float:
+    """``start`` until episode ``first``, then linearly to ``end`` at episode ``last`` and after (float64:
+    the same value on every CPU)."""
+    fraction = min(1.0, max(0.0, (episode - first) / max(1, last - first)))
+    return start + (end - start) * fraction
+
+
 @dataclass(frozen=True)
 class SACOptions:
     """``algo.sac``: TorchRL's ``SACLoss``'s temperature, and that of the losses built like it
@@ -82,9 +90,18 @@ class SACOptions:
     alpha_init: float
     target_entropy: float | None  # None: TorchRL's "auto", minus the action dimension
     fixed_alpha: bool
+    target_entropy_end: float | None = None  # None: the target stays; else it moves linearly from target_entropy
+    #                                          at the first gradient step to this at the last episode
 
     def __post_init__(self) -> None:
         positive("algo.sac.alpha_init", self.alpha_init)
+        for key in ("target_entropy", "target_entropy_end"):
+            value = getattr(self, key)
+            if value is not None and not -1e6 <= value <= 1e6:
+                raise ConfigError(f"algo.sac.{key} must be within [-1e6, 1e6] nats (or null), got {value}")
+        if self.target_entropy_end is not None and self.fixed_alpha:
+            raise ConfigError("algo.sac.target_entropy_end moves the target the learned temperature follows; with "
+                              "algo.sac.fixed_alpha: true there is none (set one of them back)")
 
 
 @dataclass(frozen=True)

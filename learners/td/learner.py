@@ -21,6 +21,7 @@ run folders, checkpoints, divergence, populations); what differs is built here:
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -36,10 +37,10 @@ from torchrl.objectives import SoftUpdate
 from collectors import ReplayMemory, sample_minibatch, sample_sub_episodes
 from learners.base import Learner, MetricTotals, Optimisers, diverged_members, freeze_member, prioritised_minibatch
 from learners.compiling import compile_step
-from learners.networks import (BlockSampler, StackedBNCriticNet, StackedCriticNet, StackedMLP, StackedResidualCriticNet,
-                               reset_parameters)
+from learners.networks import (BlockSampler, NormalisedActor, ObservationNorm, StackedBNCriticNet, StackedCriticNet,
+                               StackedMLP, StackedResidualCriticNet, reset_parameters)
 from learners.optim import MemberAdam
-from learners.td import ENTROPY_LOSSES, GAUSSIAN_ACTORS
+from learners.td import ENTROPY_LOSSES, GAUSSIAN_ACTORS, linear_schedule
 from losses.naf import NAFLoss, lower_entries
 from losses.trust_pcl import TrustPCLLoss
 from losses.td import (ACTION_NOISE_KEY, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhNormal, MemberCrossQLoss, MemberREDQLoss,
@@ -64,6 +65,12 @@ class Networks:
     actor: nn.Module  # the TensorDict actor TorchRL's loss takes
     qvalues: list[TensorDictModule]
     sampler: "OffPolicySampler"
+    norm: ObservationNorm | None = None  # algo.td.observation_norm: the members' running observation statistics
+
+    @property
+    def policy_net(self) -> nn.Module:
+        """The actor as it acts and is saved: behind the observations' normalisation when there is one."""
+        return NormalisedActor(self.norm, self.actor_net) if self.norm is not None else self.actor_net
 
     @property
     def critic_net(self) -> nn.Module:
@@ -114,21 +121,23 @@ def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
     else:
         raise unbuilt(algo.loss, "make_networks")
     reset_parameters(actor_net, generators)
+    norm = ObservationNorm(members, obs_dim).to(device) if algo.td.observation_norm else None
     qvalue_nets = []
     if algo.loss == "naf":  # one network: V(s), then the advantage's lower-triangular L(s)
         value_net = StackedCriticNet(members, obs_dim, net.critic_hidden, net.activation,
                                      outputs=1 + lower_entries(action_dim)).to(device)
         reset_parameters(value_net, generators)
         sampler = OffPolicySampler(actor_net, generators, action_dim, block=cfg.env.episode_steps,
-                                   warmup_blocks=algo.td.warmup_episodes, noise=algo.naf.exploration_noise)
-        return Networks(actor_net, [value_net], actor, [TensorDictModule(value_net, ["observation"], ["naf"])], sampler)
+                                   warmup_blocks=algo.td.warmup_episodes, noise=algo.naf.exploration_noise, norm=norm)
+        return Networks(actor_net, [value_net], actor, [TensorDictModule(value_net, ["observation"], ["naf"])], sampler,
+                        norm)
     if algo.loss == "trust_pcl":  # V(s)
         value_net = StackedCriticNet(members, obs_dim, net.critic_hidden, net.activation).to(device)
         reset_parameters(value_net, generators)
         sampler = OffPolicySampler(actor_net, generators, action_dim, block=cfg.env.episode_steps,
-                                   warmup_blocks=algo.td.warmup_episodes)
+                                   warmup_blocks=algo.td.warmup_episodes, norm=norm)
         return Networks(actor_net, [value_net], actor, [TensorDictModule(value_net, ["observation"], ["state_value"])],
-                        sampler)
+                        sampler, norm)
     if algo.loss == "tqc":
         critics, outputs = algo.tqc.critics, algo.tqc.quantiles
     else:  # twin Q-networks (sac, crossq, td3) or REDQ's ensemble
@@ -150,8 +159,8 @@ def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
     qvalues = [TensorDictModule(q, ["observation", "action"], ["state_action_value"]) for q in qvalue_nets]
     noise = algo.td3.exploration_noise if algo.loss == "td3" else None
     sampler = OffPolicySampler(actor_net, generators, action_dim, block=cfg.env.episode_steps,
-                               warmup_blocks=algo.td.warmup_episodes, noise=noise)
-    return Networks(actor_net, qvalue_nets, actor, qvalues, sampler)
+                               warmup_blocks=algo.td.warmup_episodes, noise=noise, norm=norm)
+    return Networks(actor_net, qvalue_nets, actor, qvalues, sampler, norm)
 
 
 class OffPolicySampler(BlockSampler):
@@ -160,23 +169,28 @@ class OffPolicySampler(BlockSampler):
     clip(mu + noise * n, -1, 1) (``noise`` set), with n ~ N(0, 1) from member r's generator.
 
     Noise is drawn an episode (``block`` steps) at a time per member (``BlockSampler``);
-    ``blocks`` counts the episodes begun (saved by checkpoints: it decides the warm-up)."""
+    ``blocks`` counts the episodes begun (saved by checkpoints: it decides the warm-up).
+    With ``norm`` (``algo.td.observation_norm``) every observation it acts on (warm-up included, paused
+    probes not) updates the running statistics, and the network sees it normalised."""
 
     def __init__(self, net: nn.Module, generators: Sequence[torch.Generator], action_dim: int, block: int,
-                 warmup_blocks: int, noise: float | None = None):
+                 warmup_blocks: int, noise: float | None = None, norm: ObservationNorm | None = None):
         super().__init__(net, generators, action_dim, block)
-        self.warmup_blocks, self.noise = warmup_blocks, noise
+        self.warmup_blocks, self.noise, self.norm = warmup_blocks, noise, norm
         self.blocks = 0
         self._draws: torch.Tensor | None = None
 
     def deterministic(self, observation: torch.Tensor) -> torch.Tensor:
-        out = self.net(observation)
+        out = self.net(self.norm(observation) if self.norm is not None else observation)
         return torch.tanh(out[0]) if isinstance(out, tuple) else out
 
     @torch.no_grad()
     def __call__(self, observation: torch.Tensor) -> torch.Tensor:
         if self._paused:
             return self.deterministic(observation)
+        if self.norm is not None:
+            self.norm.update(observation)
+            observation = self.norm(observation)
         if self._step == self.block:
             warmup = self.blocks < self.warmup_blocks
             self._draws = torch.stack([
@@ -196,9 +210,17 @@ class OffPolicySampler(BlockSampler):
     def state_dict(self) -> dict:
         if not self.at_block_boundary:
             raise RuntimeError("the acting policy's state is saved between episodes")
-        return {"blocks": self.blocks}
+        state = {"blocks": self.blocks}
+        if self.norm is not None:
+            state["observation_norm"] = {k: v.clone() for k, v in self.norm.state_dict().items()}
+        return state
 
     def load_state_dict(self, state: dict) -> None:
+        if (self.norm is not None) != ("observation_norm" in state):
+            raise ValueError("the checkpoint's acting policy " + ("lacks" if self.norm is not None else "has")
+                             + " running observation statistics (algo.td.observation_norm differs)")
+        if self.norm is not None:
+            self.norm.load_state_dict(state["observation_norm"])
         self.blocks, self._step = int(state["blocks"]), self.block
 
 
@@ -304,15 +326,25 @@ class TDPhaseRunner:
     interface (``active``, ``freeze``, the metrics' names)."""
 
     def __init__(self, cfg, loss, optimisers: Optimisers, generators: Sequence[torch.Generator],
-                 memory=None, actor_net: nn.Module | None = None, qvalue_nets: Sequence[nn.Module] = ()):
+                 memory=None, actor_net: nn.Module | None = None, qvalue_nets: Sequence[nn.Module] = (),
+                 norm: ObservationNorm | None = None):
         """``memory``: the replay memory when its sampler is prioritised (else None). Each step's
         objective is compiled when ``cfg.compile`` (``learners.compiling``). The eager steps of SAC,
         TQC, CrossQ and TD3 compute on plain tensors (``losses.td.fused_*``: TorchRL's numbers, bit
         for bit) when ``FUSED`` and the actor network (``actor_net``) and Q-networks allow it.
         ``td.reset_every`` re-initialises the networks as they were built: the actor network (the
-        loss's own) and the Q-networks ``qvalue_nets`` (whose fresh weights the loss's copies take)."""
+        loss's own) and the Q-networks ``qvalue_nets`` (whose fresh weights the loss's copies take).
+        ``norm`` (``algo.td.observation_norm``): every minibatch's observations are normalised by the
+        members' running statistics as they stand (the acting policy's, ``OffPolicySampler``).
+        ``algo.sac.target_entropy_end``: the entropy target is set before each episode's steps."""
         self.loss, self.optimisers, self.generators = loss, optimisers, list(generators)
         self.kind, self.td = cfg.algo.loss, cfg.algo.td
+        self.norm = norm
+        self.entropy_schedule = None  # algo.sac.target_entropy_end: (episode, first, last) -> the entropy target
+        if self.kind in ENTROPY_LOSSES and cfg.algo.sac.target_entropy_end is not None:  # from the loss's own start
+            self.entropy_schedule = functools.partial(linear_schedule, float(loss.target_entropy),
+                                                      cfg.algo.sac.target_entropy_end)
+        self.episodes = cfg.episodes
         if self.kind not in STEPS:
             raise unbuilt(self.kind, "TDPhaseRunner")
         self.steps = cfg.env.episode_steps
@@ -342,6 +374,19 @@ class TDPhaseRunner:
         self._naf_objective = compile_step(self._naf_losses, cfg.compile)
         self._pcl_objective = compile_step(self._pcl_losses, cfg.compile)
 
+    def normalised(self, batch: TensorDictBase) -> TensorDictBase:
+        """``batch`` with its observations (and next observations) normalised (``norm``), or as it is."""
+        if self.norm is not None:
+            for key in ("observation", ("next", "observation")):
+                batch.set(key, self.norm(batch.get(key)))
+        return batch
+
+    def set_target_entropy(self, episode: int) -> None:
+        """``algo.sac.target_entropy_end``'s schedule: the entropy target before episode ``episode``'s steps,
+        from the first episode with gradient steps to the last episode."""
+        first = max(self.td.warmup_episodes, 1)
+        self.loss.target_entropy.fill_(self.entropy_schedule(episode, first, self.episodes - 1))
+
     def updates(self, episode: int) -> tuple[int, int]:
         """(steps taken before, steps to take now) before episode ``episode``."""
         before = self.td.updates_before(episode - 1, self.steps) if episode > 0 else 0
@@ -349,6 +394,8 @@ class TDPhaseRunner:
 
     def run(self, data: TensorDictBase, minibatch_size: int, totals: MetricTotals, episode: int = 0) -> dict[int, str]:
         done, todo = self.updates(episode)
+        if self.entropy_schedule is not None:
+            self.set_target_entropy(episode)
         if self.td.reset_every and episode > 0 and episode % self.td.reset_every == 0:
             self.reset_networks()
         if self.kind == "trust_pcl":
@@ -360,6 +407,7 @@ class TDPhaseRunner:
                 batch, index = prioritised_minibatch(data, minibatch_size, self.generators, self.sampler)
             else:
                 batch = sample_minibatch(data, minibatch_size, self.generators)
+            batch = self.normalised(batch)
             self.loss.draw(batch)  # the loss's noise, from each member's generator
             if self.kind == "crossq":
                 priority = self._crossq_step(batch, step, totals)
@@ -438,7 +486,8 @@ class TDPhaseRunner:
         a minibatch of sub-episodes, one step of both losses, the lagged networks follow by ``td.tau``."""
         targets = self.loss.coefficient_targets(self.recent_returns(data, episode), self.steps)
         for _ in range(todo):
-            batch = sample_sub_episodes(data, minibatch_size, self.pcl.rollout, self.steps, self.generators)
+            batch = self.normalised(sample_sub_episodes(data, minibatch_size, self.pcl.rollout, self.steps,
+                                                        self.generators))
             self.loss.move_coefficient(targets)
             losses = self._pcl_objective(batch)
             self._minimise(losses["loss_actor"] + losses["loss_value"], self.optimisers.critic, self.optimisers.actor)
@@ -576,6 +625,6 @@ def build(cfg, env, generators: Sequence[torch.Generator], memory: ReplayMemory)
     loss = make_loss(cfg, networks, generators)
     optimisers = make_optimisers(cfg, loss)
     phases = TDPhaseRunner(cfg, loss, optimisers, generators, memory if cfg.er.priority else None,
-                           actor_net=networks.actor_net, qvalue_nets=networks.qvalue_nets)
+                           actor_net=networks.actor_net, qvalue_nets=networks.qvalue_nets, norm=networks.norm)
     return Learner(networks, loss, optimisers, memory, phases,
                    TD_TRANSITION_KEYS, monte_carlo=False, n_step=cfg.algo.td.n_step)

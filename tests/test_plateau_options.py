@@ -1,0 +1,139 @@
+"""The off-policy learners' options that test what they share (docs/tuning.md, "What the learners share"):
+running observation normalisation (``algo.td.observation_norm``) and a falling entropy target
+(``algo.sac.target_entropy_end``); the discount is the run's ``gamma``.
+
+Checked: the statistics against numpy's mean and variance in float64, per member; the minibatch's
+observations normalised and the memory left raw; the entropy target's schedule by hand; whole runs: a
+member equals its solo run and an interrupted run resumes exactly with both options, the defaults leave a
+run's bits alone, and the saved actor (with its statistics) evaluates as the run evaluated it.
+"""
+
+import json
+import re
+
+import numpy as np
+import pytest
+import torch
+
+from engine.config import ConfigError
+from engine.evaluation import evaluate, load_policy
+from engine.runner import train_population
+from learners.networks import NormalisedActor, ObservationNorm
+from learners.td import linear_schedule
+from tests.test_config import load
+from tests.test_few_samples import assert_member_is_solo_and_resumes
+from tests.test_offpolicy import A, B, FAST, training, transitions
+from tests.test_train import run_train
+
+BOTH = ["algo.td.observation_norm=true", "algo.sac.target_entropy_end=-6"]
+
+
+def test_the_running_statistics_are_each_member_s_mean_and_variance_so_far():
+    g = torch.Generator().manual_seed(3)
+    seen = torch.rand(40, 3, 6, generator=g) * torch.tensor([1.0, 0.5, 3.0, 0.1, 2.0, 0.0])  # a constant input
+    norm = ObservationNorm(3, 6)
+    for x in seen:
+        norm.update(x)
+    data = seen.double().numpy()
+    mean, var = data.mean(0), data.var(0)  # [3, 6]: per member, the population variance
+    np.testing.assert_allclose(norm.mean.numpy(), mean, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose((norm.m2 / norm.count.unsqueeze(-1)).numpy(), var, rtol=1e-10, atol=1e-15)
+    x = torch.rand(3, 5, 6, generator=g)  # [R, batch, obs]
+    x[..., 5] = 0.0
+    expected = (x.double().numpy() - mean[:, None]) / np.sqrt(var[:, None] + ObservationNorm.EPS)
+    out = norm(x)
+    assert out.dtype == torch.float32
+    np.testing.assert_allclose(out.double().numpy(), expected.clip(-10, 10), rtol=1e-6, atol=1e-6)
+    assert torch.equal(out[..., 5], torch.zeros(3, 5))  # a constant input at its constant becomes 0
+    assert out[..., 3].abs().max() > 1 and out.abs().max() <= 10  # ... and is clipped elsewhere
+    assert torch.equal(norm(x + 1)[..., 5], torch.full((3, 5), 10.0))
+    # member 0's numbers do not depend on member 1's observations
+    other = ObservationNorm(3, 6)
+    for x_t in seen:
+        other.update(torch.cat([x_t[:1], x_t[1:] * 7]))
+    assert torch.equal(other(x)[0], out[0]) and torch.equal(other.mean[0], norm.mean[0])
+    # sub-episodes ([R, size, length, obs]) broadcast the same way
+    assert torch.equal(norm(x.unsqueeze(2))[:, :, 0], out)
+
+
+def test_a_minibatch_is_normalised_as_the_statistics_stand_and_the_memory_stays_raw():
+    cfg, learner = training("sac", "algo.td.observation_norm=true")
+    norm, phases = learner.networks.norm, learner.phases
+    assert phases.norm is norm and learner.sampler.norm is norm
+    data = transitions(2, 50, seed=1)
+    for x in data["observation"].unbind(1):
+        learner.sampler.norm.update(x)
+    raw = data.clone()
+    batch = phases.normalised(data[:, :10].clone())
+    assert torch.equal(batch["observation"], norm(raw["observation"][:, :10]))
+    assert torch.equal(batch["next", "observation"], norm(raw["next", "observation"][:, :10]))
+    assert torch.equal(data["observation"], raw["observation"])
+    # acting: the sampler updates the statistics with what it sees, a paused probe does not
+    count = norm.count.clone()
+    learner.sampler(torch.rand(2, 6))
+    assert torch.equal(norm.count, count + 1)
+    with learner.sampler.paused():
+        learner.sampler(torch.rand(2, 6))
+    assert torch.equal(norm.count, count + 1)
+    assert isinstance(learner.networks.policy_net, NormalisedActor)
+
+
+def test_the_entropy_target_falls_linearly_from_the_first_gradient_step_to_the_last_episode():
+    assert linear_schedule(-2.0, -6.0, 0, 1, 10) == -2.0
+    assert linear_schedule(-2.0, -6.0, 1, 1, 10) == -2.0
+    assert linear_schedule(-2.0, -6.0, 4, 1, 10) == pytest.approx(-2.0 - 4.0 / 3)
+    assert linear_schedule(-2.0, -6.0, 10, 1, 10) == -6.0
+    assert linear_schedule(-2.0, -6.0, 12, 1, 10) == -6.0
+    _, learner = training("sac", "episodes=12", "algo.td.warmup_episodes=1", "algo.sac.target_entropy_end=-6")
+    targets = []
+    for episode in (0, 1, 6, 11):
+        learner.phases.set_target_entropy(episode)
+        targets.append(float(learner.loss.target_entropy))
+    assert targets == [-2.0, -2.0, -4.0, -6.0]  # from the loss's own start, -(action dimensions)
+    _, learner = training("redq", "episodes=11", "algo.sac.target_entropy=-1", "algo.sac.target_entropy_end=-3")
+    learner.phases.set_target_entropy(10)
+    assert float(learner.loss.target_entropy) == -3.0
+    _, plain = training("sac")
+    assert plain.phases.entropy_schedule is None and plain.phases.norm is None
+
+
+def test_members_equal_their_solo_runs_and_resume_exactly_with_both_options(tmp_path):
+    assert_member_is_solo_and_resumes(tmp_path, ["algo=sac", "er=prioritised", *FAST, "episodes=5",
+                                                 "algo.td.updates_per_step=0.1", *BOTH])
+
+
+def test_the_options_change_the_run_and_their_defaults_do_not(tmp_path):
+    run = ["algo=sac", "er=memory", *FAST, "algo.td.updates_per_step=0.1", f"seed={A}"]
+    train_population(load(*run), tmp_path / "plain")
+    train_population(load(*run, "algo.td.observation_norm=false", "algo.sac.target_entropy_end=null"),
+                     tmp_path / "defaults")
+    plain = (tmp_path / "plain" / "metrics.csv").read_bytes()
+    assert (tmp_path / "defaults" / "metrics.csv").read_bytes() == plain
+    for name, option in (("norm", BOTH[0]), ("entropy", BOTH[1])):
+        train_population(load(*run, option), tmp_path / name)
+        assert (tmp_path / name / "metrics.csv").read_bytes() != plain, name
+
+
+@pytest.mark.parametrize("algo", ["sac", "td3"])
+def test_the_saved_actor_keeps_its_statistics_and_evaluates_as_the_run_did(tmp_path, algo):
+    result = run_train(f"algo={algo}", "er=memory", *FAST[1:], "episodes=4", "algo.td.updates_per_step=0.1",
+                       f"seed={B}", "eval_seeds=[1001]", "eval_episodes=1", "algo.td.observation_norm=true",
+                       f"hydra.run.dir={tmp_path / 'run'}")
+    assert result.returncode == 0, result.stderr[-3000:]
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    policy, settings = load_policy(tmp_path / "run")
+    assert isinstance(policy.net, NormalisedActor) and float(policy.net.norm.count[0]) == 4 * 200
+    scores = evaluate(policy, settings, [B, 1001], 1)
+    assert scores[B] == summary["evaluation"]["own_track"] and scores[1001] == summary["evaluation"]["tracks"]["1001"]
+
+
+@pytest.mark.parametrize("override, message", [
+    (["algo=sac", "algo.sac.target_entropy_end=-4", "algo.sac.fixed_alpha=true"], "fixed_alpha: true there is none"),
+    (["algo=sac", "algo.sac.target_entropy_end=1e9"], "within [-1e6, 1e6] nats"),
+    (["algo=redq", "algo.sac.target_entropy=nan"], "target_entropy must be a finite number"),
+    (["algo=redq", "algo.sac.target_entropy=-2e6"], "within [-1e6, 1e6] nats"),
+    (["algo=sac", "algo.td.observation_norm=3"], "observation_norm must be"),
+])
+def test_bad_settings_are_refused_with_a_reason(override, message):
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        load(*override)
