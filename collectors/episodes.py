@@ -46,6 +46,7 @@ class DirectCollector:
     def __init__(self, env: TensorStepEnv, sample: Callable[[torch.Tensor], torch.Tensor],
                  steps: int, total_frames: int):
         self.env, self.sample, self.steps = env, sample, steps
+        self.carried = tuple(getattr(env, "carried_keys", ("observation",)))  # + the env's privileged state
         self.total_frames = total_frames
         self._state: dict[str, torch.Tensor] | None = None
 
@@ -60,7 +61,7 @@ class DirectCollector:
         for _ in range(self.steps):
             action = self.sample(state["observation"])
             result = self.env.step_tensors(action)
-            rows.append({"observation": state["observation"], "action": action,
+            rows.append({**{key: state[key] for key in self.carried}, "action": action,
                          **{key: state[key] for key in DONE_KEYS}, "next": result})
             state = self._reset_finished(result)
         self._state = state
@@ -74,10 +75,10 @@ class DirectCollector:
         """
         done = result["done"]
         if not done.any():
-            return {"observation": result["observation"], **{key: result[key] for key in DONE_KEYS}}
+            return {**{key: result[key] for key in self.carried}, **{key: result[key] for key in DONE_KEYS}}
         fresh = self.env.reset_tensors(done)
         keep = ~done
-        return {"observation": torch.where(keep, result["observation"], fresh["observation"]),
+        return {**{key: torch.where(keep, result[key], fresh[key]) for key in self.carried},
                 **{key: result[key] & keep for key in DONE_KEYS}}
 
     def shutdown(self) -> None:

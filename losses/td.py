@@ -220,6 +220,14 @@ def _policy_sample(actor_net: nn.Module, observation: torch.Tensor,
     return DrawnTanhNormal(loc, scale, noise, low=-1.0, high=1.0).rsample_and_log_prob()
 
 
+def q_input(tensordict: TensorDictBase, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    """What the Q-networks read, concatenated in their modules' key order: the observation, the car's
+    true state where the transitions hold it (``algo.td.privileged_critic``: ``"privileged"``), the action."""
+    if "privileged" in tensordict.keys():
+        return torch.cat([observation, tensordict.get("privileged"), action], -1)
+    return torch.cat([observation, action], -1)
+
+
 @torch.no_grad()
 def _soft_td_target(loss, actor_net: nn.Module, batch: TensorDictBase, params: TensorDictBase,
                     alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -231,7 +239,7 @@ def _soft_td_target(loss, actor_net: nn.Module, batch: TensorDictBase, params: T
     following = batch.get("next")
     next_observation = following.get("observation")
     next_action, next_log_prob = _policy_sample(actor_net, next_observation, following.get(ACTION_NOISE_KEY))
-    next_values = _stacked_values(loss, torch.cat([next_observation, next_action], -1), params)
+    next_values = _stacked_values(loss, q_input(following, next_observation, next_action), params)
     next_value = (next_values - alpha * next_log_prob.unsqueeze(-1)).min(0)[0]
     return _td0_target(loss, batch, next_value), next_log_prob
 
@@ -271,12 +279,12 @@ def fused_sac_losses(loss: "MemberSACLoss", actor_net: nn.Module,
     members = observation.shape[0]
     target, _ = _soft_td_target(loss, actor_net, batch, loss.target_qvalue_network_params,
                                 loss._alpha.reshape(members, 1, 1))
-    predicted = _stacked_values(loss, torch.cat([observation, batch.get("action")], -1),
+    predicted = _stacked_values(loss, q_input(batch, observation, batch.get("action")),
                                 loss.qvalue_network_params).squeeze(-1)
     td_error = abs(predicted - target)
     loss_qvalue = distance_loss(predicted, target.expand_as(predicted), loss_function=loss.loss_function).sum(0)
     action, log_prob = _policy_sample(actor_net, observation, batch.get(ACTION_NOISE_KEY))
-    min_q = _stacked_values(loss, torch.cat([observation, action], -1),
+    min_q = _stacked_values(loss, q_input(batch, observation, action),
                             loss.qvalue_network_params.detach()).min(0)[0].squeeze(-1)
     loss_actor = loss._alpha * log_prob - min_q
     loss_alpha = loss._alpha_loss(log_prob.detach())
@@ -357,14 +365,14 @@ def redq_losses(loss: MemberREDQLoss, actor_net: nn.Module, batch: TensorDictBas
                                                      batch_size=[loss.subsets.shape[0]])
     alpha = loss._alpha.reshape(members, 1)
     target, next_log_prob = _soft_td_target(loss, actor_net, batch, chosen, alpha.unsqueeze(-1))
-    predicted = _stacked_values(loss, torch.cat([observation, batch.get("action")], -1),
+    predicted = _stacked_values(loss, q_input(batch, observation, batch.get("action")),
                                 loss.qvalue_network_params).squeeze(-1)  # [Q, R, B]
     td_error = abs(predicted - target)
     loss_qvalue = distance_loss(predicted, target.expand_as(predicted), loss_function=loss.loss_function).mean(0)
     losses = {"loss_qvalue": loss_qvalue}
     if actor:
         action, log_prob = _policy_sample(actor_net, observation, batch.get(ACTION_NOISE_KEY))
-        values = _stacked_values(loss, torch.cat([observation, action], -1),
+        values = _stacked_values(loss, q_input(batch, observation, action),
                                  loss.qvalue_network_params.detach()).squeeze(-1)
         losses["loss_actor"] = -(values - alpha * log_prob).mean(0)
         log_alpha = loss.log_alpha.reshape(members, 1)

@@ -439,6 +439,36 @@ class RacingSim:
         readings = ray_distances_car(x, y, theta, self._car.segments[int(self.checkpoint[0])], cfg, self.nearest_ray)
         return [r / cfg.ray_length for r in readings] + [float(self.speed[0]) / cfg.max_speed]
 
+    TRUE_STATE = ("progress", "lateral", "heading_cos", "heading_sin")  # the columns of true_state()
+
+    def true_state(self) -> np.ndarray:
+        """Each car's true state in its track's frame, (N, 4) float64 (what no ray shows; for a critic
+        that trains on it, ``algo.td.privileged_critic``): its progress along the track (checkpoint plus
+        the fraction of the centre line's segment through it, over the number of checkpoints), its signed
+        offset from that segment (positive counter-clockwise of its direction in the x-y plane) over the half width, and the cosine and sine of
+        its heading relative to the segment's direction. The centre line joins the midpoints of the
+        walls' points; only +, -, x, /, sqrt and the physics' own sine and cosine: the same bits on every CPU."""
+        cfg = self.config
+        if getattr(self, "_centre_tracks", None) is None or len(self._centre_tracks) != self.num_cars:
+            self._centre_tracks = [None] * self.num_cars
+            self._centres = np.zeros((self.num_cars, cfg.num_segments + 1, 2))
+        for car, track in enumerate(self.tracks):  # a car's centre line, rebuilt when its track changes
+            if track is not self._centre_tracks[car]:
+                self._centre_tracks[car] = track
+                if track is not None:
+                    self._centres[car] = (track.left_wall + track.right_wall) / 2.0
+        cars = np.arange(self.num_cars)
+        i = np.minimum(self.checkpoint, cfg.num_segments - 1)
+        a, b = self._centres[cars, i], self._centres[cars, i + 1]
+        seg = b - a
+        length = np.sqrt(seg[:, 0] * seg[:, 0] + seg[:, 1] * seg[:, 1])
+        ux, uy = seg[:, 0] / length, seg[:, 1] / length
+        rx, ry = self.x - a[:, 0], self.y - a[:, 1]
+        along = np.clip((rx * ux + ry * uy) / length, 0.0, 1.0)
+        hx, hy = np.sin(self.theta), np.cos(self.theta)  # the direction the car moves in (racing.physics)
+        return np.stack([(i + along) / cfg.num_segments, (ux * ry - uy * rx) / cfg.half_width,
+                         ux * hx + uy * hy, ux * hy - uy * hx], axis=1)
+
     def car_state(self, car: int = 0) -> dict:
         """The state of one car as plain Python values."""
         track = self.tracks[car]

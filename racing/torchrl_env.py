@@ -36,12 +36,15 @@ class RacingTorchEnv(EnvBase):
     Keys: ``observation`` (N, 6) float32 in [0, 1]; ``action`` (N, 2) float32 in [-1, 1]
     (clipped); ``reward`` (N, 1) float32; ``done``, ``terminated``, ``truncated`` (N, 1) bool;
     and, for logging, ``checkpoint`` (N, 1) int64 and ``crashed`` (N, 1) bool (this step
-    left the track). ``env.set_seed(k)`` seeds car i's stream with ``k + i``.
+    left the track). With ``privileged=True`` also ``privileged`` (N, 4) float32: each car's true state
+    in its track's frame (``RacingSim.true_state``), for critics that train on it; no policy sees it.
+    ``env.set_seed(k)`` seeds car i's stream with ``k + i``.
     """
 
     def __init__(self, num_envs: int = 1, track_seeds: int | None | Sequence[int | None] = None,
                  device: Any = "cpu", nearest_ray: bool = False, track_file: str | None = None,
-                 track_scale: float | None = None, track_closed: bool | None = None, **config: Any):
+                 track_scale: float | None = None, track_closed: bool | None = None, privileged: bool = False,
+                 **config: Any):
         owner = "RacingTorchEnv (besides num_envs, track_seeds, device, nearest_ray, track_file, ...)"
         seeded = track_seeds is not None and any(s is not None for s in np.atleast_1d(np.asarray(track_seeds, object)))
         track, cfg = env_track(owner, seeded, track_file, track_scale, track_closed, config)
@@ -50,6 +53,9 @@ class RacingTorchEnv(EnvBase):
         self.config = cfg
         self._on_cpu = self.device == torch.device("cpu")
         self._continue = False  # see load_sim_state
+        self.privileged = bool(privileged)
+        # what a collector carries from a step's result to the next step's root (besides the done flags)
+        self.carried_keys = ("observation", "privileged") if self.privileged else ("observation",)
         n = (num_envs,)
         self.observation_spec = Composite(
             observation=Bounded(0.0, 1.0, n + (cfg.obs_size,), dtype=torch.float32, device=self.device),
@@ -57,6 +63,9 @@ class RacingTorchEnv(EnvBase):
             crashed=Categorical(2, n + (1,), dtype=torch.bool, device=self.device),
             shape=n,
         )
+        if self.privileged:
+            self.observation_spec["privileged"] = Unbounded(n + (len(RacingSim.TRUE_STATE),), dtype=torch.float32,
+                                                            device=self.device)
         self.action_spec = Bounded(-1.0, 1.0, n + (2,), dtype=torch.float32, device=self.device)
         self.reward_spec = Unbounded(n + (1,), dtype=torch.float32, device=self.device)
         self.done_spec = Composite(
@@ -133,6 +142,8 @@ class RacingTorchEnv(EnvBase):
     def _entries(self, **entries: torch.Tensor) -> dict[str, torch.Tensor]:
         entries["observation"] = torch.from_numpy(self.sim.observe().astype(np.float32))
         entries["checkpoint"] = _column(self.sim.checkpoint.copy())  # a copy: updated in place
+        if self.privileged:
+            entries["privileged"] = torch.from_numpy(self.sim.true_state().astype(np.float32))
         if not self._on_cpu:
             entries = {key: value.to(self.device) for key, value in entries.items()}
         return entries

@@ -1,11 +1,15 @@
 """The off-policy learners' options that test what they share (docs/tuning.md, "What the learners share"):
-running observation normalisation (``algo.td.observation_norm``) and a falling entropy target
-(``algo.sac.target_entropy_end``); the discount is the run's ``gamma``.
+running observation normalisation (``algo.td.observation_norm``), a falling entropy target
+(``algo.sac.target_entropy_end``) and Q-networks that also see the car's true state
+(``algo.td.privileged_critic``); the discount is the run's ``gamma``.
 
 Checked: the statistics against numpy's mean and variance in float64, per member; the minibatch's
-observations normalised and the memory left raw; the entropy target's schedule by hand; whole runs: a
-member equals its solo run and an interrupted run resumes exactly with both options, the defaults leave a
-run's bits alone, and the saved actor (with its statistics) evaluates as the run evaluated it.
+observations normalised and the memory left raw; the entropy target's schedule by hand; the true state
+against a hand computation, in both collectors bit for bit and through TorchRL's spec check; whole runs: a
+member equals its solo run and an interrupted run resumes exactly with the options, the defaults leave a
+run's bits alone, the saved actor (with its statistics) evaluates as the run evaluated it, and the fused
+step with the true state is TorchRL's ``SACLoss`` with the state among its Q-networks' keys
+(tests/test_offpolicy.py).
 """
 
 import json
@@ -127,7 +131,68 @@ def test_the_saved_actor_keeps_its_statistics_and_evaluates_as_the_run_did(tmp_p
     assert scores[B] == summary["evaluation"]["own_track"] and scores[1001] == summary["evaluation"]["tracks"]["1001"]
 
 
+def test_the_true_state_is_progress_offset_and_heading_in_the_track_s_frame():
+    from racing.sim import RacingSim
+
+    sim = RacingSim(2, [1001, 1002])
+    sim.seed([0, 1])
+    sim.reset()
+    track = sim.tracks[1]
+    centre = (track.left_wall + track.right_wall) / 2
+    a, b = centre[7], centre[8]
+    u = (b - a) / np.linalg.norm(b - a)
+    normal = np.array([-u[1], u[0]])  # counter-clockwise of the direction
+    sim.checkpoint[1] = 7
+    sim.x[1], sim.y[1] = a + 0.25 * (b - a) + 30.0 * normal
+    heading = np.array([u[0] + normal[0], u[1] + normal[1]]) / np.sqrt(2)  # 45 degrees to the left of the segment
+    sim.theta[1] = np.arctan2(heading[0], heading[1])  # the car moves along (sin theta, cos theta)
+    state = sim.true_state()
+    np.testing.assert_allclose(state[1], [(7 + 0.25) / sim.config.num_segments, 30.0 / sim.config.half_width, np.sqrt(0.5), np.sqrt(0.5)], atol=1e-12)
+    assert state.shape == (2, 4) and state[0, 0] < 0.05  # the other car at its start
+    sim.x[1], sim.y[1] = a - 10.0 * u  # behind the segment's start: its progress does not go below the checkpoint
+    assert sim.true_state()[1, 0] == 7 / sim.config.num_segments
+
+
+def test_the_env_carries_the_true_state_in_both_collectors_bit_for_bit():
+    from torchrl.envs import check_env_specs
+
+    from racing.torchrl_env import RacingTorchEnv
+    from tests.test_collectors import COMPARED, collect
+
+    check_env_specs(RacingTorchEnv(3, track_seeds=[1, 2, 3], privileged=True))
+    keys = [*COMPARED, ("privileged",), ("next", "privileged")]
+    direct = collect("direct", steps=70, episodes=3, privileged=True)
+    reference = collect("torchrl", steps=70, episodes=3, privileged=True)
+    for ours, theirs in zip(direct, reference, strict=True):
+        for key in keys:
+            assert torch.equal(ours[key], theirs[key]), key
+    plain = collect("direct", steps=70, episodes=3)
+    for ours, theirs in zip(direct, plain, strict=True):  # the state is read, never changes the drive
+        assert torch.equal(ours["next", "observation"], theirs["next", "observation"])
+        assert "privileged" not in theirs.keys()
+    batch = direct[0]  # the root's state is the previous step's next state, a reset car's fresh one
+    assert torch.equal(batch["privileged"][:, 1:], batch["next", "privileged"][:, :-1])
+
+
+@pytest.mark.parametrize("algo", ["sac", "redq"])
+def test_the_q_networks_read_the_true_state_and_the_actor_does_not(algo):
+    _, learner = training(algo, "algo.td.privileged_critic=true")
+    assert learner.networks.qvalue_nets[0].net.layers[0].weight.shape[-1] == 6 + 4 + 2
+    assert learner.networks.qvalues[0].in_keys == ["observation", "privileged", "action"]
+    assert learner.networks.actor_net[0].layers[0].weight.shape[-1] == 6
+    assert "privileged" in learner.transition_keys and ("next", "privileged") in learner.transition_keys
+
+
+def test_privileged_members_equal_their_solo_runs_and_resume_exactly(tmp_path):
+    assert_member_is_solo_and_resumes(tmp_path, ["algo=redq", "er=prioritised", *FAST, "episodes=5",
+                                                 "algo.td.updates_per_step=0.1", "algo.redq.critics=3",
+                                                 "algo.td.privileged_critic=true", *BOTH])
+
+
 @pytest.mark.parametrize("override, message", [
+    (["algo=td3", "algo.td.privileged_critic=true"], "built for the losses sac, redq"),
+    (["algo=sac", "algo.td.privileged_critic=true", "algo.td.n_step=3"], "takes one-step transitions"),
+    (["algo=sac", "algo.td.privileged_critic=true", "compile=true"], "not supported with algo.td.privileged_critic"),
     (["algo=sac", "algo.sac.target_entropy_end=-4", "algo.sac.fixed_alpha=true"], "fixed_alpha: true there is none"),
     (["algo=sac", "algo.sac.target_entropy_end=1e9"], "within [-1e6, 1e6] nats"),
     (["algo=redq", "algo.sac.target_entropy=nan"], "target_entropy must be a finite number"),

@@ -20,6 +20,7 @@ DESCRIPTION = "the off-policy losses (loss sac, tqc, crossq, redq, td3, naf or t
 OFF_POLICY = True  # trains on a replay memory only: er=memory or er=prioritised
 KEYS = ()  # its schedule is in the td: block
 LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
+PRIVILEGED_LOSSES = ("sac", "redq")  # algo.td.privileged_critic: losses.td.fused_sac_losses and redq_losses
 
 
 @dataclass(frozen=True)
@@ -40,6 +41,7 @@ class TDOptions:
     reset_every: int = 0  # re-initialise every network, temperature and optimiser every this-many episodes
     #                       (0: never); the replay memory is kept
     observation_norm: bool = False  # actor and critics see running-normalised observations (learners.networks.ObservationNorm)
+    privileged_critic: bool = False  # the Q-networks also see the car's true state (RacingSim.true_state); training only
 
     def __post_init__(self) -> None:
         positive("algo.td.updates_per_step", self.updates_per_step)
@@ -264,6 +266,14 @@ def check(algo) -> None:
         if td.get("loss_function", "l2") != "l2":
             raise ConfigError(f"algo {algo.name}: loss trust_pcl minimises the square of its path consistency; set "
                               f"algo.td.loss_function: l2 (got {td.get('loss_function')})")
+    if td.get("privileged_critic") is True:
+        if algo.loss not in PRIVILEGED_LOSSES:
+            raise ConfigError(f"algo {algo.name}: algo.td.privileged_critic is built for the losses "
+                              f"{', '.join(PRIVILEGED_LOSSES)} (their steps feed the true state to the Q-networks); "
+                              f"loss {algo.loss} has none")
+        if td.get("n_step", 1) != 1:
+            raise ConfigError(f"algo {algo.name}: algo.td.privileged_critic takes one-step transitions; set "
+                              f"algo.td.n_step: 1 (got {td.get('n_step')})")
     decay = td.get("critic_weight_decay") or 0.0
     if isinstance(decay, (int, float)) and isinstance(algo.critic_lr, (int, float)) and decay * algo.critic_lr >= 1:
         raise ConfigError(f"algo {algo.name}: algo.td.critic_weight_decay x critic_lr must be below 1 (each step scales "
