@@ -13,6 +13,7 @@ step with the true state is TorchRL's ``SACLoss`` with the state among its Q-net
 """
 
 import json
+import math
 import re
 
 import numpy as np
@@ -202,3 +203,30 @@ def test_privileged_members_equal_their_solo_runs_and_resume_exactly(tmp_path):
 def test_bad_settings_are_refused_with_a_reason(override, message):
     with pytest.raises(ConfigError, match=re.escape(message)):
         load(*override)
+
+
+def test_the_factor_table_pairs_each_configuration_with_the_base_by_track(tmp_path, capsys):
+    from analysis.factors import factor_rows, main, t_interval
+
+    run = ["algo=sac", "er=memory", *FAST, "episodes=2", f"seeds=[{A},{B}]"]
+    train_population(load(*run), tmp_path / "sweep" / "base")
+    train_population(load(*run, "gamma=0.95"), tmp_path / "sweep" / "gamma0.95")
+    rows = factor_rows(tmp_path / "sweep", "base", oracle={A: 100.0, B: 200.0})
+    assert [r["configuration"] for r in rows] == ["base", "gamma0.95"]
+    finals = {name: [json.loads((tmp_path / "sweep" / name / f"seed{s}" / "summary.json").read_text())["final_mean"]
+                     for s in sorted((A, B))] for name in ("base", "gamma0.95")}
+    differences = [x - y for x, y in zip(finals["gamma0.95"], finals["base"])]
+    mean = sum(differences) / 2
+    half = 12.706 * abs(differences[0] - differences[1]) / math.sqrt(2) / math.sqrt(2)  # t(1) x sd / sqrt(n)
+    assert rows[1]["vs base"] == round(mean, 2) and rows[1]["95% high"] == pytest.approx(mean + half, abs=0.01)
+    assert t_interval([1.0, 2.0, 3.0]) == pytest.approx((2.0, 2.0 - 4.303 / math.sqrt(3), 2.0 + 4.303 / math.sqrt(3)))
+    seeds = sorted((A, B))
+    assert rows[0]["of the oracle"] == pytest.approx((finals["base"][0] / {A: 100.0, B: 200.0}[seeds[0]]
+                                                      + finals["base"][1] / {A: 100.0, B: 200.0}[seeds[1]]) / 2, abs=1e-4)
+    assert main([str(tmp_path / "sweep"), "--base", "base", "--table", str(tmp_path / "f.csv")]) == 0
+    assert "| base |" in capsys.readouterr().out and (tmp_path / "f.csv").read_text().startswith("configuration,")
+    train_population(load("algo=sac", "er=memory", *FAST, "episodes=2", f"seed={A}"), tmp_path / "sweep" / "one_track")
+    assert main([str(tmp_path / "sweep"), "--base", "base"]) == 2
+    assert "one_track has no run of track" in capsys.readouterr().err
+    assert main([str(tmp_path / "sweep"), "--base", "nothing"]) == 2
+    assert "no configuration 'nothing'" in capsys.readouterr().err
