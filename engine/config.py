@@ -419,9 +419,9 @@ class RunConfig:
         if self.compile and self.algo.td is not None and self.algo.td.critic_dropout:
             raise ConfigError(f"algo {self.algo.name}: compile=true is not supported with algo.td.critic_dropout "
                               "(each member draws its dropout masks from its own generator); use compile=false")
-        if self.compile and self.algo.td is not None and self.algo.td.privileged_critic:
-            raise ConfigError(f"algo {self.algo.name}: compile=true is not supported with algo.td.privileged_critic "
-                              "(its eager step feeds the true state to the Q-networks); use compile=false")
+        if self.compile and self.algo.td is not None and (self.algo.td.privileged_critic or self.algo.td.critic_history):
+            raise ConfigError(f"algo {self.algo.name}: compile=true is not supported with algo.td.privileged_critic or "
+                              "algo.td.critic_history (the eager step feeds them to the Q-networks); use compile=false")
         minibatch = max(1, round(self.algo.minibatch_size * self.er.minibatch_fraction))
         steps = self.env.episode_steps
         if self.er.train_on_recent and minibatch > steps:

@@ -478,7 +478,7 @@ def _payload(episodes_done: int, timing: dict, settings: dict | None, parts: dic
         "members": [m.seed for m in members], "member_states": [m.state() for m in members],
         **{name: part.state_dict() for name, part in parts.items()},
         "generators": [g.get_state() for g in generators], "active": phases.active.clone(),
-        "rng": checkpoint.capture_rng(), "sim": checkpoint.arrays_to_tensors(env.sim.state_dict()),
+        "rng": checkpoint.capture_rng(), "sim": checkpoint.arrays_to_tensors(env.sim_state()),
     }
 
 

@@ -66,15 +66,16 @@ def make_env(cfg: RunConfig, seeds: tuple[int, ...]) -> RacingTorchEnv:
     """One car per member: on the member's track (``env.track=fixed``), on a new random track
     per episode (``random``) or on the file's track (``file``); car r's random stream is seeded
     with ``seeds[r]``."""
-    privileged = bool(getattr(getattr(cfg.algo, "td", None), "privileged_critic", False))  # the true state too
+    td = getattr(cfg.algo, "td", None)  # what an off-policy learner's Q-networks read besides (s, a)
+    extra = {"privileged": bool(getattr(td, "privileged_critic", False)), "history": getattr(td, "critic_history", 0)}
     if cfg.env.track == "file":
         env = RacingTorchEnv(len(seeds), track_file=cfg.env.track_file, track_scale=cfg.env.track_scale,
                              track_closed=cfg.env.track_closed, device=cfg.device, nearest_ray=cfg.env.nearest_ray,
-                             privileged=privileged, **cfg.env.options)
+                             **extra, **cfg.env.options)
     else:
         track_seeds = list(seeds) if cfg.env.track == "fixed" else [None] * len(seeds)
         env = RacingTorchEnv(len(seeds), track_seeds=track_seeds, device=cfg.device,
-                             nearest_ray=cfg.env.nearest_ray, privileged=privileged, **cfg.env.options)
+                             nearest_ray=cfg.env.nearest_ray, **extra, **cfg.env.options)
     env.sim.seed(list(seeds))
     return env
 

@@ -220,12 +220,16 @@ def _policy_sample(actor_net: nn.Module, observation: torch.Tensor,
     return DrawnTanhNormal(loc, scale, noise, low=-1.0, high=1.0).rsample_and_log_prob()
 
 
+CRITIC_EXTRAS = ("privileged", "history")  # what Q-networks may read besides (s, a), in this order
+
+
 def q_input(tensordict: TensorDictBase, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-    """What the Q-networks read, concatenated in their modules' key order: the observation, the car's
-    true state where the transitions hold it (``algo.td.privileged_critic``: ``"privileged"``), the action."""
-    if "privileged" in tensordict.keys():
-        return torch.cat([observation, tensordict.get("privileged"), action], -1)
-    return torch.cat([observation, action], -1)
+    """What the Q-networks read, concatenated in their modules' key order: the observation, then what the
+    transitions hold of ``CRITIC_EXTRAS`` (the car's true state, ``algo.td.privileged_critic``; its past
+    observations and actions, ``algo.td.critic_history``), then the action."""
+    keys = tensordict.keys()
+    extras = [tensordict.get(key) for key in CRITIC_EXTRAS if key in keys]
+    return torch.cat([observation, *extras, action], -1)
 
 
 @torch.no_grad()
@@ -377,8 +381,12 @@ def redq_losses(loss: MemberREDQLoss, actor_net: nn.Module, batch: TensorDictBas
         losses["loss_actor"] = -(values - alpha * log_prob).mean(0)
         log_alpha = loss.log_alpha.reshape(members, 1)
         bounded = log_alpha - log_alpha.detach() + log_alpha.detach().clamp(loss.min_log_alpha, loss.max_log_alpha)
-        entropy_gap = torch.stack([log_prob.detach(), next_log_prob]) + loss.target_entropy
-        losses["loss_alpha"] = (-bounded.exp() * entropy_gap).mean(0)
+        entropy_gap = torch.stack([log_prob.detach(), next_log_prob]) + loss.target_entropy  # [2, R, B]
+        # -alpha x gap per member: alpha's gradient then sums each member's own [2, B] (a broadcast over
+        # [2, R, B] would sum over dims 0 and 2 in an order that depends on R: a member would not be its solo run)
+        scale = -bounded.exp()
+        terms = [scale[r] * entropy_gap[:, r].contiguous() for r in range(members)]
+        losses["loss_alpha"] = torch.stack(terms, 1).mean(0)
     if weights is not None:
         losses = {key: value * weights for key, value in losses.items()}
     return {key: member_means(value) for key, value in losses.items()}, td_error.detach().max(0)[0]

@@ -38,13 +38,17 @@ class RacingTorchEnv(EnvBase):
     and, for logging, ``checkpoint`` (N, 1) int64 and ``crashed`` (N, 1) bool (this step
     left the track). With ``privileged=True`` also ``privileged`` (N, 4) float32: each car's true state
     in its track's frame (``RacingSim.true_state``), for critics that train on it; no policy sees it.
+    With ``history=k`` also ``history`` (N, k * (obs + 2)) float32: the car's k observations before this
+    one, newest first, then the k actions it took from them, newest first; at an episode's start the
+    first observation stands for the ones before it and the actions are 0 (a respawn after leaving the
+    track is not an episode's start). ``sim_state`` / ``load_sim_state`` save and restore it with the cars.
     ``env.set_seed(k)`` seeds car i's stream with ``k + i``.
     """
 
     def __init__(self, num_envs: int = 1, track_seeds: int | None | Sequence[int | None] = None,
                  device: Any = "cpu", nearest_ray: bool = False, track_file: str | None = None,
                  track_scale: float | None = None, track_closed: bool | None = None, privileged: bool = False,
-                 **config: Any):
+                 history: int = 0, **config: Any):
         owner = "RacingTorchEnv (besides num_envs, track_seeds, device, nearest_ray, track_file, ...)"
         seeded = track_seeds is not None and any(s is not None for s in np.atleast_1d(np.asarray(track_seeds, object)))
         track, cfg = env_track(owner, seeded, track_file, track_scale, track_closed, config)
@@ -54,8 +58,15 @@ class RacingTorchEnv(EnvBase):
         self._on_cpu = self.device == torch.device("cpu")
         self._continue = False  # see load_sim_state
         self.privileged = bool(privileged)
+        if isinstance(history, bool) or not isinstance(history, (int, np.integer)) or not 0 <= history <= MAX_HISTORY:
+            raise ValueError(f"history must be an integer in [0, {MAX_HISTORY}] (past steps), got {history!r}")
+        self.history = int(history)
+        self._past_obs = np.zeros((num_envs, self.history, cfg.obs_size), np.float32)  # newest first
+        self._past_act = np.zeros((num_envs, self.history, 2), np.float32)
+        self._obs: np.ndarray | None = None  # the observation each car acts on now (history's next entry)
         # what a collector carries from a step's result to the next step's root (besides the done flags)
-        self.carried_keys = ("observation", "privileged") if self.privileged else ("observation",)
+        self.carried_keys = ("observation", *(("privileged",) if self.privileged else ()),
+                             *(("history",) if self.history else ()))
         n = (num_envs,)
         self.observation_spec = Composite(
             observation=Bounded(0.0, 1.0, n + (cfg.obs_size,), dtype=torch.float32, device=self.device),
@@ -66,6 +77,9 @@ class RacingTorchEnv(EnvBase):
         if self.privileged:
             self.observation_spec["privileged"] = Unbounded(n + (len(RacingSim.TRUE_STATE),), dtype=torch.float32,
                                                             device=self.device)
+        if self.history:
+            self.observation_spec["history"] = Unbounded(n + (self.history * (cfg.obs_size + 2),), dtype=torch.float32,
+                                                         device=self.device)
         self.action_spec = Bounded(-1.0, 1.0, n + (2,), dtype=torch.float32, device=self.device)
         self.reward_spec = Unbounded(n + (1,), dtype=torch.float32, device=self.device)
         self.done_spec = Composite(
@@ -88,8 +102,25 @@ class RacingTorchEnv(EnvBase):
         after restoring, whose first act is a full reset, carries on exactly where the saved
         run stopped.
         """
+        state = dict(state)
+        past = {key: state.pop(key, None) for key in ("history_obs", "history_act", "history_now")}
+        if self.history and any(value is None for value in past.values()):
+            raise ValueError("the saved state has no history of the cars' observations and actions "
+                             f"(this environment keeps {self.history} steps)")
         self.sim.load_state_dict(state)
+        if self.history:
+            self._past_obs[...], self._past_act[...] = past["history_obs"], past["history_act"]
+            self._obs = np.array(past["history_now"], dtype=np.float32)
         self._continue = True
+
+    def sim_state(self) -> dict:
+        """``sim.state_dict()`` and, with ``history``, the cars' past observations and actions:
+        what ``load_sim_state`` continues exactly from."""
+        state = self.sim.state_dict()
+        if self.history:
+            state.update(history_obs=self._past_obs.copy(), history_act=self._past_act.copy(),
+                         history_now=self._obs.copy())
+        return state
 
     # A lean path for collectors that step thousands of times per second: the same
     # simulator calls and checks as ``reset``/``step``, without TensorDict bookkeeping.
@@ -104,12 +135,16 @@ class RacingTorchEnv(EnvBase):
             if rows is None:
                 rows = np.flatnonzero(self.sim.finished | (self.sim.t >= self.config.max_steps))
         self.sim.reset(rows)
-        return self._entries(**{key: torch.zeros(self.batch_size + (1,), dtype=torch.bool)
+        return self._entries(_reset=np.arange(self.sim.num_cars) if rows is None else rows,
+                             **{key: torch.zeros(self.batch_size + (1,), dtype=torch.bool)
                                 for key in ("crashed", "done", "terminated", "truncated")})
 
     def step_tensors(self, action: torch.Tensor) -> dict[str, torch.Tensor]:
         """Step every car; returns the entries of ``step()["next"]`` as a dict of tensors."""
         a = self._checked_action(action)
+        if self.history:  # the observation acted on and the action taken join the history
+            self._past_obs[:, 1:], self._past_act[:, 1:] = self._past_obs[:, :-1], self._past_act[:, :-1]
+            self._past_obs[:, 0], self._past_act[:, 0] = self._obs, np.clip(a, -1.0, 1.0)
         reward, terminated, truncated, crashed = self.sim.step(a[:, 0], a[:, 1])
         # One fresh (N, 4) array, handed out as four column views that share nothing else.
         flags = torch.from_numpy(np.stack([terminated | truncated, terminated, truncated, crashed], axis=1))
@@ -139,11 +174,20 @@ class RacingTorchEnv(EnvBase):
             raise ValueError(f"actions of cars {bad[:8].tolist()} contain NaN or inf: {ACTION_HELP}")
         return a
 
-    def _entries(self, **entries: torch.Tensor) -> dict[str, torch.Tensor]:
-        entries["observation"] = torch.from_numpy(self.sim.observe().astype(np.float32))
+    def _entries(self, _reset: np.ndarray | None = None, **entries: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The entries of every car after a step, or after a reset of the cars ``_reset``."""
+        observation = self.sim.observe().astype(np.float32)
+        entries["observation"] = torch.from_numpy(observation)
         entries["checkpoint"] = _column(self.sim.checkpoint.copy())  # a copy: updated in place
         if self.privileged:
             entries["privileged"] = torch.from_numpy(self.sim.true_state().astype(np.float32))
+        if self.history:
+            if _reset is not None:  # a new episode: its first observation stands for the ones before it
+                self._past_obs[_reset] = observation[_reset, None]
+                self._past_act[_reset] = 0.0
+            self._obs = observation.copy()
+            entries["history"] = torch.from_numpy(np.concatenate(
+                [self._past_obs.reshape(self.sim.num_cars, -1), self._past_act.reshape(self.sim.num_cars, -1)], axis=1))
         if not self._on_cpu:
             entries = {key: value.to(self.device) for key, value in entries.items()}
         return entries
@@ -157,6 +201,7 @@ class RacingTorchEnv(EnvBase):
 
 
 _INTEGER = (torch.int8, torch.int16, torch.int32, torch.int64, torch.uint8)
+MAX_HISTORY = 64  # past steps an env keeps (history=k)
 
 
 def _column(values: np.ndarray) -> torch.Tensor:

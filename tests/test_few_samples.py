@@ -380,8 +380,9 @@ def test_redq_members_draw_their_own_subsets_and_equal_their_solo_runs(tmp_path)
     subsets = torch.stack(drawn)  # [draws, subset, R]
     assert subsets.shape == (20, 2, 2) and not torch.equal(subsets[..., 0], subsets[..., 1])
     assert (subsets[:, 0] < subsets[:, 1]).all()  # distinct networks, in increasing order
-    run = [*REDQ, "er=prioritised", *FAST, "episodes=5", "algo.td.updates_per_step=0.1"]
-    assert_member_is_solo_and_resumes(tmp_path, run)
+    run = [*REDQ, "er=prioritised", *FAST, "episodes=6", "algo.td.updates_per_step=0.1", "algo.redq.policy_delay=1"]
+    assert_member_is_solo_and_resumes(tmp_path, run)  # a temperature step every critic step: before its loss summed
+    #   each member's terms alone, a member's temperature drifted from its solo run's by episode 4 here
     cfg = load(*run)
     policy = make_policy("redq", {"actor_hidden": cfg.network.actor_hidden, "activation": cfg.network.activation}, 6,
                          torch.load(tmp_path / "solo" / "actor.pt"))  # evaluate.py's policy of the run

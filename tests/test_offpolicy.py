@@ -395,11 +395,11 @@ def test_fused_crossq_steps_are_the_torchrl_loss_bit_for_bit(mode, extra):
                                      "algo.td.reset_every=3"],
                                     ["algo=droq", "algo.td.updates_per_step=0.25", "episodes=2"],
                                     ["algo=sac", "algo.td.updates_per_step=0.25", "episodes=2",
-                                     "algo.td.privileged_critic=true"]])
+                                     "algo.td.privileged_critic=true", "algo.td.critic_history=2"]])
 def test_a_run_with_the_fused_sac_step_is_a_run_through_the_loss_module(tmp_path, monkeypatch, recipe):
     """Whole runs (prioritised replay but for CrossQ, two members, 50-60 gradient steps; TD3's; TQC's; CrossQ's; BRO's Q-networks with a
-    reset; DroQ's; SAC's Q-networks reading the car's true state, which TorchRL's SACLoss passes them as one
-    more key): byte-identical learning curves and weights with and without the fused step."""
+    reset; DroQ's; SAC's Q-networks reading the car's true state and past steps, which TorchRL's SACLoss
+    passes them as two more keys): byte-identical learning curves and weights with and without the fused step."""
     from learners.td import learner
 
     cfg = load("er=prioritised", *recipe, f"seeds=[{A},{B}]", "algo.td.warmup_episodes=1",

@@ -1,11 +1,13 @@
 """The off-policy learners' options that test what they share (docs/tuning.md, "What the learners share"):
 running observation normalisation (``algo.td.observation_norm``), a falling entropy target
 (``algo.sac.target_entropy_end``) and Q-networks that also see the car's true state
-(``algo.td.privileged_critic``); the discount is the run's ``gamma``.
+(``algo.td.privileged_critic``) or its own past observations and actions (``algo.td.critic_history``); the
+discount is the run's ``gamma``.
 
 Checked: the statistics against numpy's mean and variance in float64, per member; the minibatch's
 observations normalised and the memory left raw; the entropy target's schedule by hand; the true state
-against a hand computation, in both collectors bit for bit and through TorchRL's spec check; whole runs: a
+against a hand computation and the history against the steps it records, both in both collectors bit for
+bit, through TorchRL's spec check and (the history) across a save mid-episode; whole runs: a
 member equals its solo run and an interrupted run resumes exactly with the options, the defaults leave a
 run's bits alone, the saved actor (with its statistics) evaluates as the run evaluated it, and the fused
 step with the true state is TorchRL's ``SACLoss`` with the state among its Q-networks' keys
@@ -175,23 +177,82 @@ def test_the_env_carries_the_true_state_in_both_collectors_bit_for_bit():
     assert torch.equal(batch["privileged"][:, 1:], batch["next", "privileged"][:, :-1])
 
 
+def test_the_history_holds_the_last_observations_and_actions_of_the_episode_newest_first():
+    from learners.td import MAX_HISTORY
+    from racing.torchrl_env import MAX_HISTORY as ENV_MAX_HISTORY
+    from racing.torchrl_env import RacingTorchEnv
+
+    assert MAX_HISTORY == ENV_MAX_HISTORY
+    env = RacingTorchEnv(2, track_seeds=[1, 2], history=3)
+    seen = [env.reset_tensors()]
+    first = seen[0]["observation"]
+    assert torch.equal(seen[0]["history"], torch.cat([first, first, first, torch.zeros(2, 6)], 1))
+    actions = [torch.tensor([[0.5, 0.1], [1.0, -0.2]]), torch.tensor([[2.0, 0.0], [-0.3, 0.4]]),
+               torch.tensor([[0.9, -0.9], [0.2, 0.2]]), torch.tensor([[0.1, 0.3], [0.7, -0.5]])]
+    for action in actions:
+        seen.append(env.step_tensors(action))
+    obs = [e["observation"] for e in seen]
+    clipped = [a.clamp(-1, 1) for a in actions]
+    assert torch.equal(seen[2]["history"], torch.cat([obs[1], obs[0], obs[0], clipped[1], clipped[0],
+                                                      torch.zeros(2, 2)], 1))
+    assert torch.equal(seen[4]["history"], torch.cat([obs[3], obs[2], obs[1], clipped[3], clipped[2], clipped[1]], 1))
+    again = env.reset_tensors(torch.tensor([False, True]))  # car 1 starts a new episode, car 0 goes on
+    assert torch.equal(again["history"][0], seen[4]["history"][0])
+    fresh = again["observation"][1]
+    assert torch.equal(again["history"][1], torch.cat([fresh, fresh, fresh, torch.zeros(6)]))
+    # saved mid-episode and restored into a new environment, it continues exactly
+    state = env.sim_state()
+    twin = RacingTorchEnv(2, track_seeds=[1, 2], history=3)
+    twin.load_sim_state(state)
+    assert torch.equal(twin.reset_tensors()["history"], again["history"])
+    step = torch.tensor([[0.3, 0.3], [0.6, -0.1]])
+    assert torch.equal(twin.step_tensors(step)["history"], env.step_tensors(step)["history"])
+    with pytest.raises(ValueError, match="no history"):
+        RacingTorchEnv(2, track_seeds=[1, 2], history=3).load_sim_state(RacingTorchEnv(2, track_seeds=[1, 2]).sim_state())
+    with pytest.raises(ValueError, match="history must be an integer"):
+        RacingTorchEnv(1, track_seeds=1, history=65)
+
+
+def test_the_env_carries_the_history_in_both_collectors_bit_for_bit():
+    from torchrl.envs import check_env_specs
+
+    from racing.torchrl_env import RacingTorchEnv
+    from tests.test_collectors import COMPARED, collect
+
+    check_env_specs(RacingTorchEnv(3, track_seeds=[1, 2, 3], history=2, privileged=True))
+    keys = [*COMPARED, ("history",), ("next", "history"), ("privileged",)]
+    direct = collect("direct", steps=70, episodes=3, history=2, privileged=True)
+    reference = collect("torchrl", steps=70, episodes=3, history=2, privileged=True)
+    for ours, theirs in zip(direct, reference, strict=True):
+        for key in keys:
+            assert torch.equal(ours[key], theirs[key]), key
+
+
 @pytest.mark.parametrize("algo", ["sac", "redq"])
-def test_the_q_networks_read_the_true_state_and_the_actor_does_not(algo):
+def test_the_q_networks_read_the_true_state_and_the_history_and_the_actor_does_not(algo):
     _, learner = training(algo, "algo.td.privileged_critic=true")
     assert learner.networks.qvalue_nets[0].net.layers[0].weight.shape[-1] == 6 + 4 + 2
     assert learner.networks.qvalues[0].in_keys == ["observation", "privileged", "action"]
     assert learner.networks.actor_net[0].layers[0].weight.shape[-1] == 6
     assert "privileged" in learner.transition_keys and ("next", "privileged") in learner.transition_keys
+    _, learner = training(algo, "algo.td.privileged_critic=true", "algo.td.critic_history=2")
+    assert learner.networks.qvalue_nets[0].net.layers[0].weight.shape[-1] == 6 + 4 + 2 * (6 + 2) + 2
+    assert learner.networks.qvalues[0].in_keys == ["observation", "privileged", "history", "action"]
+    assert ("next", "history") in learner.transition_keys
 
 
 def test_privileged_members_equal_their_solo_runs_and_resume_exactly(tmp_path):
     assert_member_is_solo_and_resumes(tmp_path, ["algo=redq", "er=prioritised", *FAST, "episodes=5",
                                                  "algo.td.updates_per_step=0.1", "algo.redq.critics=3",
-                                                 "algo.td.privileged_critic=true", *BOTH])
+                                                 "algo.td.privileged_critic=true", "algo.td.critic_history=2", *BOTH])
 
 
 @pytest.mark.parametrize("override, message", [
     (["algo=td3", "algo.td.privileged_critic=true"], "built for the losses sac, redq"),
+    (["algo=tqc", "algo.td.critic_history=2"], "algo.td.critic_history is built for the losses sac, redq"),
+    (["algo=sac", "algo.td.critic_history=65"], "critic_history must be at most 64"),
+    (["algo=sac", "algo.td.critic_history=-1"], "critic_history must be >= 0"),
+    (["algo=sac", "algo.td.critic_history=2", "algo.td.n_step=2"], "takes one-step transitions"),
     (["algo=sac", "algo.td.privileged_critic=true", "algo.td.n_step=3"], "takes one-step transitions"),
     (["algo=sac", "algo.td.privileged_critic=true", "compile=true"], "not supported with algo.td.privileged_critic"),
     (["algo=sac", "algo.sac.target_entropy_end=-4", "algo.sac.fixed_alpha=true"], "fixed_alpha: true there is none"),

@@ -20,7 +20,8 @@ DESCRIPTION = "the off-policy losses (loss sac, tqc, crossq, redq, td3, naf or t
 OFF_POLICY = True  # trains on a replay memory only: er=memory or er=prioritised
 KEYS = ()  # its schedule is in the td: block
 LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
-PRIVILEGED_LOSSES = ("sac", "redq")  # algo.td.privileged_critic: losses.td.fused_sac_losses and redq_losses
+PRIVILEGED_LOSSES = ("sac", "redq")  # algo.td.privileged_critic, critic_history: losses.td.fused_sac_losses, redq_losses
+MAX_HISTORY = 64  # racing.torchrl_env.MAX_HISTORY (kept torch-free here; a test holds them equal)
 
 
 @dataclass(frozen=True)
@@ -42,6 +43,7 @@ class TDOptions:
     #                       (0: never); the replay memory is kept
     observation_norm: bool = False  # actor and critics see running-normalised observations (learners.networks.ObservationNorm)
     privileged_critic: bool = False  # the Q-networks also see the car's true state (RacingSim.true_state); training only
+    critic_history: int = 0  # the Q-networks also see the car's last this-many observations and actions (its own past)
 
     def __post_init__(self) -> None:
         positive("algo.td.updates_per_step", self.updates_per_step)
@@ -59,6 +61,9 @@ class TDOptions:
             choice("algo.td.critic_activation", self.critic_activation, ACTIVATIONS)
         at_least("algo.td.critic_weight_decay", self.critic_weight_decay, 0)
         at_least("algo.td.reset_every", self.reset_every, 0)
+        at_least("algo.td.critic_history", self.critic_history, 0)
+        if self.critic_history > MAX_HISTORY:
+            raise ConfigError(f"algo.td.critic_history must be at most {MAX_HISTORY} past steps, got {self.critic_history}")
         if self.critic_blocks and (self.critic_dropout or self.critic_layer_norm):
             raise ConfigError("algo.td.critic_blocks > 0 makes a residual Q-network, layer-normalised throughout "
                               "and without dropout; set algo.td.critic_dropout: 0.0 and algo.td.critic_layer_norm: "
@@ -266,14 +271,16 @@ def check(algo) -> None:
         if td.get("loss_function", "l2") != "l2":
             raise ConfigError(f"algo {algo.name}: loss trust_pcl minimises the square of its path consistency; set "
                               f"algo.td.loss_function: l2 (got {td.get('loss_function')})")
-    if td.get("privileged_critic") is True:
+    for key, given in (("privileged_critic", td.get("privileged_critic") is True),
+                       ("critic_history", isinstance(td.get("critic_history"), int) and td.get("critic_history") > 0)):
+        if not given:
+            continue
         if algo.loss not in PRIVILEGED_LOSSES:
-            raise ConfigError(f"algo {algo.name}: algo.td.privileged_critic is built for the losses "
-                              f"{', '.join(PRIVILEGED_LOSSES)} (their steps feed the true state to the Q-networks); "
-                              f"loss {algo.loss} has none")
+            raise ConfigError(f"algo {algo.name}: algo.td.{key} is built for the losses {', '.join(PRIVILEGED_LOSSES)} "
+                              f"(their steps feed what the Q-networks see besides (s, a)); loss {algo.loss} has none")
         if td.get("n_step", 1) != 1:
-            raise ConfigError(f"algo {algo.name}: algo.td.privileged_critic takes one-step transitions; set "
-                              f"algo.td.n_step: 1 (got {td.get('n_step')})")
+            raise ConfigError(f"algo {algo.name}: algo.td.{key} takes one-step transitions; set algo.td.n_step: 1 "
+                              f"(got {td.get('n_step')})")
     decay = td.get("critic_weight_decay") or 0.0
     if isinstance(decay, (int, float)) and isinstance(algo.critic_lr, (int, float)) and decay * algo.critic_lr >= 1:
         raise ConfigError(f"algo {algo.name}: algo.td.critic_weight_decay x critic_lr must be below 1 (each step scales "

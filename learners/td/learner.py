@@ -56,6 +56,7 @@ FUSED = True  # the eager steps of SAC (DroQ, BRO), TQC, CrossQ and TD3 on plain
 TD_TRANSITION_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
                       ("next", "terminated"))
 PRIVILEGED_KEYS = ("privileged", ("next", "privileged"))  # algo.td.privileged_critic: the car's true state
+HISTORY_KEYS = ("history", ("next", "history"))  # algo.td.critic_history: its past observations and actions
 
 
 @dataclass
@@ -139,7 +140,9 @@ def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
                                    warmup_blocks=algo.td.warmup_episodes, norm=norm)
         return Networks(actor_net, [value_net], actor, [TensorDictModule(value_net, ["observation"], ["state_value"])],
                         sampler, norm)
-    privileged = env.observation_spec["privileged"].shape[-1] if algo.td.privileged_critic else 0
+    # what the Q-networks read besides (s, a), in losses.td.CRITIC_EXTRAS' order
+    extras = [key for key, on in (("privileged", algo.td.privileged_critic), ("history", algo.td.critic_history)) if on]
+    extra_width = sum(env.observation_spec[key].shape[-1] for key in extras)
     if algo.loss == "tqc":
         critics, outputs = algo.tqc.critics, algo.tqc.quantiles
     else:  # twin Q-networks (sac, crossq, td3) or REDQ's ensemble
@@ -149,17 +152,17 @@ def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
             q = StackedBNCriticNet(members, obs_dim + action_dim, net.critic_hidden, net.activation,
                                    momentum=algo.crossq.batch_norm_momentum).to(device)
         elif algo.td.critic_blocks:  # BRO's residual, layer-normalised Q-network
-            q = StackedResidualCriticNet(members, obs_dim + privileged + action_dim,
+            q = StackedResidualCriticNet(members, obs_dim + extra_width + action_dim,
                                          algo.td.critic_width or net.critic_hidden[0], algo.td.critic_blocks, algo.td.critic_activation or net.activation,
                                          outputs=outputs).to(device)
         else:
-            q = StackedCriticNet(members, obs_dim + privileged + action_dim, net.critic_hidden, net.activation,
+            q = StackedCriticNet(members, obs_dim + extra_width + action_dim, net.critic_hidden, net.activation,
                                  outputs=outputs,
                                  dropout=algo.td.critic_dropout, layer_norm=algo.td.critic_layer_norm,
                                  generators=generators).to(device)
         reset_parameters(q, generators)
         qvalue_nets.append(q)
-    inputs = ["observation", "privileged", "action"] if privileged else ["observation", "action"]  # concatenated
+    inputs = ["observation", *extras, "action"]  # concatenated in this order
     qvalues = [TensorDictModule(q, inputs, ["state_action_value"]) for q in qvalue_nets]
     noise = algo.td3.exploration_noise if algo.loss == "td3" else None
     sampler = OffPolicySampler(actor_net, generators, action_dim, block=cfg.env.episode_steps,
@@ -630,5 +633,6 @@ def build(cfg, env, generators: Sequence[torch.Generator], memory: ReplayMemory)
     optimisers = make_optimisers(cfg, loss)
     phases = TDPhaseRunner(cfg, loss, optimisers, generators, memory if cfg.er.priority else None,
                            actor_net=networks.actor_net, qvalue_nets=networks.qvalue_nets, norm=networks.norm)
-    keys = TD_TRANSITION_KEYS + (PRIVILEGED_KEYS if cfg.algo.td.privileged_critic else ())
+    keys = (TD_TRANSITION_KEYS + (PRIVILEGED_KEYS if cfg.algo.td.privileged_critic else ())
+            + (HISTORY_KEYS if cfg.algo.td.critic_history else ()))
     return Learner(networks, loss, optimisers, memory, phases, keys, monte_carlo=False, n_step=cfg.algo.td.n_step)
