@@ -153,12 +153,11 @@ def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
                                    momentum=algo.crossq.batch_norm_momentum).to(device)
         elif algo.td.critic_blocks:  # BRO's residual, layer-normalised Q-network
             q = StackedResidualCriticNet(members, obs_dim + extra_width + action_dim,
-                                         algo.td.critic_width or net.critic_hidden[0], algo.td.critic_blocks, algo.td.critic_activation or net.activation,
-                                         outputs=outputs).to(device)
+                                         algo.td.critic_width or net.critic_hidden[0], algo.td.critic_blocks,
+                                         algo.td.critic_activation or net.activation, outputs=outputs).to(device)
         else:
             q = StackedCriticNet(members, obs_dim + extra_width + action_dim, net.critic_hidden, net.activation,
-                                 outputs=outputs,
-                                 dropout=algo.td.critic_dropout, layer_norm=algo.td.critic_layer_norm,
+                                 outputs=outputs, dropout=algo.td.critic_dropout, layer_norm=algo.td.critic_layer_norm,
                                  generators=generators).to(device)
         reset_parameters(q, generators)
         qvalue_nets.append(q)
