@@ -9,7 +9,9 @@ episodes), their mean, the mean difference from the base paired by track with a 
 the tracks (few tracks give a wide one: that is what they can say), the deterministic policy's score
 on its own track (summary.json's evaluation) and both as fractions of the oracle's score on each track
 (``analysis/data``), collapses (final < 20) and CPU-minutes per run. Runs must be finished (``--running``
-leaves out the configurations still training); a configuration missing a track of the base's is refused.
+leaves out, and names, the configurations still training or stopped); a configuration with a diverged run
+gets its row without a mean or a difference (a diverged run's final performance is no result); a damaged
+run, or a configuration missing a track of the base's, is refused.
 """
 
 from __future__ import annotations
@@ -41,19 +43,29 @@ def t_interval(differences: list[float]) -> tuple[float, float, float]:
 
 def configurations(sweep: Path, running: bool = False) -> dict[str, dict[int, object]]:
     """{configuration: {track: run}} of the finished runs under ``sweep`` (``running``: configurations with
-    an unfinished run are left out, else refused)."""
+    a run still training, or stopped, are left out, each named on stderr; else refused). A damaged run is
+    always refused."""
     found: dict[str, dict[int, object]] = {}
-    unfinished = set()
+    unfinished: dict[str, str] = {}
     for run in find_runs(sweep):
+        parts = run.path.relative_to(sweep).parts
+        if not parts:
+            raise ValueError(f"{sweep} is a run's folder, not a sweep's: give the folder whose subfolders are the "
+                             "configurations (each holding its runs)")
+        name = parts[0]
+        if run.status == "damaged":
+            raise ValueError(f"{run.path} is damaged ({run.problem}); repair or remove it")
         if run.status not in ("completed", "diverged"):
             if running:
-                unfinished.add(run.path.relative_to(sweep).parts[0])
+                unfinished[name] = f"{run.path.name} {run.status}"
                 continue
-            raise ValueError(f"{run.path} is not finished ({run.status}); wait for it or leave it out")
-        name = run.path.relative_to(sweep).parts[0]
+            raise ValueError(f"{run.path} is not finished ({run.status}); wait for it, resume it, or pass --running to "
+                             "leave its configuration out")
         if run.seed in found.setdefault(name, {}):
             raise ValueError(f"{name} holds two runs of track {run.seed}")
         found[name][run.seed] = run
+    for name, why in sorted(unfinished.items()):
+        print(f"analysis.factors: left out {name} ({why}: not finished)", file=sys.stderr)
     return {name: runs for name, runs in found.items() if name not in unfinished}
 
 
@@ -69,6 +81,14 @@ def factor_rows(sweep: Path, base: str, oracle: dict[int, float] | None = None, 
         missing = [t for t in tracks if t not in runs]
         if missing:
             raise ValueError(f"{name} has no run of track(s) {missing} that the base {base} has")
+        diverged = [t for t in tracks if runs[t].status == "diverged" or configs[base][t].status == "diverged"]
+        if diverged:  # a diverged run's final performance is not a result (report.py leaves it out too)
+            rows.append({"configuration": name, **{f"track {t}": "diverged" if runs[t].status == "diverged"
+                                                   else round(runs[t].final_mean, 2) for t in tracks},
+                         "mean": "", "vs base": "", "95% low": "", "95% high": "", "of the oracle": "",
+                         "deterministic, of the oracle": "", "collapsed": "", "CPU-min per run": "",
+                         "diverged": sum(runs[t].status == "diverged" for t in tracks)})
+            continue
         finals = [runs[t].final_mean for t in tracks]
         mean, low, high = t_interval([runs[t].final_mean - configs[base][t].final_mean for t in tracks])
         own = [(runs[t].evaluation or {}).get("own_track") for t in tracks]
@@ -85,7 +105,7 @@ def factor_rows(sweep: Path, base: str, oracle: dict[int, float] | None = None, 
                      "deterministic, of the oracle": round(math.fsum(det) / len(det), 4) if len(det) == len(tracks)
                      else "",
                      "collapsed": sum(f < COLLAPSE for f in finals),
-                     "CPU-min per run": round(math.fsum(cpu) / len(cpu) / 60, 2) if cpu else ""})
+                     "CPU-min per run": round(math.fsum(cpu) / len(cpu) / 60, 2) if cpu else "", "diverged": 0})
     return rows
 
 
@@ -94,8 +114,15 @@ def markdown(rows: list[dict]) -> str:
     keys = [k for k in rows[0] if k not in ("95% low", "95% high")]
     lines = ["| " + " | ".join(keys) + " |", "|---" + "|---:" * (len(keys) - 1) + "|"]
     for row in rows:
-        cells = [f"{row[k]:+.2f} [{row['95% low']:+.2f}, {row['95% high']:+.2f}]" if k == "vs base" and row[k] != ""
-                 else "(base)" if k == "vs base" else str(row[k]) for k in keys]
+        def cell(k):
+            if k != "vs base":
+                return str(row[k])
+            if row[k] == "":
+                return "(base)" if row is rows[0] else ""
+            if math.isnan(row["95% low"]):  # one track: no interval
+                return f"{row[k]:+.2f}"
+            return f"{row[k]:+.2f} [{row['95% low']:+.2f}, {row['95% high']:+.2f}]"
+        cells = [cell(k) for k in keys]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -108,6 +135,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--table", type=Path, default=None, help="write the rows as CSV")
     parser.add_argument("--running", action="store_true", help="leave out configurations still running")
     args = parser.parse_args(argv)
+    for path in (args.markdown, args.table):
+        if path is not None and not path.parent.is_dir():
+            print(f"analysis.factors: {path.parent} is not a folder; give a file in an existing folder", file=sys.stderr)
+            return 2
     try:
         rows = factor_rows(args.sweep, args.base, running=args.running)
     except (ValueError, FileNotFoundError) as err:

@@ -57,6 +57,8 @@ class RacingTorchEnv(EnvBase):
         self.config = cfg
         self._on_cpu = self.device == torch.device("cpu")
         self._continue = False  # see load_sim_state
+        if not isinstance(privileged, (bool, np.bool_)):
+            raise TypeError(f"privileged must be True or False, got {privileged!r}")
         self.privileged = bool(privileged)
         if isinstance(history, bool) or not isinstance(history, (int, np.integer)) or not 0 <= history <= MAX_HISTORY:
             raise ValueError(f"history must be an integer in [0, {MAX_HISTORY}] (past steps), got {history!r}")
@@ -104,9 +106,17 @@ class RacingTorchEnv(EnvBase):
         """
         state = dict(state)
         past = {key: state.pop(key, None) for key in ("history_obs", "history_act", "history_now")}
-        if self.history and any(value is None for value in past.values()):
-            raise ValueError("the saved state has no history of the cars' observations and actions "
-                             f"(this environment keeps {self.history} steps)")
+        if self.history:
+            if any(value is None for value in past.values()):
+                raise ValueError("the saved state has no history of the cars' observations and actions "
+                                 f"(this environment keeps {self.history} steps)")
+            shapes = {"history_obs": self._past_obs.shape, "history_act": self._past_act.shape,
+                      "history_now": (self.sim.num_cars, self.config.obs_size)}
+            for key, shape in shapes.items():
+                if tuple(np.shape(past[key])) != shape:
+                    raise ValueError(f"the saved state's {key} has shape {tuple(np.shape(past[key]))}, this environment's "
+                                     f"{shape} ({self.sim.num_cars} cars, history={self.history}): it was saved by "
+                                     "another environment")
         self.sim.load_state_dict(state)
         if self.history:
             self._past_obs[...], self._past_act[...] = past["history_obs"], past["history_act"]
@@ -117,9 +127,9 @@ class RacingTorchEnv(EnvBase):
         """``sim.state_dict()`` and, with ``history``, the cars' past observations and actions:
         what ``load_sim_state`` continues exactly from."""
         state = self.sim.state_dict()
-        if self.history:
-            state.update(history_obs=self._past_obs.copy(), history_act=self._past_act.copy(),
-                         history_now=self._obs.copy())
+        if self.history:  # before the first reset: no observation yet (zeros, as the history)
+            now = self._obs if self._obs is not None else np.zeros((self.sim.num_cars, self.config.obs_size), np.float32)
+            state.update(history_obs=self._past_obs.copy(), history_act=self._past_act.copy(), history_now=now.copy())
         return state
 
     # A lean path for collectors that step thousands of times per second: the same

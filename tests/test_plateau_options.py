@@ -211,6 +211,11 @@ def test_the_history_holds_the_last_observations_and_actions_of_the_episode_newe
         RacingTorchEnv(2, track_seeds=[1, 2], history=3).load_sim_state(RacingTorchEnv(2, track_seeds=[1, 2]).sim_state())
     with pytest.raises(ValueError, match="history must be an integer"):
         RacingTorchEnv(1, track_seeds=1, history=65)
+    with pytest.raises(ValueError, match="history_obs has shape"):  # refused before any car is touched
+        RacingTorchEnv(2, track_seeds=[1, 2], history=5).load_sim_state(state)
+    with pytest.raises(TypeError, match="privileged must be True or False"):
+        RacingTorchEnv(1, track_seeds=1, privileged="no")
+    RacingTorchEnv(2, track_seeds=[1, 2], history=3).sim_state()  # before the first reset too
 
 
 def test_the_env_carries_the_history_in_both_collectors_bit_for_bit():
@@ -291,3 +296,14 @@ def test_the_factor_table_pairs_each_configuration_with_the_base_by_track(tmp_pa
     assert "one_track has no run of track" in capsys.readouterr().err
     assert main([str(tmp_path / "sweep"), "--base", "nothing"]) == 2
     assert "no configuration 'nothing'" in capsys.readouterr().err
+    assert main([str(tmp_path / "sweep" / "base" / f"seed{A}"), "--base", "base"]) == 2  # a run, not a sweep
+    assert "is a run's folder, not a sweep's" in capsys.readouterr().err
+    assert main([str(tmp_path / "sweep"), "--base", "base", "--markdown", str(tmp_path / "no" / "t.md")]) == 2
+    assert "is not a folder" in capsys.readouterr().err
+    # a diverged run's final performance is no result: its configuration's row has no mean or difference
+    (tmp_path / "sweep" / "one_track").rename(tmp_path / "elsewhere")
+    train_population(load(*run, "algo.critic_lr=1e8", "algo.actor_lr=1e8", "algo.td.updates_per_step=1.0"),
+                     tmp_path / "sweep" / "diverged")
+    rows = {r["configuration"]: r for r in factor_rows(tmp_path / "sweep", "base", oracle={A: 100.0, B: 200.0})}
+    assert rows["diverged"]["diverged"] >= 1 and rows["diverged"]["mean"] == "" and rows["diverged"]["vs base"] == ""
+    assert "diverged" in [rows["diverged"][f"track {t}"] for t in sorted((A, B))]
