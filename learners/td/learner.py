@@ -43,7 +43,7 @@ from learners.optim import MemberAdam
 from learners.td import ENTROPY_LOSSES, GAUSSIAN_ACTORS, linear_schedule
 from losses.naf import NAFLoss, lower_entries
 from losses.trust_pcl import TrustPCLLoss
-from losses.td import (ACTION_NOISE_KEY, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhNormal, MemberCrossQLoss, MemberREDQLoss,
+from losses.td import (ACTION_NOISE_KEY, CRITIC_EXTRAS, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhNormal, MemberCrossQLoss, MemberREDQLoss,
                        MemberSACLoss, MemberTD3Loss, MemberTQCLoss, SmoothedActor, fused_crossq_actor_losses,
                        fused_crossq_available, fused_crossq_critic_losses, fused_sac_available, fused_sac_losses,
                        fused_td3_actor_losses, fused_td3_available, fused_td3_critic_losses, fused_tqc_available,
@@ -55,8 +55,13 @@ FUSED = True  # the eager steps of SAC (DroQ, BRO), TQC, CrossQ and TD3 on plain
 
 TD_TRANSITION_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
                       ("next", "terminated"))
-PRIVILEGED_KEYS = ("privileged", ("next", "privileged"))  # algo.td.privileged_critic: the car's true state
-HISTORY_KEYS = ("history", ("next", "history"))  # algo.td.critic_history: its past observations and actions
+
+
+def critic_extras(td) -> list[str]:
+    """What the Q-networks read besides (s, a), in ``losses.td.CRITIC_EXTRAS``' order: the env's ``privileged``
+    (``td.privileged_critic``: the car's true state) and ``history`` (``td.critic_history``: its past steps)."""
+    wanted = {"privileged": td.privileged_critic, "history": td.critic_history}
+    return [key for key in CRITIC_EXTRAS if wanted[key]]
 
 
 @dataclass
@@ -140,8 +145,7 @@ def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
                                    warmup_blocks=algo.td.warmup_episodes, norm=norm)
         return Networks(actor_net, [value_net], actor, [TensorDictModule(value_net, ["observation"], ["state_value"])],
                         sampler, norm)
-    # what the Q-networks read besides (s, a), in losses.td.CRITIC_EXTRAS' order
-    extras = [key for key, on in (("privileged", algo.td.privileged_critic), ("history", algo.td.critic_history)) if on]
+    extras = critic_extras(algo.td)
     extra_width = sum(env.observation_spec[key].shape[-1] for key in extras)
     if algo.loss == "tqc":
         critics, outputs = algo.tqc.critics, algo.tqc.quantiles
@@ -632,6 +636,5 @@ def build(cfg, env, generators: Sequence[torch.Generator], memory: ReplayMemory)
     optimisers = make_optimisers(cfg, loss)
     phases = TDPhaseRunner(cfg, loss, optimisers, generators, memory if cfg.er.priority else None,
                            actor_net=networks.actor_net, qvalue_nets=networks.qvalue_nets, norm=networks.norm)
-    keys = (TD_TRANSITION_KEYS + (PRIVILEGED_KEYS if cfg.algo.td.privileged_critic else ())
-            + (HISTORY_KEYS if cfg.algo.td.critic_history else ()))
+    keys = TD_TRANSITION_KEYS + tuple(k for key in critic_extras(cfg.algo.td) for k in (key, ("next", key)))
     return Learner(networks, loss, optimisers, memory, phases, keys, monte_carlo=False, n_step=cfg.algo.td.n_step)
