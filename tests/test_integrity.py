@@ -379,14 +379,14 @@ def test_sweeps_refuse_aliased_folders_bad_interpolations_and_unknown_groups_in_
     from tests.test_train import run_train
 
     sweep = tmp_path / "sweep"
-    aliased = run_train("-m", *TINY, "seed=1,2", f"hydra.sweep.dir={sweep}",
+    aliased = run_train("-m", *TINY, "seed=1,2", "hydra/launcher=basic", f"hydra.sweep.dir={sweep}",
                         "hydra.sweep.subdir=x/${seed}/..")  # both jobs write x
     assert aliased.returncode == 2 and "writes " in aliased.stderr and "as job #0" in aliased.stderr, aliased.stderr
-    unknown = run_train("-m", *TINY, "algo=spg,doesnotexist", f"hydra.sweep.dir={sweep}")
+    unknown = run_train("-m", *TINY, "algo=spg,doesnotexist", "hydra/launcher=basic", f"hydra.sweep.dir={sweep}")
     assert unknown.returncode == 2 and "Could not find 'algo/doesnotexist'" in unknown.stderr, unknown.stderr
     assert "provider=" not in unknown.stderr
     for args in ((*TINY, "seed=${oops}", f"hydra.run.dir={tmp_path / 'run'}"),
-                 ("-m", *TINY, "seed=${oops}", f"hydra.sweep.dir={sweep}")):
+                 ("-m", *TINY, "seed=${oops}", "hydra/launcher=basic", f"hydra.sweep.dir={sweep}")):
         bad = run_train(*args)
         assert bad.returncode == 2 and "Traceback" not in bad.stderr, bad.stderr[-3000:]
         assert "Interpolation key 'oops' not found" in bad.stderr

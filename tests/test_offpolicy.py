@@ -663,7 +663,8 @@ def test_the_generalisation_preset_shares_its_fixed_runs_with_beyond_paper_and_r
     the same folder skips the fixed-track runs already made; report.py writes both tables."""
     import report
 
-    tiny = ["episodes=1", f"seeds=[{A}]", "eval_seeds=[11]", "eval_episodes=1", f"hydra.sweep.dir={tmp_path}"]
+    tiny = ["episodes=1", f"seeds=[{A}]", "eval_seeds=[11]", "eval_episodes=1", "hydra/launcher=basic",
+            f"hydra.sweep.dir={tmp_path}"]
     result = run_train("-m", "+experiment=generalisation", *tiny)
     assert result.returncode == 0, result.stderr[-3000:]
     made = sorted(p.parent.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("summary.json"))

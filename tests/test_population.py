@@ -106,7 +106,7 @@ def test_a_population_split_over_processes_killed_and_resumed_gives_its_unsplit_
         time.sleep(0.1)
     assert not _group_alive(proc.pid), "a part trained on after its parent died"
     assert not (run_dir / checkpoint.CHECKPOINT_FILE).exists()
-    resumed = subprocess.run([*cmd, "processes=1"], cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600)
+    resumed = run_train(*run, f"hydra.run.dir={run_dir}", "processes=1")
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     for seed in (A, B, C, D):
         summary = json.loads((run_dir / f"seed{seed}" / "summary.json").read_text())

@@ -121,8 +121,8 @@ def test_readme_report_and_evaluate_commands(tmp_path, capsys):
     import report
 
     sweep = tmp_path / "paper_grid"
-    result = run_train("-m", "+cell=memory-spg_p_multi,recent-ppo", "seed=2067791", "episodes=2",
-                       "progress=false", "logger=none", f"hydra.sweep.dir={sweep}")
+    result = run_train("-m", "+cell=memory-spg_p_multi,recent-ppo", "seed=2067791", "episodes=2",  # one process
+                       "progress=false", "logger=none", "hydra/launcher=basic", f"hydra.sweep.dir={sweep}")
     assert result.returncode == 0, result.stderr[-3000:]
     for args in readme_commands("report.py"):
         if "paper_grid" in args[0]:

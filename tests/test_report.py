@@ -181,7 +181,7 @@ def test_tiny_sweep_then_report_and_evaluate(tmp_path, capsys):
 
     sweep = tmp_path / "sweep"
     result = run_train("-m", "algo=spg_p,ppo", "er=recent", "seed=2067791,773203", "episodes=3", "progress=false",
-                       "logger=none", f"hydra.sweep.dir={sweep}")
+                       "logger=none", "hydra/launcher=basic", f"hydra.sweep.dir={sweep}")
     assert result.returncode == 0, result.stderr[-2000:]
     assert report.main([str(sweep)]) == 0
     out = sweep / "report"

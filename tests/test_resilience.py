@@ -121,7 +121,7 @@ def test_divergence_stops_the_run_cleanly(tmp_path):
 
 def test_a_sweep_goes_on_past_a_diverged_run(tmp_path):
     result = run_train("-m", "algo=ppo_log", "er=recent", "episodes=2", "progress=false", "logger=none",
-                       "algo.critic_lr=1e30,0.0005", "hydra.sweep.subdir=lr${algo.critic_lr}",
+                       "algo.critic_lr=1e30,0.0005", "hydra.sweep.subdir=lr${algo.critic_lr}", "hydra/launcher=basic",
                        f"hydra.sweep.dir={tmp_path}")
     assert result.returncode == 0, result.stderr[-2000:]
     statuses = {p.parent.name: json.loads(p.read_text())["status"] for p in tmp_path.glob("*/summary.json")}

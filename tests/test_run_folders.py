@@ -342,13 +342,13 @@ def test_a_sweep_is_checked_whole_before_its_first_job_and_failures_are_listed_a
     """Point 8: every bad job of a sweep is reported at once and nothing runs; two jobs on one
     folder are caught; a job that fails at run time is listed at the end, after the others finished."""
     sweep = tmp_path / "sweep"
-    bad = run_train("-m", *TINY, "algo=spg,ppo", "gamma=0.9,2", "seed=1,5000000000", f"hydra.sweep.dir={sweep}")
+    bad = run_train("-m", *TINY, "hydra/launcher=basic", "algo=spg,ppo", "gamma=0.9,2", "seed=1,5000000000", f"hydra.sweep.dir={sweep}")
     assert bad.returncode == 2, bad.stderr[-2000:]
     assert "The sweep was not started: 6 of its 8 jobs cannot run as given" in bad.stderr
     assert bad.stderr.count("seed must be in [0, 2**32)") == 4
     assert bad.stderr.count("gamma must be in [0, 1], got 2.0") == 2  # a job is reported with its first error
     assert not sweep.exists()
-    same = run_train("-m", *TINY, "gamma=0.5,0.9", f"hydra.sweep.dir={sweep}")
+    same = run_train("-m", *TINY, "hydra/launcher=basic", "gamma=0.5,0.9", f"hydra.sweep.dir={sweep}")
     assert same.returncode == 2 and "writes " in same.stderr and "as job #0 (" in same.stderr
     (sweep / "spg" / "recent" / "seed7").mkdir(parents=True)  # a checkpoint of another run: refused at run time
     import torch

@@ -60,7 +60,7 @@ def test_requeued_and_cancelled_jobs_resume_exactly_and_finished_runs_are_skippe
     """Job 0 is requeued mid-run (killed, queued and started again: it resumes by itself); job 1
     is cancelled mid-run (reported; the same command again resumes it and skips job 0's
     finished run). Both end with the metrics.csv of the same sweep run locally, uninterrupted."""
-    local = run_train("-m", *RUN, f"hydra.sweep.dir={tmp_path / 'local'}", "progress=false")
+    local = run_train("-m", *RUN, "hydra/launcher=basic", f"hydra.sweep.dir={tmp_path / 'local'}", "progress=false")
     assert local.returncode == 0, local.stderr[-3000:]
 
     sweep = tmp_path / "slurm"

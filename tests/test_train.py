@@ -112,10 +112,10 @@ def test_a_command_forked_from_the_test_zygote_is_a_new_process_run(tmp_path):
 
     from tests import zygote
 
-    def both(*args):
-        real = subprocess.run([sys.executable, str(ROOT / "train.py"), *args, f"hydra.run.dir={tmp_path / 'real'}"],
+    def both(*args, folder="hydra.run.dir"):
+        real = subprocess.run([sys.executable, str(ROOT / "train.py"), *args, f"{folder}={tmp_path / 'real'}"],
                               cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600)
-        forked = zygote.run([ROOT / "train.py", *args, f"hydra.run.dir={tmp_path / 'forked'}"], cwd=ROOT, env=ENV)
+        forked = zygote.run([ROOT / "train.py", *args, f"{folder}={tmp_path / 'forked'}"], cwd=ROOT, env=ENV)
         same = str(tmp_path / "forked"), str(tmp_path / "real")  # the one difference asked for
         forked.stdout, forked.stderr = forked.stdout.replace(*same), forked.stderr.replace(*same)
         return real, forked
@@ -126,3 +126,13 @@ def test_a_command_forked_from_the_test_zygote_is_a_new_process_run(tmp_path):
     assert real.stdout == forked.stdout and real.stderr == forked.stderr
     real, forked = both("algo=spg_p", "episodes=0")
     assert real.returncode == forked.returncode == 2 and real.stderr == forked.stderr and real.stderr
+    # a sweep through the basic launcher (its jobs in the process itself) is forked too
+    if zygote.forkable([ROOT / "train.py"]):  # (not with RACING_TEST_ZYGOTE=0 or without fork)
+        assert zygote.forkable([ROOT / "train.py", "-m", "hydra/launcher=basic"])
+    assert not zygote.forkable([ROOT / "train.py", "-m"])  # joblib's workers: a real process
+    real, forked = both("-m", "hydra/launcher=basic", "algo=spg", "er=recent", "seed=3,4", "episodes=1",
+                        "progress=false", "logger=none", folder="hydra.sweep.dir")
+    assert real.returncode == forked.returncode == 0, (real.stderr[-2000:], forked.stderr[-2000:])
+    for seed in (3, 4):
+        run = f"spg/recent/seed{seed}/metrics.csv"
+        assert (tmp_path / "real" / run).read_bytes() == (tmp_path / "forked" / run).read_bytes()

@@ -10,9 +10,10 @@ after its imports, which is a fresh process's after the same imports.
 
 ``run(script, args, cwd, env, timeout)`` gives a ``subprocess.CompletedProcess``. It falls back to
 a real ``python`` process where a forked one could differ or gains nothing: another numerics mode
-than the zygote's torch settings (``numerics=native``), a sweep (``-m``: its launcher's workers
-import for themselves, and a forked parent's exit waited on joblib's workers for minutes), a
-platform without ``fork``, or ``RACING_TEST_ZYGOTE=0``. One zygote per test process and
+than the zygote's torch settings (``numerics=native``), a sweep through a launcher with worker
+processes (``-m`` without ``hydra/launcher=basic``: its workers import for themselves, and a forked
+parent's exit waited on joblib's workers for minutes; the basic launcher runs the jobs in the
+process itself, so such a sweep is forked), a platform without ``fork``, or ``RACING_TEST_ZYGOTE=0``. One zygote per test process and
 environment, started on first use and stopped at exit.
 """
 
@@ -188,16 +189,21 @@ class Zygote:
 _zygotes: dict[str, Zygote] = {}
 
 
+def forkable(command: list) -> bool:
+    """Whether ``run`` forks ``command`` from a zygote (see the module's docstring)."""
+    command = [str(part) for part in command]
+    args = command[2:] if command[0] == "-m" else command[1:]
+    return (hasattr(os, "fork") and os.environ.get("RACING_TEST_ZYGOTE", "1") != "0"
+            and not any(a.startswith("numerics=") and a not in ("numerics=fma", "numerics=portable") for a in args)
+            and (not {"-m", "--multirun"} & set(args) or "hydra/launcher=basic" in args))
+
+
 def run(command: list, cwd: Path, env: dict, timeout: float = 600) -> subprocess.CompletedProcess:
     """``subprocess.run([python, *command], cwd=cwd, env=env, capture_output=True, text=True)``
     (``command``: a script and its arguments, or ``-m``, a module and its arguments), forked from a
     zygote where that gives the same process (see the module's docstring)."""
     command = [str(part) for part in command]
-    args = command[2:] if command[0] == "-m" else command[1:]
-    forkable = (hasattr(os, "fork") and os.environ.get("RACING_TEST_ZYGOTE", "1") != "0"
-                and not any(a.startswith("numerics=") and a not in ("numerics=fma", "numerics=portable") for a in args)
-                and not {"-m", "--multirun"} & set(args))
-    if forkable:
+    if forkable(command):
         key = json.dumps(env, sort_keys=True)
         zygote = _zygotes.get(key)
         if zygote is None:
