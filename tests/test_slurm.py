@@ -59,8 +59,10 @@ def rows(path) -> int:
 def test_requeued_and_cancelled_jobs_resume_exactly_and_finished_runs_are_skipped(cluster, tmp_path):
     """Job 0 is requeued mid-run (killed, queued and started again: it resumes by itself); job 1
     is cancelled mid-run (reported; the same command again resumes it and skips job 0's
-    finished run). Both end with the metrics.csv of the same sweep run locally, uninterrupted."""
-    local = run_train("-m", *RUN, "hydra/launcher=basic", f"hydra.sweep.dir={tmp_path / 'local'}", "progress=false")
+    finished run). Both end with the metrics.csv of the same runs made here, uninterrupted."""
+    # the reference: both runs as one population in this process (a member equals its solo run)
+    local = run_train(*[a for a in RUN if not a.startswith("seed=")], f"seeds=[{SEEDS[0]},{SEEDS[1]}]",
+                      f"hydra.run.dir={tmp_path / 'local'}", "progress=false")
     assert local.returncode == 0, local.stderr[-3000:]
 
     sweep = tmp_path / "slurm"
@@ -105,8 +107,8 @@ def test_requeued_and_cancelled_jobs_resume_exactly_and_finished_runs_are_skippe
     second = json.loads((folders[SEEDS[1]] / "summary.json").read_text())
     assert second["status"] == "completed" and second["resumed_at"] in range(8, 80, 4)  # resumed after scancel
     for seed in SEEDS:
-        folder = f"spg_p/hybrid/seed{seed}"
-        assert (sweep / folder / "metrics.csv").read_bytes() == (tmp_path / "local" / folder / "metrics.csv").read_bytes()
+        assert ((sweep / "spg_p" / "hybrid" / f"seed{seed}" / "metrics.csv").read_bytes()
+                == (tmp_path / "local" / f"seed{seed}" / "metrics.csv").read_bytes())
 
 
 def test_a_refused_job_is_reported_last_in_one_line(cluster, tmp_path):
