@@ -112,6 +112,9 @@ def make_collector(backend: str, env, *, policy=None, sample=None, steps: int, e
             raise ValueError("the torchrl collector needs policy=a TensorDict module")
         from torchrl.collectors import Collector
 
-        return Collector(env, policy, frames_per_batch=steps * n, total_frames=total,
-                         auto_register_policy_transforms=False)
+        # device=env.device: policy, env and storage on one device, so the collector casts nothing
+        # (without it, it copies the carried TensorDict .to(env.device) at every step); trust_policy: the
+        # policy is the training loop's own module, already there (it may hold no parameter to check)
+        return Collector(env, policy, frames_per_batch=steps * n, total_frames=total, device=env.device,
+                         trust_policy=True, auto_register_policy_transforms=False)
     raise ValueError(f"collector backend must be one of {BACKENDS}, got {backend!r}")
