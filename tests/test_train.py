@@ -130,9 +130,8 @@ def test_a_command_forked_from_the_test_zygote_is_a_new_process_run(tmp_path):
     if zygote.forkable([ROOT / "train.py"]):  # (not with RACING_TEST_ZYGOTE=0 or without fork)
         assert zygote.forkable([ROOT / "train.py", "-m", "hydra/launcher=basic"])
     assert not zygote.forkable([ROOT / "train.py", "-m"])  # joblib's workers: a real process
-    real, forked = both("-m", "hydra/launcher=basic", "algo=spg", "er=recent", "seed=3,4", "episodes=1",
+    real, forked = both("-m", "hydra/launcher=basic", "algo=spg", "er=recent", "seed=3", "episodes=1",
                         "progress=false", "logger=none", folder="hydra.sweep.dir")
     assert real.returncode == forked.returncode == 0, (real.stderr[-2000:], forked.stderr[-2000:])
-    for seed in (3, 4):
-        run = f"spg/recent/seed{seed}/metrics.csv"
-        assert (tmp_path / "real" / run).read_bytes() == (tmp_path / "forked" / run).read_bytes()
+    run = "spg/recent/seed3/metrics.csv"
+    assert (tmp_path / "real" / run).read_bytes() == (tmp_path / "forked" / run).read_bytes()
