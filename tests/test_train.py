@@ -112,10 +112,10 @@ def test_a_command_forked_from_the_test_zygote_is_a_new_process_run(tmp_path):
 
     from tests import zygote
 
-    def both(*args, folder="hydra.run.dir"):
-        real = subprocess.run([sys.executable, str(ROOT / "train.py"), *args, f"{folder}={tmp_path / 'real'}"],
+    def both(*args):
+        real = subprocess.run([sys.executable, str(ROOT / "train.py"), *args, f"hydra.run.dir={tmp_path / 'real'}"],
                               cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600)
-        forked = zygote.run([ROOT / "train.py", *args, f"{folder}={tmp_path / 'forked'}"], cwd=ROOT, env=ENV)
+        forked = zygote.run([ROOT / "train.py", *args, f"hydra.run.dir={tmp_path / 'forked'}"], cwd=ROOT, env=ENV)
         same = str(tmp_path / "forked"), str(tmp_path / "real")  # the one difference asked for
         forked.stdout, forked.stderr = forked.stdout.replace(*same), forked.stderr.replace(*same)
         return real, forked
@@ -130,8 +130,10 @@ def test_a_command_forked_from_the_test_zygote_is_a_new_process_run(tmp_path):
     if zygote.forkable([ROOT / "train.py"]):  # (not with RACING_TEST_ZYGOTE=0 or without fork)
         assert zygote.forkable([ROOT / "train.py", "-m", "hydra/launcher=basic"])
     assert not zygote.forkable([ROOT / "train.py", "-m"])  # joblib's workers: a real process
-    real, forked = both("-m", "hydra/launcher=basic", "algo=spg", "er=recent", "seed=3", "episodes=1",
-                        "progress=false", "logger=none", folder="hydra.sweep.dir")
-    assert real.returncode == forked.returncode == 0, (real.stderr[-2000:], forked.stderr[-2000:])
-    run = "spg/recent/seed3/metrics.csv"
-    assert (tmp_path / "real" / run).read_bytes() == (tmp_path / "forked" / run).read_bytes()
+    # (its one job equals the real process's run above: a sweep's job is the same run made alone)
+    sweep = zygote.run([ROOT / "train.py", "-m", "hydra/launcher=basic", "algo=spg_p", "er=hybrid", "seed=3",
+                        "episodes=2", "progress=false", "logger=none", f"hydra.sweep.dir={tmp_path / 'sweep'}"],
+                       cwd=ROOT, env=ENV)
+    assert sweep.returncode == 0, sweep.stderr[-2000:]
+    assert ((tmp_path / "sweep" / "spg_p" / "hybrid" / "seed3" / "metrics.csv").read_bytes()
+            == (tmp_path / "real" / "metrics.csv").read_bytes())
