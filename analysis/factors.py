@@ -29,6 +29,9 @@ from analysis.report import find_runs, read_oracles
 _T95 = [12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160, 2.145, 2.131,
         2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048, 2.045, 2.042]
 COLLAPSE = 20.0
+# a configuration's columns after its tracks' (a row with a diverged run leaves them empty)
+SUMMARY_COLUMNS = ("mean", "vs base", "95% low", "95% high", "of the oracle", "deterministic, of the oracle",
+                   "collapsed", "CPU-min per run")
 
 
 def t_interval(differences: list[float]) -> tuple[float, float, float]:
@@ -85,8 +88,7 @@ def factor_rows(sweep: Path, base: str, oracle: dict[int, float] | None = None, 
         if diverged:  # a diverged run's final performance is not a result (report.py leaves it out too)
             rows.append({"configuration": name, **{f"track {t}": "diverged" if runs[t].status == "diverged"
                                                    else round(runs[t].final_mean, 2) for t in tracks},
-                         "mean": "", "vs base": "", "95% low": "", "95% high": "", "of the oracle": "",
-                         "deterministic, of the oracle": "", "collapsed": "", "CPU-min per run": "",
+                         **dict.fromkeys(SUMMARY_COLUMNS, ""),
                          "diverged": sum(runs[t].status == "diverged" for t in tracks)})
             continue
         finals = [runs[t].final_mean for t in tracks]

@@ -13,8 +13,8 @@ a real ``python`` process where a forked one could differ or gains nothing: anot
 than the zygote's torch settings (``numerics=native``), a sweep through a launcher with worker
 processes (``-m`` without ``hydra/launcher=basic``: its workers import for themselves, and a forked
 parent's exit waited on joblib's workers for minutes; the basic launcher runs the jobs in the
-process itself, so such a sweep is forked), a platform without ``fork``, or ``RACING_TEST_ZYGOTE=0``. One zygote per test process and
-environment, started on first use and stopped at exit.
+process itself, so such a sweep is forked), a platform without ``fork``, or ``RACING_TEST_ZYGOTE=0``.
+One zygote per test process and environment, started on first use and stopped at exit.
 """
 
 from __future__ import annotations

@@ -43,11 +43,12 @@ from learners.optim import MemberAdam
 from learners.td import ENTROPY_LOSSES, GAUSSIAN_ACTORS, linear_schedule
 from losses.naf import NAFLoss, lower_entries
 from losses.trust_pcl import TrustPCLLoss
-from losses.td import (ACTION_NOISE_KEY, CRITIC_EXTRAS, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhNormal, MemberCrossQLoss, MemberREDQLoss,
-                       MemberSACLoss, MemberTD3Loss, MemberTQCLoss, SmoothedActor, fused_crossq_actor_losses,
-                       fused_crossq_available, fused_crossq_critic_losses, fused_sac_available, fused_sac_losses,
-                       fused_td3_actor_losses, fused_td3_available, fused_td3_critic_losses, fused_tqc_available,
-                       fused_tqc_losses, member_means, redq_available, redq_losses)
+from losses.td import (ACTION_NOISE_KEY, CRITIC_EXTRAS, PRIORITY_KEY, SMOOTHING_KEY, DrawnTanhNormal, MemberCrossQLoss,
+                       MemberREDQLoss, MemberSACLoss, MemberTD3Loss, MemberTQCLoss, SmoothedActor,
+                       fused_crossq_actor_losses, fused_crossq_available, fused_crossq_critic_losses,
+                       fused_sac_available, fused_sac_losses, fused_td3_actor_losses, fused_td3_available,
+                       fused_td3_critic_losses, fused_tqc_available, fused_tqc_losses, member_means, redq_available,
+                       redq_losses)
 
 FUSED = True  # the eager steps of SAC (DroQ, BRO), TQC, CrossQ and TD3 on plain tensors (losses.td.fused_*: the
 #               same bits as TorchRL's loss modules, faster); False: through the loss modules (benchmarks.floor
