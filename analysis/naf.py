@@ -44,6 +44,9 @@ def curvature(run: Path) -> dict[str, float]:
     policy, settings = load_policy(run)
     if settings["algo"]["loss"] != "naf":
         raise RunFolderError(f"{run} is a run of loss {settings['algo']['loss']!r}, not naf")
+    if settings["env"].get("memory"):
+        raise RunFolderError(f"{run} trained with env.memory (its networks read past steps); this analysis reads "
+                             "runs without memory only")
     network, options = settings["network"], settings["env"].get("options", {})
     obs_size = RacingConfig(**options).obs_size
 

@@ -68,7 +68,7 @@ def load_agent(spec: str) -> Agent:
             policy, _ = load_policy(path)
         except RunFolderError as err:
             raise AgentError(str(err)) from None
-        return Agent(str(path), lambda env, obs: policy(obs), kind="run folder")
+        return Agent(str(path), lambda env, obs: policy(obs), policy.reset, kind="run folder")
     if path.suffix == ".zip":
         return _sb3(path)
     if ":" in spec and not path.exists():

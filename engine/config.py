@@ -65,10 +65,12 @@ def config_mapping(cfg) -> dict:
     env = mapping.get("env")
     if isinstance(env, dict) and isinstance(env.get("options"), dict):
         env["options"] = {k: v for k, v in env["options"].items() if v is not None}
-    if isinstance(env, dict):  # how to read a track file: recorded only when set
+    if isinstance(env, dict):  # how to read a track file, and a memory: recorded only when set
         for key in ("track_scale", "track_closed"):
             if key in env and env[key] is None:
                 del env[key]
+        if env.get("memory") == 0 and not isinstance(env.get("memory"), bool):
+            del env["memory"]
     if isinstance(env, dict) and "track_file" in env:  # recorded only when set, with its content's hash
         if env["track_file"] is None:
             del env["track_file"]
@@ -263,9 +265,16 @@ class EnvConfig:
     track_file_sha256: str | None = None  # its content, recorded (config_mapping): a changed file is another run
     track_scale: float | None = None  # the file's pixels per file unit (None: its comment, else the width rule)
     track_closed: bool | None = None  # the file is a circuit (None: its comment, else its geometry)
+    memory: int = 0  # every network reads the observation now and the car's last this-many observations and actions
 
     def __post_init__(self) -> None:
         _choice("env.track", self.track, TRACK_SOURCES)
+        from racing.memory import check_steps
+
+        try:
+            check_steps("env.memory", self.memory)
+        except ValueError as err:
+            raise ConfigError(str(err)) from None
         _choice("env.collector", self.collector, COLLECTORS)
         from racing.config import RacingConfig
 
@@ -302,6 +311,20 @@ class EnvConfig:
         from racing.config import RacingConfig
 
         return RacingConfig(**self.options).max_steps
+
+    @property
+    def observation_size(self) -> int:
+        """The width of the observation the networks read (``env.memory``'s, ``racing.memory``)."""
+        return observation_size(self.options, self.memory)
+
+
+def observation_size(options: dict, memory: int = 0) -> int:
+    """The width of the observation a run's networks read: ``env.options``' rays and speed, with
+    ``env.memory`` past steps (``racing.memory.memory_size``)."""
+    from racing.config import RacingConfig
+    from racing.memory import memory_size
+
+    return memory_size(RacingConfig(**options).obs_size, memory)
 
 
 @dataclass(frozen=True)

@@ -13,6 +13,7 @@ from learners.solo import GaussianPolicyNet
 from engine.outputs import RunFolderError, first_line  # RunFolderError: part of this module's interface
 from racing.config import RacingConfig
 from racing.gym_env import RacingEnv
+from racing.memory import History, memory_size
 
 
 class Policy:
@@ -20,20 +21,37 @@ class Policy:
 
     The paper's algorithms act with the Gaussian's mean (clipped); SAC, TQC, CrossQ and REDQ with tanh of
     their Gaussian's mean; TD3 and NAF with their actor's output. Their actors are rebuilt as a
-    population of one (``learners.td.learner``), the networks they were trained as."""
+    population of one (``learners.td.learner``), the networks they were trained as.
 
-    def __init__(self, net: torch.nn.Module, kind: str):
-        self.net, self.kind = net, kind
+    A run trained with ``env.memory=k`` keeps its own memory of the episode (``racing.memory.History``):
+    call ``reset()`` at each episode's start (``drive_episode`` does), then the policy once per step;
+    it reads the observation with its last k observations and actions, as the run's networks did."""
+
+    def __init__(self, net: torch.nn.Module, kind: str, memory: int = 0, obs_size: int | None = None):
+        self.net, self.kind, self.memory = net, kind, memory
+        self.history = History(1, memory, obs_size) if memory else None
+        self._start = True
+
+    def reset(self) -> None:
+        """The next observation is an episode's first (a policy without memory ignores it)."""
+        self._start = True
 
     @torch.no_grad()
     def __call__(self, observation: np.ndarray) -> np.ndarray:
+        if self.history is not None:
+            self.history.observe(np.asarray(observation, np.float32)[None], started=[0] if self._start else None)
+            self._start = False
+            observation = self.history.memory_observation(self.memory)[0]
         x = torch.as_tensor(observation, dtype=torch.float32).unsqueeze(0)
         if self.kind == "paper":
             loc, _ = self.net(x)
-            return loc.clamp(-1.0, 1.0).squeeze(0).numpy()
-        out = self.net(x.unsqueeze(0))  # [member, batch, obs]
-        action = torch.tanh(out[0]) if isinstance(out, tuple) else out
-        return action.clamp(-1.0, 1.0)[0, 0].numpy()
+            action = loc.clamp(-1.0, 1.0).squeeze(0).numpy()
+        else:
+            out = self.net(x.unsqueeze(0))  # [member, batch, obs]
+            action = (torch.tanh(out[0]) if isinstance(out, tuple) else out).clamp(-1.0, 1.0)[0, 0].numpy()
+        if self.history is not None:
+            self.history.act(action[None].astype(np.float64))
+        return action
 
     def parameters(self):
         return self.net.parameters()
@@ -74,7 +92,8 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
     except ValueError as err:
         raise RunFolderError(str(err)) from None
     try:
-        policy = make_policy(loss, network, RacingConfig(**env.get("options", {})).obs_size, state_dict)
+        policy = make_policy(loss, network, RacingConfig(**env.get("options", {})).obs_size, state_dict,
+                             memory=env.get("memory", 0))
     except Exception as err:  # mismatched shapes or keys
         raise RunFolderError(f"{actor_path} is not this run's actor ({first_line(err)})") from None
     if not all(torch.isfinite(p).all() for p in policy.parameters()):
@@ -82,25 +101,27 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
     return policy, settings
 
 
-def make_policy(loss: str, network: dict, obs_size: int, state: dict) -> Policy:
-    """The deterministic policy of an actor's saved weights (``actor.pt``) for ``algo.loss``."""
+def make_policy(loss: str, network: dict, obs_size: int, state: dict, memory: int = 0) -> Policy:
+    """The deterministic policy of an actor's saved weights (``actor.pt``) for ``algo.loss``, with the
+    run's ``env.memory`` (its networks read ``racing.memory.memory_size(obs_size, memory)`` inputs)."""
+    width = memory_size(obs_size, memory)
     if loss in learners.td.LOSSES:  # the off-policy family's actors
         from learners.td.learner import make_actor_net
         from learners.networks import NormalisedActor, ObservationNorm, load_member_state_dict
 
-        net = make_actor_net(loss, 1, obs_size, 2, network["actor_hidden"], network["activation"])
+        net = make_actor_net(loss, 1, width, 2, network["actor_hidden"], network["activation"])
         if all(k.startswith("module.") for k in state):  # the layout of TorchRL's parameters (until da21af2)
             state = {k.removeprefix("module."): v for k, v in state.items()}
         if any(k.startswith("norm.") for k in state):  # algo.td.observation_norm: the statistics it acted with
-            net = NormalisedActor(ObservationNorm(1, obs_size), net)
+            net = NormalisedActor(ObservationNorm(1, width), net)
         load_member_state_dict(net, 0, state)
         kind = loss
     else:
-        net = GaussianPolicyNet(obs_size, 2, network["actor_hidden"], network["activation"])
+        net = GaussianPolicyNet(width, 2, network["actor_hidden"], network["activation"])
         net.load_state_dict(state)
         kind = "paper"
     net.eval()
-    return Policy(net, kind)
+    return Policy(net, kind, memory, obs_size)
 
 
 def deterministic_action(policy: Policy, observation: np.ndarray) -> np.ndarray:
@@ -152,7 +173,7 @@ def run_episode(net: Policy, env: RacingEnv, seed: int, frames: list | None = No
     """One deterministic episode of a trained policy from the start state of ``seed``; its total
     reward (with ``frames``, every rendered frame, the start included, appended to it, with
     ``name`` and the reward so far drawn on each)."""
-    return drive_episode(lambda _env, obs: deterministic_action(net, obs), env, seed, frames, name=name)
+    return drive_episode(lambda _env, obs: deterministic_action(net, obs), env, seed, frames, reset=net.reset, name=name)
 
 
 def drive_episode(act, env: RacingEnv, seed: int, frames: list | None = None, reset=None,

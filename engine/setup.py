@@ -67,7 +67,8 @@ def make_env(cfg: RunConfig, seeds: tuple[int, ...]) -> RacingTorchEnv:
     per episode (``random``) or on the file's track (``file``); car r's random stream is seeded
     with ``seeds[r]``."""
     td = getattr(cfg.algo, "td", None)  # what an off-policy learner's Q-networks read besides (s, a)
-    extra = {"privileged": bool(getattr(td, "privileged_critic", False)), "history": getattr(td, "critic_history", 0)}
+    extra = {"privileged": bool(getattr(td, "privileged_critic", False)), "history": getattr(td, "critic_history", 0),
+             "memory": cfg.env.memory}
     if cfg.env.track == "file":
         env = RacingTorchEnv(len(seeds), track_file=cfg.env.track_file, track_scale=cfg.env.track_scale,
                              track_closed=cfg.env.track_closed, device=cfg.device, nearest_ray=cfg.env.nearest_ray,

@@ -12,6 +12,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from racing.gym_env import ACTION_HELP
+from racing.memory import History, check_steps, memory_bounds
 from racing.sim import RacingSim
 from racing.track_file import env_track
 
@@ -41,14 +42,17 @@ class RacingTorchEnv(EnvBase):
     With ``history=k`` also ``history`` (N, k * (obs + 2)) float32: the car's k observations before this
     one, newest first, then the k actions it took from them, newest first; at an episode's start the
     first observation stands for the ones before it and the actions are 0 (a respawn after leaving the
-    track is not an episode's start). ``sim_state`` / ``load_sim_state`` save and restore it with the cars.
+    track is not an episode's start; ``racing.memory``). With ``memory=k`` the ``observation`` itself is
+    (N, 6 + k * (6 + 2)): the observation now, then the car's last k observations and k actions as in
+    ``history`` (what every network reads: a policy with memory). ``sim_state`` / ``load_sim_state`` save
+    and restore both with the cars.
     ``env.set_seed(k)`` seeds car i's stream with ``k + i``.
     """
 
     def __init__(self, num_envs: int = 1, track_seeds: int | None | Sequence[int | None] = None,
                  device: Any = "cpu", nearest_ray: bool = False, track_file: str | None = None,
                  track_scale: float | None = None, track_closed: bool | None = None, privileged: bool = False,
-                 history: int = 0, **config: Any):
+                 history: int = 0, memory: int = 0, **config: Any):
         owner = "RacingTorchEnv (besides num_envs, track_seeds, device, nearest_ray, track_file, ...)"
         seeded = track_seeds is not None and any(s is not None for s in np.atleast_1d(np.asarray(track_seeds, object)))
         track, cfg = env_track(owner, seeded, track_file, track_scale, track_closed, config)
@@ -60,18 +64,18 @@ class RacingTorchEnv(EnvBase):
         if not isinstance(privileged, (bool, np.bool_)):
             raise TypeError(f"privileged must be True or False, got {privileged!r}")
         self.privileged = bool(privileged)
-        if isinstance(history, bool) or not isinstance(history, (int, np.integer)) or not 0 <= history <= MAX_HISTORY:
-            raise ValueError(f"history must be an integer in [0, {MAX_HISTORY}] (past steps), got {history!r}")
-        self.history = int(history)
-        self._past_obs = np.zeros((num_envs, self.history, cfg.obs_size), np.float32)  # newest first
-        self._past_act = np.zeros((num_envs, self.history, 2), np.float32)
-        self._obs: np.ndarray | None = None  # the observation each car acts on now (history's next entry)
+        self.history = check_steps("history", history)
+        self.memory = check_steps("memory", memory)
+        # the cars' past observations and actions, as long as the longer of the two needs
+        self._past = History(num_envs, max(self.history, self.memory), cfg.obs_size)
         # what a collector carries from a step's result to the next step's root (besides the done flags)
         self.carried_keys = ("observation", *(("privileged",) if self.privileged else ()),
                              *(("history",) if self.history else ()))
         n = (num_envs,)
+        low, high = memory_bounds(cfg.obs_size, self.memory)
         self.observation_spec = Composite(
-            observation=Bounded(0.0, 1.0, n + (cfg.obs_size,), dtype=torch.float32, device=self.device),
+            observation=Bounded(torch.from_numpy(low).expand(n + low.shape), torch.from_numpy(high).expand(n + low.shape),
+                                n + low.shape, dtype=torch.float32, device=self.device),
             checkpoint=Bounded(0, cfg.num_segments - 1, n + (1,), dtype=torch.int64, device=self.device),
             crashed=Categorical(2, n + (1,), dtype=torch.bool, device=self.device),
             shape=n,
@@ -106,30 +110,19 @@ class RacingTorchEnv(EnvBase):
         """
         state = dict(state)
         past = {key: state.pop(key, None) for key in ("history_obs", "history_act", "history_now")}
-        if self.history:
-            if any(value is None for value in past.values()):
-                raise ValueError("the saved state has no history of the cars' observations and actions "
-                                 f"(this environment keeps {self.history} steps)")
-            shapes = {"history_obs": self._past_obs.shape, "history_act": self._past_act.shape,
-                      "history_now": (self.sim.num_cars, self.config.obs_size)}
-            for key, shape in shapes.items():
-                if tuple(np.shape(past[key])) != shape:
-                    raise ValueError(f"the saved state's {key} has shape {tuple(np.shape(past[key]))}, this environment's "
-                                     f"{shape} ({self.sim.num_cars} cars, history={self.history}): it was saved by "
-                                     "another environment")
+        if self._past.steps:
+            self._past.check_state(past)  # before any car is touched
         self.sim.load_state_dict(state)
-        if self.history:
-            self._past_obs[...], self._past_act[...] = past["history_obs"], past["history_act"]
-            self._obs = np.array(past["history_now"], dtype=np.float32)
+        if self._past.steps:
+            self._past.load_state_dict(past)
         self._continue = True
 
     def sim_state(self) -> dict:
         """``sim.state_dict()`` and, with ``history``, the cars' past observations and actions:
         what ``load_sim_state`` continues exactly from."""
         state = self.sim.state_dict()
-        if self.history:  # before the first reset: no observation yet (zeros, as the history)
-            now = self._obs if self._obs is not None else np.zeros((self.sim.num_cars, self.config.obs_size), np.float32)
-            state.update(history_obs=self._past_obs.copy(), history_act=self._past_act.copy(), history_now=now.copy())
+        if self._past.steps:  # before the first reset: no observation yet (zeros, as the history)
+            state.update(self._past.state_dict())
         return state
 
     # A lean path for collectors that step thousands of times per second: the same
@@ -152,9 +145,8 @@ class RacingTorchEnv(EnvBase):
     def step_tensors(self, action: torch.Tensor) -> dict[str, torch.Tensor]:
         """Step every car; returns the entries of ``step()["next"]`` as a dict of tensors."""
         a = self._checked_action(action)
-        if self.history:  # the observation acted on and the action taken join the history
-            self._past_obs[:, 1:], self._past_act[:, 1:] = self._past_obs[:, :-1], self._past_act[:, :-1]
-            self._past_obs[:, 0], self._past_act[:, 0] = self._obs, np.clip(a, -1.0, 1.0)
+        if self._past.steps:  # the observation acted on and the action taken join the history
+            self._past.act(a)
         reward, terminated, truncated, crashed = self.sim.step(a[:, 0], a[:, 1])
         # One fresh (N, 4) array, handed out as four column views that share nothing else.
         flags = torch.from_numpy(np.stack([terminated | truncated, terminated, truncated, crashed], axis=1))
@@ -187,17 +179,16 @@ class RacingTorchEnv(EnvBase):
     def _entries(self, _reset: np.ndarray | None = None, **entries: torch.Tensor) -> dict[str, torch.Tensor]:
         """The entries of every car after a step, or after a reset of the cars ``_reset``."""
         observation = self.sim.observe().astype(np.float32)
+        if self._past.steps:  # a new episode: its first observation stands for the ones before it
+            self._past.observe(observation, started=_reset)
+        if self.memory:
+            observation = self._past.memory_observation(self.memory)
         entries["observation"] = torch.from_numpy(observation)
         entries["checkpoint"] = _column(self.sim.checkpoint.copy())  # a copy: updated in place
         if self.privileged:
             entries["privileged"] = torch.from_numpy(self.sim.true_state().astype(np.float32))
         if self.history:
-            if _reset is not None:  # a new episode: its first observation stands for the ones before it
-                self._past_obs[_reset] = observation[_reset, None]
-                self._past_act[_reset] = 0.0
-            self._obs = observation.copy()
-            entries["history"] = torch.from_numpy(np.concatenate(
-                [self._past_obs.reshape(self.sim.num_cars, -1), self._past_act.reshape(self.sim.num_cars, -1)], axis=1))
+            entries["history"] = torch.from_numpy(self._past.flat(self.history))
         if not self._on_cpu:
             entries = {key: value.to(self.device) for key, value in entries.items()}
         return entries
@@ -211,7 +202,6 @@ class RacingTorchEnv(EnvBase):
 
 
 _INTEGER = (torch.int8, torch.int16, torch.int32, torch.int64, torch.uint8)
-MAX_HISTORY = 64  # past steps an env keeps (history=k)
 
 
 def _column(values: np.ndarray) -> torch.Tensor:

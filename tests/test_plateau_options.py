@@ -178,11 +178,8 @@ def test_the_env_carries_the_true_state_in_both_collectors_bit_for_bit():
 
 
 def test_the_history_holds_the_last_observations_and_actions_of_the_episode_newest_first():
-    from learners.td import MAX_HISTORY
-    from racing.torchrl_env import MAX_HISTORY as ENV_MAX_HISTORY
     from racing.torchrl_env import RacingTorchEnv
 
-    assert MAX_HISTORY == ENV_MAX_HISTORY
     env = RacingTorchEnv(2, track_seeds=[1, 2], history=3)
     seen = [env.reset_tensors()]
     first = seen[0]["observation"]

@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass
 
 from learners.options import ACTIVATIONS, ConfigError, at_least, choice, positive
+from racing.memory import MAX_HISTORY
 
 LOSSES = ("sac", "tqc", "crossq", "redq", "td3", "naf", "trust_pcl")
 ENTROPY_LOSSES = ("sac", "tqc", "crossq", "redq")  # a tanh-Gaussian actor and a learned entropy temperature (the sac: block)
@@ -21,7 +22,6 @@ OFF_POLICY = True  # trains on a replay memory only: er=memory or er=prioritised
 KEYS = ()  # its schedule is in the td: block
 LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
 PRIVILEGED_LOSSES = ("sac", "redq")  # algo.td.privileged_critic, critic_history: losses.td.fused_sac_losses, redq_losses
-MAX_HISTORY = 64  # racing.torchrl_env.MAX_HISTORY (kept torch-free here; a test holds them equal)
 
 
 @dataclass(frozen=True)
