@@ -173,7 +173,8 @@ def run_episode(net: Policy, env: RacingEnv, seed: int, frames: list | None = No
     """One deterministic episode of a trained policy from the start state of ``seed``; its total
     reward (with ``frames``, every rendered frame, the start included, appended to it, with
     ``name`` and the reward so far drawn on each)."""
-    return drive_episode(lambda _env, obs: deterministic_action(net, obs), env, seed, frames, reset=net.reset, name=name)
+    return drive_episode(lambda _env, obs: deterministic_action(net, obs), env, seed, frames, reset=net.reset,
+                         name=name)
 
 
 def drive_episode(act, env: RacingEnv, seed: int, frames: list | None = None, reset=None,

@@ -74,8 +74,9 @@ class RacingTorchEnv(EnvBase):
         n = (num_envs,)
         low, high = memory_bounds(cfg.obs_size, self.memory)
         self.observation_spec = Composite(
-            observation=Bounded(torch.from_numpy(low).expand(n + low.shape), torch.from_numpy(high).expand(n + low.shape),
-                                n + low.shape, dtype=torch.float32, device=self.device),
+            observation=Bounded(torch.from_numpy(low).expand(n + low.shape),
+                                torch.from_numpy(high).expand(n + low.shape), n + low.shape, dtype=torch.float32,
+                                device=self.device),
             checkpoint=Bounded(0, cfg.num_segments - 1, n + (1,), dtype=torch.int64, device=self.device),
             crashed=Categorical(2, n + (1,), dtype=torch.bool, device=self.device),
             shape=n,

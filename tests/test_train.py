@@ -137,3 +137,26 @@ def test_a_command_forked_from_the_test_zygote_is_a_new_process_run(tmp_path):
     assert sweep.returncode == 0, sweep.stderr[-2000:]
     assert ((tmp_path / "sweep" / "spg_p" / "hybrid" / "seed3" / "metrics.csv").read_bytes()
             == (tmp_path / "real" / "metrics.csv").read_bytes())
+
+
+def test_tests_that_differ_only_in_pytest_s_name_of_the_test_share_a_zygote(tmp_path):
+    """pytest names the running test in PYTEST_CURRENT_TEST: a zygote per name would start one per test.
+    One zygote serves them, and each child sees the environment it was given."""
+    from tests import zygote
+
+    if not zygote.forkable([ROOT / "train.py"]):
+        pytest.skip("commands are not forked here (RACING_TEST_ZYGOTE=0 or no fork)")
+    script = tmp_path / "show.py"
+    script.write_text("import os\nprint(os.environ['PYTEST_CURRENT_TEST'], os.environ.get('RACING_PROBE'))\n")
+    outputs = []
+    for name in ("first", "second"):
+        before = len(zygote._zygotes)
+        result = zygote.run([script], cwd=tmp_path, env={**ENV, "PYTEST_CURRENT_TEST": name})
+        outputs.append(result.stdout.split())
+        if name == "second":
+            assert len(zygote._zygotes) == before  # the first one's zygote
+    assert outputs == [["first", "None"], ["second", "None"]]
+    before = len(zygote._zygotes)  # any other variable still has a zygote of its own (it may be read at import)
+    probed = zygote.run([script], cwd=tmp_path, env={**ENV, "PYTEST_CURRENT_TEST": "x", "RACING_PROBE": "1"})
+    assert probed.stdout.split() == ["x", "1"]
+    assert len(zygote._zygotes) == before + 1

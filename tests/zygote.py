@@ -14,7 +14,8 @@ than the zygote's torch settings (``numerics=native``), a sweep through a launch
 processes (``-m`` without ``hydra/launcher=basic``: its workers import for themselves, and a forked
 parent's exit waited on joblib's workers for minutes; the basic launcher runs the jobs in the
 process itself, so such a sweep is forked), a platform without ``fork``, or ``RACING_TEST_ZYGOTE=0``.
-One zygote per test process and environment, started on first use and stopped at exit.
+One zygote per test process and environment (``VOLATILE`` variables aside: each child gets the
+environment it was asked for), started on first use and stopped at exit.
 """
 
 from __future__ import annotations
@@ -33,6 +34,10 @@ ROOT = Path(__file__).resolve().parent.parent
 PRELOAD = ["torch", "tensordict", "torchrl.envs", "torchrl.objectives", "torchrl.collectors", "torchrl.data",
            "hydra", "omegaconf", "engine.runner", "engine.setup", "learners.td.learner",
            "learners.monte_carlo.learner", "racing.torchrl_env"]
+# Variables that change from test to test and that nothing reads while importing: they do not start a zygote
+# of their own (pytest sets PYTEST_CURRENT_TEST to the running test's name, so a test passing
+# dict(os.environ) would otherwise start one zygote per test, about 3 s and 350 MB each).
+VOLATILE = ("PYTEST_CURRENT_TEST",)
 
 
 def _send(conn: socket.socket, message: dict) -> None:
@@ -151,7 +156,9 @@ class Zygote:
             raise RuntimeError("the test zygote did not start")
         atexit.register(self.stop)
 
-    def run(self, command: list[str], cwd: Path, timeout: float) -> subprocess.CompletedProcess:
+    def run(self, command: list[str], cwd: Path, timeout: float,
+            env: dict | None = None) -> subprocess.CompletedProcess:
+        """``command`` forked, in ``cwd`` with ``env`` (default: the zygote's own environment)."""
         with tempfile.TemporaryDirectory(dir=self.folder) as folder:
             out, err = os.path.join(folder, "out"), os.path.join(folder, "err")
             for path in (out, err):
@@ -159,7 +166,8 @@ class Zygote:
             conn = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
             conn.connect(self.path)
             with conn:
-                _send(conn, {"command": command, "cwd": str(cwd), "env": self.env, "stdout": out, "stderr": err})
+                _send(conn, {"command": command, "cwd": str(cwd), "env": dict(self.env if env is None else env),
+                             "stdout": out, "stderr": err})
                 pid = _receive(conn)["pid"]
                 conn.settimeout(timeout)
                 try:
@@ -204,11 +212,11 @@ def run(command: list, cwd: Path, env: dict, timeout: float = 600) -> subprocess
     zygote where that gives the same process (see the module's docstring)."""
     command = [str(part) for part in command]
     if forkable(command):
-        key = json.dumps(env, sort_keys=True)
+        key = json.dumps({k: v for k, v in env.items() if k not in VOLATILE}, sort_keys=True)
         zygote = _zygotes.get(key)
         if zygote is None:
             zygote = _zygotes[key] = Zygote(env)
-        return zygote.run(command, cwd, timeout)
+        return zygote.run(command, cwd, timeout, env)
     return subprocess.run([sys.executable, *command], cwd=cwd, env=env, capture_output=True, text=True,
                           timeout=timeout)
 
