@@ -67,3 +67,21 @@ def pytest_collection_modifyitems(config, items):
     whole = config.args in ([], ["tests"], [str(ROOT / "tests")]) and not config.option.keyword
     if whole and not config.option.markexpr and slow - found:
         raise pytest.UsageError(f"tests/slow_tests.txt lists tests that do not exist: {sorted(slow - found)[:5]}")
+    items[:] = heaviest_files_first(items)
+
+
+HEAVY_LIST = Path(__file__).with_name("heavy_files.txt")
+
+
+def heaviest_files_first(items: list) -> list:
+    """The tests grouped by file as collected, the files of tests/heavy_files.txt first in its order (the
+    longest first), the others after them as collected. pytest-xdist (``--dist loadfile
+    --no-loadscope-reorder``) hands the files to its workers in this order: the longest start first and
+    the short ones fill in at the end, instead of a long file starting last and running alone."""
+    lines = [line.split() for line in HEAVY_LIST.read_text().splitlines()]
+    rank = {line[-1]: i for i, line in enumerate(line for line in lines if line and not line[0].startswith("#"))}
+    files: dict[str, list] = {}
+    for item in items:
+        files.setdefault(item.nodeid.split("::")[0], []).append(item)
+    ranked = sorted(enumerate(files), key=lambda pair: (rank.get(pair[1], len(rank)), pair[0]))
+    return [item for _, name in ranked for item in files[name]]
