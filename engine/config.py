@@ -69,7 +69,7 @@ def config_mapping(cfg) -> dict:
         for key in ("track_scale", "track_closed"):
             if key in env and env[key] is None:
                 del env[key]
-        if env.get("memory") == 0 and not isinstance(env.get("memory"), bool):
+        if type(env.get("memory")) is int and env["memory"] == 0:  # (0.0 or false stay, to be refused)
             del env["memory"]
     if isinstance(env, dict) and "track_file" in env:  # recorded only when set, with its content's hash
         if env["track_file"] is None:

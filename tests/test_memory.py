@@ -171,7 +171,9 @@ def test_the_default_leaves_a_run_and_its_settings_alone(tmp_path):
     ("env.memory=-1", "env.memory must be an integer in [0, 64]"),
     ("env.memory=1.5", "env.memory must be an integer"),
     ("env.memory=true", "env.memory must be an integer"),
+    ("env.memory=false", "env.memory must be an integer"),
+    ("env.memory=0.0", "env.memory must be an integer"),
 ])
 def test_bad_memories_are_refused_with_a_reason(override, message):
-    with pytest.raises(ConfigError, match=re.escape(message)):
+    with pytest.raises(ConfigError, match=re.escape(message)):  # as train.py reads them (0.0 is not 0 steps)
         load("algo=sac", override)
