@@ -119,7 +119,7 @@ class RacingTorchEnv(EnvBase):
         self._continue = True
 
     def sim_state(self) -> dict:
-        """``sim.state_dict()`` and, with ``history``, the cars' past observations and actions:
+        """``sim.state_dict()`` and, with ``history`` or ``memory``, the cars' past observations and actions:
         what ``load_sim_state`` continues exactly from."""
         state = self.sim.state_dict()
         if self._past.steps:  # before the first reset: no observation yet (zeros, as the history)
