@@ -20,7 +20,6 @@ full throttle, or where they would crash at full speed. Nothing is trained or ch
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import sys
 from pathlib import Path
@@ -66,8 +65,11 @@ def driving_rows(runs: list[Path], episodes: int, seed: int = 0, oracle: bool = 
     from engine.evaluation import load_policy, make_env, own_track
     from racing.oracle import Oracle
 
-    rows, oracle_done = [], set()
+    rows, oracle_done, seen = [], set(), set()
     for run in runs:
+        if Path(run).resolve() in seen:  # a run named twice drives once (named as first given)
+            continue
+        seen.add(Path(run).resolve())
         policy, settings = load_policy(run)
         track = own_track(settings)
         env = make_env(settings, track)
@@ -82,8 +84,8 @@ def driving_rows(runs: list[Path], episodes: int, seed: int = 0, oracle: bool = 
 
             rows.append(summarise(f"{run} (throttle >= {full_throttle_above:g} -> 1)", track,
                                   [drive(boosted, env, seed + k, policy.reset) for k in range(episodes)]))
-        key = (str(track), repr(settings["env"]))
-        if oracle and key not in oracle_done:  # once per track and environment
+        key = (str(track), repr({k: v for k, v in settings["env"].items() if k != "memory"}))
+        if oracle and key not in oracle_done:  # once per track and environment (a policy's memory is not the oracle's)
             oracle_done.add(key)
             planner = Oracle()
             rows.append(summarise("oracle", track, [drive(lambda e, o: planner.act(e.unwrapped.sim, 0), env, seed + k,
@@ -108,6 +110,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--episodes must be in [1, 1000], got {args.episodes}")
     if not 0 <= args.seed < 2**32:
         parser.error(f"--seed must be in [0, 2**32), got {args.seed}")
+    if args.table is not None and args.table.is_dir():  # refused before the driving, not after it
+        parser.error(f"--table {args.table} is a folder; give a file name (e.g. {args.table / 'driving.csv'})")
     from engine import numerics
     from engine.outputs import RunFolderError
     from engine.rundir import find_runs, runs_numerics
@@ -125,10 +129,9 @@ def main(argv: list[str] | None = None) -> int:
     for row in rows:
         print("| " + " | ".join(str(row[c]) for c in COLUMNS) + " |")
     if args.table is not None:
-        with open(args.table, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=COLUMNS)
-            writer.writeheader()
-            writer.writerows(rows)
+        from engine.outputs import write_table
+
+        write_table(args.table, rows)  # its folders made as needed, the file replaced whole
     return 0
 
 

@@ -60,6 +60,17 @@ def test_bad_arguments_are_refused(run, args, message, capsys):
     assert message in capsys.readouterr().err
 
 
+def test_a_table_goes_into_new_folders_a_folder_is_refused_first_and_a_run_named_twice_drives_once(run, tmp_path,
+                                                                                                   capsys):
+    with pytest.raises(SystemExit):
+        driving.main([str(run), "--no-oracle", "--table", str(tmp_path)])
+    assert "is a folder; give a file name" in capsys.readouterr().err
+    table = tmp_path / "new" / "folder" / "d.csv"
+    assert driving.main([str(run), str(run) + "/", "--no-oracle", "--episodes", "1", "--table", str(table)]) == 0
+    with open(table, newline="") as f:
+        assert len(list(csv.DictReader(f))) == 1
+
+
 def test_a_folder_without_runs_is_refused_in_one_line(tmp_path, capsys):
     assert driving.main([str(tmp_path)]) == 2
     assert "holds no finished train.py run" in capsys.readouterr().err
