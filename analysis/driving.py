@@ -67,9 +67,10 @@ def driving_rows(runs: list[Path], episodes: int, seed: int = 0, oracle: bool = 
 
     rows, oracle_done, seen = [], set(), set()
     for run in runs:
-        if Path(run).resolve() in seen:  # a run named twice drives once (named as first given)
+        where = Path(run).resolve()
+        if where in seen:  # a run named twice drives once (named as first given)
             continue
-        seen.add(Path(run).resolve())
+        seen.add(where)
         policy, settings = load_policy(run)
         track = own_track(settings)
         env = make_env(settings, track)

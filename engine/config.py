@@ -314,17 +314,12 @@ class EnvConfig:
 
     @property
     def observation_size(self) -> int:
-        """The width of the observation the networks read (``env.memory``'s, ``racing.memory``)."""
-        return observation_size(self.options, self.memory)
+        """The width of the observation the networks read: ``env.options``' rays and speed, with
+        ``env.memory`` past steps (``racing.memory.memory_size``)."""
+        from racing.config import RacingConfig
+        from racing.memory import memory_size
 
-
-def observation_size(options: dict, memory: int = 0) -> int:
-    """The width of the observation a run's networks read: ``env.options``' rays and speed, with
-    ``env.memory`` past steps (``racing.memory.memory_size``)."""
-    from racing.config import RacingConfig
-    from racing.memory import memory_size
-
-    return memory_size(RacingConfig(**options).obs_size, memory)
+        return memory_size(RacingConfig(**self.options).obs_size, self.memory)
 
 
 @dataclass(frozen=True)

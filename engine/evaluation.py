@@ -50,7 +50,7 @@ class Policy:
             out = self.net(x.unsqueeze(0))  # [member, batch, obs]
             action = (torch.tanh(out[0]) if isinstance(out, tuple) else out).clamp(-1.0, 1.0)[0, 0].numpy()
         if self.history is not None:
-            self.history.act(action[None].astype(np.float64))
+            self.history.act(action[None])
         return action
 
     def parameters(self):
