@@ -20,6 +20,7 @@ from collectors.returns import TRANSITION_KEYS
 from learners.base import (Learner, MetricTotals, Optimisers, diverged_members, freeze_member, objective,
                            prioritised_minibatch)
 from learners.compiling import compile_step
+from learners.monte_carlo.fused import FusedCritic, critic_available
 from learners.networks import MemberNormal, MemberSampler, StackedCriticNet, StackedGaussianPolicyNet, reset_parameters
 from learners.optim import MemberAdam
 from learners.solo import make_actor, make_critic
@@ -77,6 +78,9 @@ def make_optimisers(cfg, networks: Networks) -> Optimisers:
                       critic=MemberAdam(networks.critic_net.parameters(), lr=algo.critic_lr, eps=algo.adam_eps))
 
 
+FUSED = True  # the critic steps on plain tensors where FusedCritic allows (False: always the loss module)
+
+
 class PhaseRunner:
     """Runs ``value_epochs`` critic steps then ``policy_epochs`` actor steps (Adam, one
     minibatch per member each, drawn with replacement from the member's data with its own
@@ -84,11 +88,14 @@ class PhaseRunner:
     loss's diagnostics per member."""
 
     def __init__(self, loss, optimisers, value_epochs: int, policy_epochs: int,
-                 generators: list[torch.Generator], sampler=None, compiled: bool = False):
+                 generators: list[torch.Generator], sampler=None, compiled: bool = False,
+                 critic_net: torch.nn.Module | None = None):
         """``sampler``: a ``collectors.prioritised.ProportionalSampler`` holding the replay
         memory's priorities (prioritised replay: every minibatch is drawn by priority, the critic's
         loss weighted by importance and its errors |G - critic| become the new priorities), or None.
-        ``compiled``: compile each step's objective (``learners.compiling``)."""
+        ``compiled``: compile each step's objective (``learners.compiling``). ``critic_net``: the
+        critic's stacked network; when given and ``FUSED``, uniform critic steps it allows run as
+        ``learners.monte_carlo.fused.FusedCritic`` (the loss module's numbers, bit for bit)."""
         self.loss = loss
         self.optimisers = optimisers
         self.value_epochs = value_epochs
@@ -100,6 +107,10 @@ class PhaseRunner:
         if compiled:
             loss.bind_calls()
         self._critic_objective = compile_step(self._critic_step_objective, compiled)
+        self.fused_critic = None
+        if FUSED and critic_net is not None and sampler is None and not compiled and critic_available(critic_net):
+            self.fused_critic = FusedCritic(critic_net, optimisers.critic, self.active)
+            self._critic_in_keys = list(getattr(loss, loss.critic_attr).in_keys)
         self._actor_objective = compile_step(self._actor_step_objective, compiled)
 
     def _critic_step_objective(self, batch: TensorDictBase) -> tuple[torch.Tensor, dict]:
@@ -113,7 +124,9 @@ class PhaseRunner:
         is alike); returns {member: reason} for members that diverged."""
         loss = self.loss
         loss.before_critic_phase(data)
-        for _ in range(self.value_epochs):
+        if self.fused_critic is not None:
+            self._fused_critic_phase(data, minibatch_size, totals)
+        for _ in range(0 if self.fused_critic is not None else self.value_epochs):
             batch, index = self._minibatch(data, minibatch_size)
             total, entries = self._critic_objective(batch)
             if index is not None:
@@ -129,6 +142,19 @@ class PhaseRunner:
         # Checked once per phase: a NaN or inf loss or gradient leaves non-finite parameters
         # (Adam propagates it), and one check per phase costs little per step.
         return diverged_members(self.optimisers, totals, self.active)
+
+    def _fused_critic_phase(self, data: TensorDictBase, size: int, totals: "MetricTotals") -> None:
+        """``value_epochs`` critic steps by ``FusedCritic``, each on a minibatch drawn as
+        ``sample_minibatch`` draws it (the same indices from the same generators)."""
+        parts = [data.get(key) for key in self._critic_in_keys]
+        inputs = parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
+        target = data.get(self.loss.tensor_keys.value_target)
+        n = data.batch_size[1]
+        rows = torch.arange(len(self.generators), device=inputs.device).unsqueeze(1)
+        for _ in range(self.value_epochs):
+            index = torch.stack([torch.randint(n, (size,), generator=g, device=g.device) for g in self.generators])
+            entries = self.fused_critic.step(inputs[rows, index], target[rows, index])
+            totals.add("critic", entries)
 
     def _minibatch(self, data: TensorDictBase, size: int) -> tuple[TensorDictBase, torch.Tensor | None]:
         """A minibatch per member, uniform (and no index) or by priority (with its slot indices)."""
@@ -160,6 +186,6 @@ def build(cfg, env, generators: list[torch.Generator], memory: ReplayMemory) -> 
     loss = make_loss(cfg, networks, generators)
     optimisers = make_optimisers(cfg, networks)
     phases = PhaseRunner(loss, optimisers, cfg.algo.value_epochs, cfg.algo.policy_epochs, generators,
-                         sampler=memory.sampler, compiled=cfg.compile)
+                         sampler=memory.sampler, compiled=cfg.compile, critic_net=networks.critic_net)
     return Learner(networks, loss, optimisers, memory, phases,
                    TRANSITION_KEYS, monte_carlo=True)
