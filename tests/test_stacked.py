@@ -175,3 +175,43 @@ def test_member_adam_is_torch_adam_with_a_correctly_rounded_sqrt_and_restores(mo
         assert torch.equal(a, b) and torch.equal(a, c)
     with pytest.raises(ValueError, match="optimiser state exp_avg has shapes"):
         MemberAdam(population(SEEDS[:2])[1].parameters(), lr=1e-3).load_state_dict(ours.state_dict())
+
+
+@pytest.mark.parametrize("members", [1, 3])
+@pytest.mark.parametrize("shape", [(), (5,), (2, 9)])
+@pytest.mark.parametrize("hidden", [[100], [24, 40]])
+def test_the_acting_call_is_the_forward_pass_bit_for_bit(members, shape, hidden):
+    """``act`` (the sampler's call per environment step: no module calls, the padded rows as
+    ``forward`` pads them) gives ``forward``'s values bit for bit, with the project's products and
+    without them (then it is ``forward``), and after its parameters are replaced; and ``fast_tanh``
+    without a graph gives the values it gives with one."""
+    from learners import kernels
+    from learners.networks import fast_tanh
+
+    generators = [torch.Generator().manual_seed(s) for s in SEEDS[:members]]
+    net = reset_parameters(StackedGaussianPolicyNet(members, 6, 2, hidden), generators)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(torch.rand(p.shape, generator=generators[0]) * 0.3)  # biases away from zero
+    obs = torch.rand(members, *shape, 6, generator=generators[0]) * 4 - 2
+    previous = kernels.active()
+    try:
+        for fma in (True, False):
+            if kernels.use(fma) and fma:
+                pytest.skip("the kernels cannot be built here")
+            with torch.no_grad():
+                expected = net(obs)
+            got = net.act(obs)
+            assert all(torch.equal(a, b) for a, b in zip(expected, got))
+            assert got[0].shape == (members, *shape, 2)
+    finally:
+        kernels.use(previous)
+    net.act(obs)
+    net.scale_head.weight = torch.nn.Parameter(net.scale_head.weight.detach() * 0.5)  # a later layer's, replaced
+    with torch.no_grad():
+        expected = net(obs)
+    assert all(torch.equal(a, b) for a, b in zip(expected, net.act(obs))) and not torch.equal(got[1], expected[1])
+    x = torch.randn(members, 64, 100, generator=generators[0]) * 3
+    with torch.no_grad():
+        plain = fast_tanh(x)
+    assert torch.equal(plain, fast_tanh(x.clone().requires_grad_()).detach())
