@@ -43,9 +43,10 @@ def _state(t, generators, totals: MetricTotals) -> list[torch.Tensor]:
 
 def _phases(fused: bool, overrides, minibatch: int, phases: int = 3, freeze: int | None = None):
     t, generators = _learner(*overrides)
-    assert (t.phases.fused_critic is not None) is True  # these configurations allow it
+    assert t.phases.fused_critic is not None  # these configurations allow it
+    assert (t.phases.fused_actor is not None) == ("algo=spg" in overrides[0])
     if not fused:
-        t.phases.fused_critic = None
+        t.phases.fused_critic = t.phases.fused_actor = None
     if freeze is not None:
         t.phases.freeze(freeze)
     obs_dim = t.networks.actor_net.body.layers[0].weight.shape[-1]

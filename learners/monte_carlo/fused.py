@@ -22,7 +22,8 @@ import torch
 
 from learners import kernels
 from learners.kernels import ops as kernel_ops
-from learners.networks import StackedCriticNet, StackedMLP, fast_tanh
+from learners.networks import _LOG_SQRT_2PI, StackedCriticNet, StackedGaussianPolicyNet, StackedMLP, fast_tanh
+from losses import functional as F
 
 
 def critic_available(critic_net: torch.nn.Module) -> bool:
@@ -99,3 +100,159 @@ class FusedCritic:
         self.optimiser.step()
         return {"loss_critic": loss, "value_mean": value_mean}
 
+
+
+def actor_available(actor_net: torch.nn.Module) -> bool:
+    """Whether ``GaussianPolicyPass`` computes this actor's pass (else the loss module's path)."""
+    if type(actor_net) is not StackedGaussianPolicyNet or type(actor_net.body) is not StackedMLP:
+        return False
+    return (kernels.active() and actor_net.body.activation is fast_tanh
+            and all(p.device.type == "cpu" and p.dtype == torch.float32 for p in actor_net.parameters()))
+
+
+class GaussianPolicyPass:
+    """The actor's forward pass with what its backward needs kept, and that backward: what
+    ``StackedGaussianPolicyNet.forward`` and autograd compute, bit for bit."""
+
+    def __init__(self, actor_net: StackedGaussianPolicyNet, optimiser):
+        if not actor_available(actor_net):
+            raise ValueError("GaussianPolicyPass needs a tanh StackedGaussianPolicyNet in float32 on the CPU "
+                             "with numerics=fma")
+        self.net = actor_net
+        self.body = [(layer.weight, layer.bias) for layer in actor_net.body.layers]
+        self.loc_head = (actor_net.loc_head.weight, actor_net.loc_head.bias)
+        self.scale_head = (actor_net.scale_head.weight, actor_net.scale_head.bias)
+        self.params = [p for pair in (*self.body, self.loc_head, self.scale_head) for p in pair]
+        if [id(p) for p in optimiser.params] != [id(p) for p in self.params]:
+            raise ValueError("the actor's optimiser must hold the actor's parameters in layer order")
+        self.optimiser = optimiser
+        self.multiple = actor_net.act_rows
+
+    def forward(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(loc, scale) of ``observation`` ``[R, B, obs]``, each ``[R, B, D]``."""
+        batch = observation.shape[1]
+        rows = batch + (-batch) % self.multiple
+        x = observation if rows == batch else torch.nn.functional.pad(observation, (0, 0, 0, rows - batch))
+        self._seen = [x]
+        for weight, bias in self.body:
+            x = _tanh(kernel_ops._forward(x, weight, bias))
+            self._seen.append(x)
+        self._loc = torch.tanh(kernel_ops._forward(x, *self.loc_head))
+        self._scale_input = kernel_ops._forward(x, *self.scale_head)
+        scale = torch.nn.functional.softplus(self._scale_input)
+        self._batch, self._rows = batch, rows
+        if rows == batch:
+            return self._loc, scale
+        return self._loc[:, :batch], scale[:, :batch]
+
+    def backward_and_step(self, grad_loc: torch.Tensor, grad_scale: torch.Tensor) -> None:
+        """The parameters' gradients from those of (loc, scale), then the optimiser's step."""
+        if self._rows != self._batch:
+            pad = (0, 0, 0, self._rows - self._batch)
+            grad_loc, grad_scale = torch.nn.functional.pad(grad_loc, pad), torch.nn.functional.pad(grad_scale, pad)
+        grad_loc = torch.ops.aten.tanh_backward(grad_loc, self._loc)
+        grad_scale = torch.ops.aten.softplus_backward(grad_scale, self._scale_input, 1.0, 20.0)
+        h = self._seen[-1]
+        grads = [kernel_ops._weight_grad(grad_loc, h), kernel_ops.colsum(grad_loc),
+                 kernel_ops._weight_grad(grad_scale, h), kernel_ops.colsum(grad_scale)]
+        grad = kernel_ops._input_grad(grad_loc, self.loc_head[0]) + kernel_ops._input_grad(grad_scale, self.scale_head[0])
+        body = []
+        for i in range(len(self.body) - 1, -1, -1):
+            weight = self.body[i][0]
+            grad = torch.ops.aten.tanh_backward(grad, self._seen[i + 1])
+            body[:0] = [kernel_ops._weight_grad(grad, self._seen[i]), kernel_ops.colsum(grad)]
+            if i > 0:
+                grad = kernel_ops._input_grad(grad, weight)
+        for p, g in zip(self.params, body + grads):
+            p.grad = g
+        self._seen = self._loc = self._scale_input = None
+        self.optimiser.step()
+
+
+def normal_log_prob(loc: torch.Tensor, scale: torch.Tensor, value: torch.Tensor):
+    """``learners.networks.MemberNormal.log_prob`` with what its backward needs: (log-probabilities,
+    a function from their gradient to those of (loc, scale) as autograd computes them)."""
+    difference = value - loc
+    var = scale ** 2
+    numerator = -(difference ** 2)
+    denominator = 2 * var
+    quotient = numerator / denominator
+    log_prob = quotient - F.per_member(torch.log, scale) - _LOG_SQRT_2PI
+
+    def backward(grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        grad_numerator = grad / denominator
+        grad_denominator = -grad * ((numerator / denominator) / denominator)
+        grad_scale = (grad_denominator * 2) * (scale.pow(1.0) * 2.0)
+        grad_scale = grad_scale + (-grad) / scale
+        grad_loc = -((-grad_numerator) * (difference.pow(1.0) * 2.0))
+        return grad_loc, grad_scale
+
+    del quotient
+    return log_prob, backward
+
+
+class FusedSPGActor:
+    """One SPG actor step (``SPGLoss.actor_loss``, then ``objective``, backward and Adam), bit for bit:
+    the candidates scored by the critic without a graph, the policy's log-likelihood of the best one
+    (weighted by its Q gain under SPG-p) and its gradient as autograd takes it."""
+
+    def __init__(self, loss, policy: GaussianPolicyPass, critic_net: torch.nn.Module, active: torch.Tensor):
+        if loss.entropy_coeff != 0 or loss.members is None:
+            raise ValueError("FusedSPGActor computes SPG without an entropy bonus, for a population")
+        self.loss, self.policy, self.critic_net, self.active = loss, policy, critic_net, active
+        self.action_key = loss.tensor_keys.action
+        self.critic_keys = list(loss.qvalue_network.in_keys)
+        self.actor_key = loss.actor_network.in_keys[0]
+
+    def step(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """One Adam step of the actor on the minibatch ``batch`` ({key: [R, B, ...]}); returns the
+        step's diagnostics, one value per member."""
+        loss = self.loss
+        action = batch[self.action_key]
+        noise = loss._perturbations(action)  # drawn where SPGLoss.draw draws them
+        loc, scale = self.policy.forward(batch[self.actor_key])
+        with torch.no_grad():
+            temperature = loss.temperature.to(loc.dtype).reshape(-1, *[1] * (noise.dim() - 1))
+            candidates = F.spg_candidates(action, loc, noise, temperature, loss.sample_around)
+            count = candidates.shape[-2]
+            inputs = [candidates if key == self.action_key else _repeat(batch[key], count) for key in self.critic_keys]
+            scores = self.critic_net(*inputs).squeeze(-1)
+            target, index = F.best_candidate(candidates, scores)
+            q_target = scores.gather(-1, index.unsqueeze(-1))
+            q_baseline = scores[..., 1:2] if loss.baseline == "mean" else scores[..., 0:1]
+            weight = q_target - q_baseline if loss.prioritised else None
+            log_prob, log_prob_backward = normal_log_prob(loc, scale, target)
+            joint = loss.joint_log_prob
+            terms = F.per_dimension_or_joint(log_prob, joint)
+            weighted = terms if weight is None else weight * terms
+            members = weighted.shape[0]
+            loss_objective = -weighted.reshape(members, -1).mean(-1)
+            entropy = F.mean(F.per_dimension_or_joint(0.5 + _LOG_SQRT_2PI + F.per_member(torch.log, scale), joint),
+                             True)
+            entries = {
+                "loss_objective": loss_objective,
+                "loss_entropy": -loss.entropy_coeff * entropy,
+                "entropy": entropy,
+                "weight_mean": torch.ones(q_target.shape[:-2]) if weight is None else F.mean(weight, True),
+                "q_target": F.mean(q_target, True),
+                "q_gain": F.mean(q_target - q_baseline, True),
+                "target_is_action": F.mean((index == 0).float(), True),
+                "target_is_mean": F.mean((index == 1).float(), True),
+                "temperature": loss.temperature.float(),
+            }
+            # backward: d/d terms of sum_r active_r * -mean(weight * terms)
+            size = weighted[0].numel()
+            grad = (-self.active).unsqueeze(-1).expand(members, size) / size
+            grad = grad.reshape(weighted.shape)
+            if weight is not None:
+                grad = grad * weight
+            if joint:
+                grad = grad.expand(log_prob.shape)
+            grad_loc, grad_scale = log_prob_backward(grad)
+            self.policy.backward_and_step(grad_loc, grad_scale)
+        return entries
+
+
+def _repeat(value: torch.Tensor, count: int) -> torch.Tensor:
+    """[..., B, F] -> [..., B, count, F] without copying (``losses.spg``'s pairs)."""
+    return value.unsqueeze(-2).expand(*value.shape[:-1], count, value.shape[-1])

@@ -20,7 +20,8 @@ from collectors.returns import TRANSITION_KEYS
 from learners.base import (Learner, MetricTotals, Optimisers, diverged_members, freeze_member, objective,
                            prioritised_minibatch)
 from learners.compiling import compile_step
-from learners.monte_carlo.fused import FusedCritic, critic_available
+from learners.monte_carlo.fused import (FusedCritic, FusedSPGActor, GaussianPolicyPass, actor_available,
+                                        critic_available)
 from learners.networks import MemberNormal, MemberSampler, StackedCriticNet, StackedGaussianPolicyNet, reset_parameters
 from learners.optim import MemberAdam
 from learners.solo import make_actor, make_critic
@@ -89,7 +90,7 @@ class PhaseRunner:
 
     def __init__(self, loss, optimisers, value_epochs: int, policy_epochs: int,
                  generators: list[torch.Generator], sampler=None, compiled: bool = False,
-                 critic_net: torch.nn.Module | None = None):
+                 critic_net: torch.nn.Module | None = None, actor_net: torch.nn.Module | None = None):
         """``sampler``: a ``collectors.prioritised.ProportionalSampler`` holding the replay
         memory's priorities (prioritised replay: every minibatch is drawn by priority, the critic's
         loss weighted by importance and its errors |G - critic| become the new priorities), or None.
@@ -108,9 +109,16 @@ class PhaseRunner:
             loss.bind_calls()
         self._critic_objective = compile_step(self._critic_step_objective, compiled)
         self.fused_critic = None
+        self.fused_actor = None
         if FUSED and critic_net is not None and sampler is None and not compiled and critic_available(critic_net):
             self.fused_critic = FusedCritic(critic_net, optimisers.critic, self.active)
             self._critic_in_keys = list(getattr(loss, loss.critic_attr).in_keys)
+            if (actor_net is not None and actor_available(actor_net) and isinstance(loss, SPGLoss)
+                    and loss.entropy_coeff == 0 and loss.members is not None):
+                policy = GaussianPolicyPass(actor_net, optimisers.actor)
+                self.fused_actor = FusedSPGActor(loss, policy, critic_net, self.active)
+                self._actor_in_keys = list(dict.fromkeys([*loss.actor_network.in_keys, loss.tensor_keys.action,
+                                                          *self._critic_in_keys]))
         self._actor_objective = compile_step(self._actor_step_objective, compiled)
 
     def _critic_step_objective(self, batch: TensorDictBase) -> tuple[torch.Tensor, dict]:
@@ -133,7 +141,9 @@ class PhaseRunner:
                 self.sampler.update_priority(index.cpu(), entries.pop(PRIORITY_KEY).cpu())
             self._step(self.optimisers.critic, total, entries, "critic", totals)
         loss.before_actor_phase(data)
-        for _ in range(self.policy_epochs):
+        if self.fused_actor is not None:
+            self._fused_actor_phase(data, minibatch_size, totals)
+        for _ in range(0 if self.fused_actor is not None else self.policy_epochs):
             batch = self._minibatch(data, minibatch_size)[0]
             loss.draw(batch)
             total, entries = self._actor_objective(batch)
@@ -155,6 +165,17 @@ class PhaseRunner:
             index = torch.stack([torch.randint(n, (size,), generator=g, device=g.device) for g in self.generators])
             entries = self.fused_critic.step(inputs[rows, index], target[rows, index])
             totals.add("critic", entries)
+
+    def _fused_actor_phase(self, data: TensorDictBase, size: int, totals: "MetricTotals") -> None:
+        """``policy_epochs`` actor steps by the fused actor, each minibatch drawn as ``sample_minibatch``
+        draws it."""
+        tensors = {key: data.get(key) for key in self._actor_in_keys}
+        n = data.batch_size[1]
+        rows = torch.arange(len(self.generators)).unsqueeze(1)
+        for _ in range(self.policy_epochs):
+            index = torch.stack([torch.randint(n, (size,), generator=g, device=g.device) for g in self.generators])
+            entries = self.fused_actor.step({key: value[rows, index] for key, value in tensors.items()})
+            totals.add("actor", entries)
 
     def _minibatch(self, data: TensorDictBase, size: int) -> tuple[TensorDictBase, torch.Tensor | None]:
         """A minibatch per member, uniform (and no index) or by priority (with its slot indices)."""
@@ -186,6 +207,7 @@ def build(cfg, env, generators: list[torch.Generator], memory: ReplayMemory) -> 
     loss = make_loss(cfg, networks, generators)
     optimisers = make_optimisers(cfg, networks)
     phases = PhaseRunner(loss, optimisers, cfg.algo.value_epochs, cfg.algo.policy_epochs, generators,
-                         sampler=memory.sampler, compiled=cfg.compile, critic_net=networks.critic_net)
+                         sampler=memory.sampler, compiled=cfg.compile, critic_net=networks.critic_net,
+                         actor_net=networks.actor_net)
     return Learner(networks, loss, optimisers, memory, phases,
                    TRANSITION_KEYS, monte_carlo=True)
