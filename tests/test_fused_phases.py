@@ -44,7 +44,7 @@ def _state(t, generators, totals: MetricTotals) -> list[torch.Tensor]:
 def _phases(fused: bool, overrides, minibatch: int, phases: int = 3, freeze: int | None = None):
     t, generators = _learner(*overrides)
     assert t.phases.fused_critic is not None  # these configurations allow it
-    assert (t.phases.fused_actor is not None) == ("algo=spg" in overrides[0])
+    assert t.phases.fused_actor is not None
     if not fused:
         t.phases.fused_critic = t.phases.fused_actor = None
     if freeze is not None:
@@ -54,18 +54,27 @@ def _phases(fused: bool, overrides, minibatch: int, phases: int = 3, freeze: int
     for k in range(phases):
         data = _phase_data(len(generators), 150 + 7 * k, obs_dim, seed=k)
         assert t.phases.run(data, minibatch, totals) == {}
+    if "algo.actor_lr=0.01" in overrides:  # the ratio leaves its clip bounds: both branches of the surrogate
+        clipped = torch.stack(totals.values["actor/clip_fraction"])
+        assert clipped.gt(0).any() and clipped.lt(1).all()
     return _state(t, generators, totals), list(totals.values)
 
 
 @pytest.mark.parametrize("overrides", [["algo=spg_p_multi"], ["algo=spg"], ["algo=ppo"], ["algo=ppo_log"],
                                        ["algo=spg_multi", "env.memory=2", "algo.value_epochs=7"],
-                                       ["algo=ppo", "network.critic_hidden=[24,40,16]"]])
+                                       ["algo=ppo", "network.critic_hidden=[24,40,16]", "network.actor_hidden=[48,40]"],
+                                       ["algo=ppo_log", "algo.joint_log_prob=true"],
+                                       ["algo=spg_p", "algo.joint_log_prob=true", "algo.spg.baseline=action",
+                                        "algo.spg.sample_around=action"],
+                                       ["algo=ppo", "algo.entropy_coeff=0"],
+                                       ["algo=ppo", "algo.actor_lr=0.01"], ["algo=ppo_log", "algo.actor_lr=0.01"]])
 @pytest.mark.parametrize("minibatch", [100, 37])
 def test_a_fused_phase_is_the_loss_modules_phase_bit_for_bit(overrides, minibatch):
     """Three phases of three members on data of different sizes: the same parameters, Adam moments,
     per-step diagnostics, generator states and temperatures (SPG), whether the minibatch fills its
-    padded rows (100 of 104) or not (37 of 40), with a deeper critic of other widths and a wider
-    observation (env.memory)."""
+    padded rows (100 of 104) or not (37 of 40), with deeper networks of other widths, a wider
+    observation (env.memory), joint log-probabilities, SPG's other centre and baseline, PPO with and
+    without its entropy bonus and with ratios outside the clip bounds."""
     theirs, names = _phases(False, overrides, minibatch)
     ours, our_names = _phases(True, overrides, minibatch)
     assert names == our_names and len(ours) == len(theirs)

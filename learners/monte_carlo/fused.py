@@ -1,19 +1,25 @@
-"""The paper's update steps on plain tensors, their backward passes written out (``FusedSteps``).
+"""The paper's update steps on plain tensors, their backward passes written out.
 
-A Monte-Carlo critic step is small: three products forward, five backward, two activations and
+A step of SPG's or PPO's phases is small: a few products forward and backward, two activations and
 Adam, on minibatches of 100-200 transitions. Through the loss module it also pays for TensorDict
 minibatches, the loss's TensorDict output, autograd's graph and engine, and a Python call per
-layer and per padding: about as much again as the products at R = 1. Here the same operations
-run in the same order on the same tensors, with each gradient computed as autograd computes it
-(the same kernels and ATen functions, the same formulas), so a step gives the loss module's
-numbers bit for bit (``tests/test_fused_phases.py`` holds them to it, step by step and over whole
-runs) at less than half its per-step overhead.
+layer and per padding: about as much again as the products. Here the same operations run in the
+same order on the same tensors, with each gradient computed as autograd computes it (the same
+kernels and ATen functions, the same formulas, the same order of sums where a tensor takes
+several gradients), so every step gives the loss module's numbers bit for bit
+(``tests/test_fused_phases.py`` holds them to it over whole phases, and the golden runs over whole
+runs).
 
-What it covers: the critic step of SPG's and PPO's phases (uniform minibatches; prioritised replay
-takes the loss module's path), with the project's products (``numerics=fma``: the products are
-``learners.kernels``'s, whose backward this module calls directly), on the CPU, in float32, with the
-paper's tanh activation. Anything else (other activations, ``numerics`` native or portable, a GPU,
-``compile=true``) takes the loss module's path, which stays the reference.
+- ``FusedCritic``: the Monte-Carlo critic's step (SPG's Q(s, a), PPO's V(s)).
+- ``FusedSPGActor``: SPG's actor step (SPG-p's weights, either centre and baseline), without an
+  entropy bonus (the paper's; with one, the loss module's path).
+- ``FusedPPOActor``: PPO's actor step, the ratio in linear or log space, with its entropy bonus.
+
+They run with the project's products (``numerics=fma``: the products are ``learners.kernels``'s,
+whose backward this module calls directly), on the CPU, in float32, with the paper's tanh
+activation, on uniform minibatches. Anything else (prioritised replay, other activations,
+``numerics`` native or portable, a GPU, ``compile=true``) takes the loss module's path, which stays
+the reference (``learners.monte_carlo.learner.FUSED = False`` forces it).
 """
 
 from __future__ import annotations
@@ -179,11 +185,15 @@ def normal_log_prob(loc: torch.Tensor, scale: torch.Tensor, value: torch.Tensor)
     quotient = numerator / denominator
     log_prob = quotient - F.per_member(torch.log, scale) - _LOG_SQRT_2PI
 
-    def backward(grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def backward(grad: torch.Tensor, grad_scale_first: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``grad_scale_first``: a gradient of ``scale`` from a later use (the entropy's logarithm),
+        which autograd adds first."""
         grad_numerator = grad / denominator
         grad_denominator = -grad * ((numerator / denominator) / denominator)
-        grad_scale = (grad_denominator * 2) * (scale.pow(1.0) * 2.0)
-        grad_scale = grad_scale + (-grad) / scale
+        through_log = (-grad) / scale
+        if grad_scale_first is not None:
+            through_log = grad_scale_first + through_log
+        grad_scale = through_log + (grad_denominator * 2) * (scale.pow(1.0) * 2.0)
         grad_loc = -((-grad_numerator) * (difference.pow(1.0) * 2.0))
         return grad_loc, grad_scale
 
@@ -256,3 +266,72 @@ class FusedSPGActor:
 def _repeat(value: torch.Tensor, count: int) -> torch.Tensor:
     """[..., B, F] -> [..., B, count, F] without copying (``losses.spg``'s pairs)."""
     return value.unsqueeze(-2).expand(*value.shape[:-1], count, value.shape[-1])
+
+
+class FusedPPOActor:
+    """One PPO actor step (``LogClipPPOLoss.actor_loss``, then ``objective``, backward and Adam), bit for
+    bit: the clipped surrogate in linear or log space, the entropy bonus, and their gradients as
+    autograd takes them."""
+
+    def __init__(self, loss, policy: GaussianPolicyPass, active: torch.Tensor):
+        if loss.members is None:
+            raise ValueError("FusedPPOActor computes PPO for a population")
+        self.loss, self.policy, self.active = loss, policy, active
+        keys = loss.tensor_keys
+        self.keys = (loss.actor_network.in_keys[0], keys.action, keys.sample_log_prob, keys.advantage)
+
+    def step(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """One Adam step of the actor on the minibatch ``batch`` ({key: [R, B, ...]}); returns the
+        step's diagnostics, one value per member."""
+        loss = self.loss
+        observation, action, old_log_prob, advantage = (batch[key] for key in self.keys)
+        loc, scale = self.policy.forward(observation)
+        with torch.no_grad():
+            joint = loss.joint_log_prob
+            per_dimension, log_prob_backward = normal_log_prob(loc, scale, action)
+            log_prob = F.per_dimension_or_joint(per_dimension, joint)
+            if old_log_prob.shape != log_prob.shape:
+                raise ValueError(f"{self.keys[2]} has shape {tuple(old_log_prob.shape)} but the policy's "
+                                 f"log-probabilities have shape {tuple(log_prob.shape)}")
+            ratio = F.ppo_ratio(log_prob, old_log_prob, loss.ratio_space, True)
+            low, high = F.clip_bounds(loss.clip_epsilon, loss.ratio_space)
+            unclipped = ratio * advantage
+            bounded = ratio.clamp(low, high)
+            clipped = bounded * advantage
+            objective = torch.minimum(unclipped, clipped)
+            members = objective.shape[0]
+            entropy_terms = F.per_dimension_or_joint(0.5 + _LOG_SQRT_2PI + F.per_member(torch.log, scale), joint)
+            entropy = F.mean(entropy_terms, True)
+            entries = {
+                "loss_objective": -F.mean(objective, True),
+                "loss_entropy": -loss.entropy_coeff * entropy,
+                "entropy": entropy,
+                "clip_fraction": F.mean((clipped < unclipped).float(), True),
+                "approx_kl": F.approx_kl(log_prob, old_log_prob, True),
+                "ratio_mean": F.mean(ratio, True),
+                "advantage_mean": F.mean(advantage, True),
+            }
+            # backward: d/d (loc, scale) of sum_r active_r * (loss_objective_r [+ loss_entropy_r])
+            size = objective[0].numel()
+            grad = ((-self.active).unsqueeze(-1).expand(members, size) / size).reshape(objective.shape)
+            equal = unclipped == clipped
+            halved = torch.where(equal, grad / 2, grad)
+            grad_unclipped = halved.masked_fill(unclipped > clipped, 0)
+            grad_clipped = halved.masked_fill_(unclipped < clipped, 0)
+            inside = (ratio >= low).logical_and_(ratio <= high)
+            grad_ratio = (torch.where(inside, grad_clipped * advantage, torch.zeros((), dtype=grad.dtype))
+                          + grad_unclipped * advantage)
+            grad_log_ratio = grad_ratio * ratio if loss.ratio_space == "linear" else grad_ratio
+            if joint:
+                grad_log_ratio = grad_log_ratio.expand(per_dimension.shape)
+            grad_entropy_scale = None
+            if loss.entropy_coeff:
+                count = entropy_terms[0].numel()
+                grad_entropy = ((self.active * -loss.entropy_coeff).unsqueeze(-1).expand(members, count) / count)
+                grad_entropy = grad_entropy.reshape(entropy_terms.shape)
+                if joint:
+                    grad_entropy = grad_entropy.expand(scale.shape)
+                grad_entropy_scale = grad_entropy / scale
+            grad_loc, grad_scale = log_prob_backward(grad_log_ratio, grad_entropy_scale)
+            self.policy.backward_and_step(grad_loc, grad_scale)
+        return entries

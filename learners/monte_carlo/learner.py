@@ -20,7 +20,7 @@ from collectors.returns import TRANSITION_KEYS
 from learners.base import (Learner, MetricTotals, Optimisers, diverged_members, freeze_member, objective,
                            prioritised_minibatch)
 from learners.compiling import compile_step
-from learners.monte_carlo.fused import (FusedCritic, FusedSPGActor, GaussianPolicyPass, actor_available,
+from learners.monte_carlo.fused import (FusedCritic, FusedPPOActor, FusedSPGActor, GaussianPolicyPass, actor_available,
                                         critic_available)
 from learners.networks import MemberNormal, MemberSampler, StackedCriticNet, StackedGaussianPolicyNet, reset_parameters
 from learners.optim import MemberAdam
@@ -113,12 +113,17 @@ class PhaseRunner:
         if FUSED and critic_net is not None and sampler is None and not compiled and critic_available(critic_net):
             self.fused_critic = FusedCritic(critic_net, optimisers.critic, self.active)
             self._critic_in_keys = list(getattr(loss, loss.critic_attr).in_keys)
-            if (actor_net is not None and actor_available(actor_net) and isinstance(loss, SPGLoss)
-                    and loss.entropy_coeff == 0 and loss.members is not None):
-                policy = GaussianPolicyPass(actor_net, optimisers.actor)
-                self.fused_actor = FusedSPGActor(loss, policy, critic_net, self.active)
-                self._actor_in_keys = list(dict.fromkeys([*loss.actor_network.in_keys, loss.tensor_keys.action,
-                                                          *self._critic_in_keys]))
+            if actor_net is not None and actor_available(actor_net) and loss.members is not None:
+                keys = [*loss.actor_network.in_keys, loss.tensor_keys.action]
+                if isinstance(loss, SPGLoss) and loss.entropy_coeff == 0:
+                    self.fused_actor = FusedSPGActor(loss, GaussianPolicyPass(actor_net, optimisers.actor),
+                                                     critic_net, self.active)
+                    keys += self._critic_in_keys
+                elif isinstance(loss, LogClipPPOLoss):
+                    self.fused_actor = FusedPPOActor(loss, GaussianPolicyPass(actor_net, optimisers.actor),
+                                                     self.active)
+                    keys += [loss.tensor_keys.sample_log_prob, loss.tensor_keys.advantage]
+                self._actor_in_keys = list(dict.fromkeys(keys))
         self._actor_objective = compile_step(self._actor_step_objective, compiled)
 
     def _critic_step_objective(self, batch: TensorDictBase) -> tuple[torch.Tensor, dict]:
