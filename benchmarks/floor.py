@@ -11,8 +11,9 @@ then replayed alone, on buffers of the same layout, outside any network: that is
 time the step could not go below without faster products. The table gives, per learner and R,
 milliseconds per gradient step (the population's; the paper's learners per update phase, of
 ``value_epochs + policy_epochs`` steps), the floor, their ratio, and the products' count. The
-learners with a fused step (``learners.td.learner.FUSED``: SAC, DroQ, BRO, TQC, CrossQ, TD3; the same bits as
-their TorchRL loss modules) take it; ``--module`` adds a row through the loss module for each learner
+learners with a fused step (``learners.td.learner.FUSED``: SAC, DroQ, BRO, TQC, CrossQ, TD3, the same bits as
+their TorchRL loss modules; ``learners.monte_carlo.learner.FUSED``: SPG's and PPO's phases, the same bits as
+``SPGLoss`` and ``LogClipPPOLoss``) take it; ``--module`` adds a row through the loss module for each learner
 whose run took a fused step, the step before it was fused.
 
 A ratio of 1.0 would mean nothing but products; what lies above it is element-wise work,
@@ -66,7 +67,7 @@ class Recorder:
         self.seconds: dict[int, float] = defaultdict(float)
         self.steps: dict[int, int] = defaultdict(int)
         self.episode = 0
-        self.fused = False  # whether the phases took a fused step (``TDPhaseRunner.fused``)
+        self.fused = False  # whether the phases took a fused step (``TDPhaseRunner.fused``, ``PhaseRunner.fused``)
 
     def install(self):
         """Wrap the kernels' entry points and both families' update phases; returns the undo."""
@@ -173,16 +174,18 @@ def measure(recipe: list[str], off_policy: bool, members: int, steps: int, fused
              f"algo.td.updates_per_step={steps / 200}"] if off_policy else ["episodes=3", "final_window=1"]
     cfg = RunConfig.compose(*recipe, *extra, "progress=false", "logger=none", "checkpoint_every=0",
                             f"seeds=[{seeds}]")
+    from learners.monte_carlo import learner as monte_carlo
     from learners.td import learner
 
     recorder = Recorder()
     undo = recorder.install()
-    previous, learner.FUSED = learner.FUSED, fused
+    previous = learner.FUSED, monte_carlo.FUSED
+    learner.FUSED = monte_carlo.FUSED = fused
     try:
         with tempfile.TemporaryDirectory() as out:
             train_population(cfg, Path(out))
     finally:
-        learner.FUSED = previous
+        learner.FUSED, monte_carlo.FUSED = previous
         undo()
     last = max(e for e in recorder.seconds if recorder.steps[e])
     calls = recorder.calls[last]

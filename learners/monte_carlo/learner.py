@@ -126,6 +126,11 @@ class PhaseRunner:
                 self._actor_in_keys = list(dict.fromkeys(keys))
         self._actor_objective = compile_step(self._actor_step_objective, compiled)
 
+    @property
+    def fused(self) -> bool:
+        """Whether the phase's steps run fused (``learners.monte_carlo.fused``), the critic's at least."""
+        return self.fused_critic is not None
+
     def _critic_step_objective(self, batch: TensorDictBase) -> tuple[torch.Tensor, dict]:
         return objective(self.loss.critic_loss(batch), self.active)
 
