@@ -147,6 +147,19 @@ def test_floor_records_a_layers_products_and_replays_them():
     assert replay(calls * 50, repeats=1, budget=1) > 0.0  # a chunk per call: memory bounded whatever the steps
 
 
+def test_floor_times_the_paper_phases_fused_and_through_the_loss_module():
+    """``--module``'s second row for SPG and PPO is the loss module's phase: the same products (the
+    fused steps make the products the module makes), taken without the fused steps."""
+    from benchmarks.floor import measure
+    from learners import kernels
+
+    if not kernels.active():
+        pytest.skip(f"the project's kernels are not in use here: {kernels.unavailable_reason()}")
+    fused, module = (measure(["algo=ppo", "er=recent"], False, 2, 2, fused=f) for f in (True, False))
+    assert fused["fused"] and not module["fused"]
+    assert fused["products"] == module["products"] > 0 and fused["steps"] == module["steps"] == 60
+
+
 def test_floor_says_why_without_the_kernels(monkeypatch, capsys):
     from benchmarks import floor
     from learners import kernels
