@@ -108,3 +108,18 @@ def test_the_loss_module_takes_every_step_the_fused_one_does_not_compute(overrid
         kernels.use(previous)
     monkeypatch.setattr(mc, "FUSED", False)
     assert _learner("algo=spg")[0].phases.fused_critic is None
+
+
+def test_a_loss_with_a_setting_the_fused_steps_do_not_know_takes_the_loss_modules_path():
+    """An option added to a loss module (and not to the fused steps), or a subclass of it, is computed by
+    the loss module: the fused steps never ignore what they do not know."""
+    from learners.monte_carlo.fused import loss_known
+    from losses import SPGLoss
+
+    t, _ = _learner("algo=spg")
+    assert loss_known(t.loss)
+    t.loss.clip_weights = True  # a new setting
+    assert not loss_known(t.loss)
+    del t.loss.clip_weights
+    t.loss.__class__ = type("MySPGLoss", (SPGLoss,), {})
+    assert not loss_known(t.loss)

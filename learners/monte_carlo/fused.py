@@ -32,6 +32,27 @@ from learners.networks import _LOG_SQRT_2PI, StackedCriticNet, StackedGaussianPo
 from losses import functional as F
 
 
+# The settings each loss module has, as the fused steps know them: a loss with another setting (an
+# option added to the loss module and not here) or of a subclass takes the loss module's path.
+KNOWN_SETTINGS = {
+    "SPGLoss": {"baseline", "entropy_coeff", "generators", "joint_log_prob", "members", "num_samples", "prioritised",
+                "sample_around", "temperature_decay"},
+    "LogClipPPOLoss": {"clip_epsilon", "entropy_coeff", "joint_log_prob", "members", "ratio_space"},
+}
+
+
+def loss_known(loss) -> bool:
+    """Whether ``loss`` is exactly ``SPGLoss`` or ``LogClipPPOLoss`` with the settings the fused steps
+    compute (a population's; not a subclass, which may compute something else)."""
+    from losses import LogClipPPOLoss, SPGLoss
+
+    if type(loss) not in (SPGLoss, LogClipPPOLoss) or loss.members is None:
+        return False
+    settings = {key for key in vars(loss) if not key.startswith("_")} - {"training", "value_type"}
+    buffers = {name for name, _ in loss.named_buffers(recurse=False)}
+    return settings <= KNOWN_SETTINGS[type(loss).__name__] and buffers <= {"temperature"}
+
+
 def critic_available(critic_net: torch.nn.Module) -> bool:
     """Whether ``FusedCritic`` computes this critic's step (else the loss module's path)."""
     mlp = getattr(critic_net, "net", None)

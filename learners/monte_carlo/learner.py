@@ -21,7 +21,7 @@ from learners.base import (Learner, MetricTotals, Optimisers, diverged_members, 
                            prioritised_minibatch)
 from learners.compiling import compile_step
 from learners.monte_carlo.fused import (FusedCritic, FusedPPOActor, FusedSPGActor, GaussianPolicyPass, actor_available,
-                                        critic_available)
+                                        critic_available, loss_known)
 from learners.networks import MemberNormal, MemberSampler, StackedCriticNet, StackedGaussianPolicyNet, reset_parameters
 from learners.optim import MemberAdam
 from learners.solo import make_actor, make_critic
@@ -110,10 +110,11 @@ class PhaseRunner:
         self._critic_objective = compile_step(self._critic_step_objective, compiled)
         self.fused_critic = None
         self.fused_actor = None
-        if FUSED and critic_net is not None and sampler is None and not compiled and critic_available(critic_net):
+        if (FUSED and critic_net is not None and sampler is None and not compiled and loss_known(loss)
+                and critic_available(critic_net)):
             self.fused_critic = FusedCritic(critic_net, optimisers.critic, self.active)
             self._critic_in_keys = list(getattr(loss, loss.critic_attr).in_keys)
-            if actor_net is not None and actor_available(actor_net) and loss.members is not None:
+            if actor_net is not None and actor_available(actor_net):
                 keys = [*loss.actor_network.in_keys, loss.tensor_keys.action]
                 if isinstance(loss, SPGLoss) and loss.entropy_coeff == 0:
                     self.fused_actor = FusedSPGActor(loss, GaussianPolicyPass(actor_net, optimisers.actor),
