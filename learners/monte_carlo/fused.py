@@ -31,7 +31,6 @@ from learners.kernels import ops as kernel_ops
 from learners.networks import _LOG_SQRT_2PI, StackedCriticNet, StackedGaussianPolicyNet, StackedMLP, fast_tanh
 from losses import functional as F
 
-
 # The settings each loss module has, as the fused steps know them: a loss with another setting (an
 # option added to the loss module and not here) or of a subclass takes the loss module's path.
 KNOWN_SETTINGS = {
@@ -128,7 +127,6 @@ class FusedCritic:
         return {"loss_critic": loss, "value_mean": value_mean}
 
 
-
 def actor_available(actor_net: torch.nn.Module) -> bool:
     """Whether ``GaussianPolicyPass`` computes this actor's pass (else the loss module's path)."""
     if type(actor_net) is not StackedGaussianPolicyNet or type(actor_net.body) is not StackedMLP:
@@ -203,8 +201,7 @@ def normal_log_prob(loc: torch.Tensor, scale: torch.Tensor, value: torch.Tensor)
     var = scale ** 2
     numerator = -(difference ** 2)
     denominator = 2 * var
-    quotient = numerator / denominator
-    log_prob = quotient - F.per_member(torch.log, scale) - _LOG_SQRT_2PI
+    log_prob = numerator / denominator - F.per_member(torch.log, scale) - _LOG_SQRT_2PI
 
     def backward(grad: torch.Tensor, grad_scale_first: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """``grad_scale_first``: a gradient of ``scale`` from a later use (the entropy's logarithm),
@@ -218,7 +215,6 @@ def normal_log_prob(loc: torch.Tensor, scale: torch.Tensor, value: torch.Tensor)
         grad_loc = -((-grad_numerator) * (difference.pow(1.0) * 2.0))
         return grad_loc, grad_scale
 
-    del quotient
     return log_prob, backward
 
 
