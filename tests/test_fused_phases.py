@@ -110,16 +110,46 @@ def test_the_loss_module_takes_every_step_the_fused_one_does_not_compute(overrid
     assert _learner("algo=spg")[0].phases.fused_critic is None
 
 
-def test_a_loss_with_a_setting_the_fused_steps_do_not_know_takes_the_loss_modules_path():
-    """An option added to a loss module (and not to the fused steps), or a subclass of it, is computed by
-    the loss module: the fused steps never ignore what they do not know."""
+def test_the_fused_steps_mirror_the_loss_modules_as_they_are_written():
+    """The fused steps copy the arithmetic of the functions ``mirrored_functions`` lists. An edit to any
+    of them turns the fused steps off (the loss module computes): mirror the change in
+    learners/monte_carlo/fused.py, check it with this file's tests, then set MIRRORED_SOURCE to
+    the new value below."""
+    from learners.monte_carlo.fused import MIRRORED_SOURCE, mirrored_source
+
+    assert mirrored_source() == MIRRORED_SOURCE, (
+        f"a function the fused steps mirror has changed (its source's SHA-256 is now {mirrored_source()}); "
+        "the fused steps are off until the change is mirrored in learners/monte_carlo/fused.py")
+
+
+@pytest.mark.parametrize("change", ["public setting", "private setting", "parameter", "submodule", "subclass",
+                                    "method on the instance", "method on the class"])
+def test_a_loss_the_fused_steps_do_not_know_takes_the_loss_modules_path(change, monkeypatch):
+    """A setting added to a loss module (public or not), a parameter, a submodule, a subclass or another
+    method: the loss module computes, the fused steps never ignore what they do not know."""
     from learners.monte_carlo.fused import loss_known
     from losses import SPGLoss
 
     t, _ = _learner("algo=spg")
     assert loss_known(t.loss)
-    t.loss.clip_weights = True  # a new setting
-    assert not loss_known(t.loss)
-    del t.loss.clip_weights
-    t.loss.__class__ = type("MySPGLoss", (SPGLoss,), {})
-    assert not loss_known(t.loss)
+    loss = t.loss
+    if change == "public setting":
+        loss.clip_weights = True
+    elif change == "private setting":
+        loss._clip_weights = 5.0
+    elif change == "parameter":
+        loss.register_parameter("log_alpha", torch.nn.Parameter(torch.zeros(3)))
+    elif change == "submodule":
+        loss.add_module("extra", torch.nn.Linear(2, 2))
+    elif change == "subclass":
+        loss.__class__ = type("MySPGLoss", (SPGLoss,), {})
+    elif change == "method on the instance":
+        loss.actor_loss = lambda td: SPGLoss.actor_loss(loss, td)
+    else:
+        original = SPGLoss.actor_loss
+
+        def actor_loss(self, tensordict):  # another objective
+            return original(self, tensordict)
+        monkeypatch.setattr(SPGLoss, "actor_loss", actor_loss)
+    assert not loss_known(loss)
+    assert _learner("algo=spg")[0].phases.fused_actor is None if change == "method on the class" else True

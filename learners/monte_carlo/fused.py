@@ -19,7 +19,10 @@ They run with the project's products (``numerics=fma``: the products are ``learn
 whose backward this module calls directly), on the CPU, in float32, with the paper's tanh
 activation, on uniform minibatches. Anything else (prioritised replay, other activations,
 ``numerics`` native or portable, a GPU, ``compile=true``) takes the loss module's path, which stays
-the reference (``learners.monte_carlo.learner.FUSED = False`` forces it).
+the reference (``learners.monte_carlo.learner.FUSED = False`` forces it). So does a loss the fused
+steps do not know (``loss_known``): another setting, parameter or submodule, a subclass, or an edit
+to any function whose arithmetic they mirror (``mirrored_functions``; ``MIRRORED_SOURCE`` is the hash
+of their source as last mirrored), so a change to a loss module is never silently left out.
 """
 
 from __future__ import annotations
@@ -32,24 +35,75 @@ from learners.networks import _LOG_SQRT_2PI, StackedCriticNet, StackedGaussianPo
 from losses import functional as F
 
 # The settings each loss module has, as the fused steps know them: a loss with another setting (an
-# option added to the loss module and not here) or of a subclass takes the loss module's path.
+# option added to the loss module and not here), parameter or submodule, or of a subclass, takes
+# the loss module's path.
 KNOWN_SETTINGS = {
     "SPGLoss": {"baseline", "entropy_coeff", "generators", "joint_log_prob", "members", "num_samples", "prioritised",
                 "sample_around", "temperature_decay"},
     "LogClipPPOLoss": {"clip_epsilon", "entropy_coeff", "joint_log_prob", "members", "ratio_space"},
 }
+KNOWN_MODULES = {"SPGLoss": {"actor_network", "qvalue_network"}, "LogClipPPOLoss": {"actor_network", "critic_network"}}
+# What torch's Module, TorchRL's LossModule and losses.common.cached keep on a loss instance.
+KNOWN_INTERNALS = {
+    "_backward_hooks", "_backward_pre_hooks", "_buffers", "_forward_hooks", "_forward_hooks_always_called",
+    "_forward_hooks_with_kwargs", "_forward_pre_hooks", "_forward_pre_hooks_with_kwargs", "_has_update_associated",
+    "_is_full_backward_hook", "_load_state_dict_post_hooks", "_load_state_dict_pre_hooks", "_modules",
+    "_non_persistent_buffers_set", "_param_maps", "_parameters", "_state_dict_hooks", "_state_dict_pre_hooks",
+    "_tensor_keys", "_value_estimator", "_call_cache", "training", "value_type",
+}
+# The SHA-256 of the source of every function whose arithmetic the fused steps mirror
+# (``mirrored_functions``), as they were when the fused steps were last checked against them. An
+# edit to any of them turns the fused steps off (the loss module computes; tests/test_fused_phases.py
+# fails until the change is mirrored here and this value updated).
+MIRRORED_SOURCE = "2b6dac33e2a7260722e44e46f15bba8500fff12eeb1ed665736ca1e7348e6696"
+
+
+def mirrored_functions() -> list:
+    """The functions whose arithmetic the fused steps mirror by hand."""
+    from learners.base import objective
+    from learners.networks import MemberNormal, _EagerTanh, _pad_rows, _unpad_rows, stacked_linear
+    from losses import LogClipPPOLoss, SPGLoss
+    from losses.common import PhaseLoss
+    from collectors.replay import sample_minibatch
+
+    return [SPGLoss.actor_loss, SPGLoss._score, SPGLoss._perturbations, SPGLoss._noise, SPGLoss.draw,
+            LogClipPPOLoss.actor_loss, LogClipPPOLoss._log_prob, PhaseLoss.critic_loss, PhaseLoss._entropy,
+            PhaseLoss._mean, PhaseLoss._policy, PhaseLoss._value, F.squared_error, F.weighted_log_likelihood,
+            F.clipped_surrogate, F.ppo_ratio, F.mean, F.per_dimension_or_joint, F.per_member, MemberNormal.log_prob,
+            MemberNormal.entropy, StackedMLP.forward, StackedMLP.forward_rows, StackedMLP.forward_rows_with,
+            StackedCriticNet.forward, StackedGaussianPolicyNet.forward, fast_tanh, _EagerTanh.forward,
+            _EagerTanh.backward, stacked_linear, _pad_rows, _unpad_rows, kernel_ops.linear, kernel_ops._Linear.forward,
+            kernel_ops._gradients, objective, sample_minibatch]
+
+
+def mirrored_source() -> str | None:
+    """The SHA-256 of ``mirrored_functions``' source (None where a source cannot be read)."""
+    import hashlib
+    import inspect
+
+    digest = hashlib.sha256()
+    for function in mirrored_functions():
+        try:
+            digest.update(inspect.getsource(function).replace("\r\n", "\n").encode())
+        except (OSError, TypeError):
+            return None
+    return digest.hexdigest()
 
 
 def loss_known(loss) -> bool:
     """Whether ``loss`` is exactly ``SPGLoss`` or ``LogClipPPOLoss`` with the settings the fused steps
-    compute (a population's; not a subclass, which may compute something else)."""
+    compute (a population's; not a subclass, which may compute something else), its code as the fused
+    steps mirror it (``MIRRORED_SOURCE``)."""
     from losses import LogClipPPOLoss, SPGLoss
 
     if type(loss) not in (SPGLoss, LogClipPPOLoss) or loss.members is None:
         return False
-    settings = {key for key in vars(loss) if not key.startswith("_")} - {"training", "value_type"}
-    buffers = {name for name, _ in loss.named_buffers(recurse=False)}
-    return settings <= KNOWN_SETTINGS[type(loss).__name__] and buffers <= {"temperature"}
+    name = type(loss).__name__
+    public = {key for key in vars(loss) if not key.startswith("_")}
+    private = {key for key in vars(loss) if key.startswith("_")}
+    return (public - {"training", "value_type"} <= KNOWN_SETTINGS[name] and private <= KNOWN_INTERNALS
+            and not loss._parameters and set(loss._modules) <= KNOWN_MODULES[name]
+            and set(loss._buffers) <= {"temperature"} and mirrored_source() == MIRRORED_SOURCE)
 
 
 def critic_available(critic_net: torch.nn.Module) -> bool:
