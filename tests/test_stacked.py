@@ -7,7 +7,7 @@ import torch
 
 from learners.solo import CriticNet, GaussianPolicyNet
 from learners.optim import MemberAdam
-from learners.networks import (StackedCriticNet, StackedGaussianPolicyNet, load_member_state_dict,
+from learners.networks import (StackedCriticNet, StackedGaussianPolicyNet, StackedLinear, load_member_state_dict,
                                 member_state_dict, reset_parameters)
 
 SEEDS = [2067791, 5468063, 5412436, 8273186]
@@ -211,6 +211,11 @@ def test_the_acting_call_is_the_forward_pass_bit_for_bit(members, shape, hidden)
     with torch.no_grad():
         expected = net(obs)
     assert all(torch.equal(a, b) for a, b in zip(expected, net.act(obs))) and not torch.equal(got[1], expected[1])
+    net.loc_head = StackedLinear(members, hidden[-1], 2)  # a layer replaced
+    with torch.no_grad():
+        net.loc_head.weight.copy_(torch.rand(net.loc_head.weight.shape, generator=generators[0]))
+        expected = net(obs)
+    assert all(torch.equal(a, b) for a, b in zip(expected, net.act(obs)))
     x = torch.randn(members, 64, 100, generator=generators[0]) * 3
     with torch.no_grad():
         plain = fast_tanh(x)
