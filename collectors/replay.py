@@ -94,10 +94,7 @@ def sample_minibatch(data: TensorDictBase, size: int,
         if data.batch_dims != 2 or data.batch_size[0] != len(generators):
             raise ValueError(f"{len(generators)} generators need data of batch size [{len(generators)}, n], "
                              f"got {tuple(data.batch_size)}")
-        n = data.batch_size[1]
-        index = torch.stack([torch.randint(n, (size,), generator=g, device=g.device) for g in generators])
-        rows = torch.arange(len(generators), device=index.device).unsqueeze(1)
-        return TensorDict({key: value[rows, index] for key, value in data.items()},
+        return TensorDict(member_minibatch(dict(data.items()), data.batch_size[1], size, generators),
                           batch_size=[len(generators), size])
     index = torch.randint(len(data), (size,), generator=generators)
     # Indexing each entry is cheaper than TensorDict indexing, which this is called for 10^4
@@ -105,6 +102,15 @@ def sample_minibatch(data: TensorDictBase, size: int,
     if any(isinstance(value, TensorDictBase) for value in data.values()):
         return data[index]
     return TensorDict({key: value[index] for key, value in data.items()}, batch_size=[size])
+
+
+def member_minibatch(tensors: dict[str, torch.Tensor], n: int, size: int,
+                     generators: list[torch.Generator]) -> dict[str, torch.Tensor]:
+    """``sample_minibatch`` of a population on plain tensors ``[R, n, ...]``: ``size`` rows per member,
+    drawn uniformly WITH replacement, member r's indices from ``generators[r]``; ``{key: [R, size, ...]}``."""
+    index = torch.stack([torch.randint(n, (size,), generator=g, device=g.device) for g in generators])
+    rows = torch.arange(len(generators), device=index.device).unsqueeze(1)
+    return {key: value[rows, index] for key, value in tensors.items()}
 
 
 def sample_sub_episodes(data: TensorDictBase, size: int, length: int, episode_steps: int,

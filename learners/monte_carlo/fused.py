@@ -31,8 +31,10 @@ import torch
 
 from learners import kernels
 from learners.kernels import ops as kernel_ops
-from learners.networks import _LOG_SQRT_2PI, StackedCriticNet, StackedGaussianPolicyNet, StackedMLP, fast_tanh
+from learners.networks import (_LOG_SQRT_2PI, MemberNormal, StackedCriticNet, StackedGaussianPolicyNet, StackedMLP,
+                               fast_tanh)
 from losses import functional as F
+from losses.spg import _repeat
 
 # The settings each loss module has, as the fused steps know them: a loss with another setting (an
 # option added to the loss module and not here), parameter or submodule, or of a subclass, takes
@@ -55,7 +57,7 @@ KNOWN_INTERNALS = {
 # (``mirrored_functions``), as they were when the fused steps were last checked against them. An
 # edit to any of them turns the fused steps off (the loss module computes; tests/test_fused_phases.py
 # fails until the change is mirrored here and this value updated).
-MIRRORED_SOURCE = "2b6dac33e2a7260722e44e46f15bba8500fff12eeb1ed665736ca1e7348e6696"
+MIRRORED_SOURCE = "8aa7a01989b9446f5392403f1c390544469a9c08401cecdd95907bdb3df6aace"
 
 
 def mirrored_functions() -> list:
@@ -77,17 +79,25 @@ def mirrored_functions() -> list:
 
 
 def mirrored_source() -> str | None:
-    """The SHA-256 of ``mirrored_functions``' source (None where a source cannot be read)."""
+    """The SHA-256 of ``mirrored_functions``' source (None where a source cannot be read); read once
+    per set of function objects (a function replaced at run time is read again)."""
     import hashlib
     import inspect
 
-    digest = hashlib.sha256()
-    for function in mirrored_functions():
+    functions = mirrored_functions()
+    key = tuple(map(id, functions))
+    if key not in _SOURCE_HASHES:
+        digest = hashlib.sha256()
         try:
-            digest.update(inspect.getsource(function).replace("\r\n", "\n").encode())
+            for function in functions:
+                digest.update(inspect.getsource(function).replace("\r\n", "\n").encode())
+            _SOURCE_HASHES[key] = digest.hexdigest()
         except (OSError, TypeError):
-            return None
-    return digest.hexdigest()
+            _SOURCE_HASHES[key] = None
+    return _SOURCE_HASHES[key]
+
+
+_SOURCE_HASHES: dict[tuple, str | None] = {}
 
 
 def loss_known(loss) -> bool:
@@ -111,14 +121,25 @@ def critic_available(critic_net: torch.nn.Module) -> bool:
     mlp = getattr(critic_net, "net", None)
     if type(critic_net) is not StackedCriticNet or type(mlp) is not StackedMLP:
         return False
-    params = list(critic_net.parameters())
-    return (kernels.active() and mlp.activation is fast_tanh and mlp.linear_output
-            and all(p.device.type == "cpu" and p.dtype == torch.float32 for p in params))
+    return mlp.linear_output and _on_kernels(critic_net, mlp)
 
 
-def _tanh(x: torch.Tensor) -> torch.Tensor:
-    """``learners.networks.fast_tanh``'s forward values (its eager autograd function's arithmetic)."""
-    return torch.sigmoid(x * 2.0).mul_(2.0).sub_(1.0)
+def actor_available(actor_net: torch.nn.Module) -> bool:
+    """Whether ``GaussianPolicyPass`` computes this actor's pass (else the loss module's path)."""
+    if type(actor_net) is not StackedGaussianPolicyNet or type(actor_net.body) is not StackedMLP:
+        return False
+    return _on_kernels(actor_net, actor_net.body)
+
+
+def _on_kernels(net: torch.nn.Module, mlp: StackedMLP) -> bool:
+    """The project's products in use, ``net`` in float32 on the CPU, ``mlp``'s activation the paper's tanh."""
+    return (kernels.active() and mlp.activation is fast_tanh
+            and all(p.device.type == "cpu" and p.dtype == torch.float32 for p in net.parameters()))
+
+
+def _check_optimiser(optimiser, params: list[torch.Tensor], network: str) -> None:
+    if [id(p) for p in optimiser.params] != [id(p) for p in params]:
+        raise ValueError(f"the {network}'s optimiser must hold the {network}'s parameters in layer order")
 
 
 class FusedCritic:
@@ -139,8 +160,7 @@ class FusedCritic:
         self.optimiser = optimiser
         self.active = active
         self._params = [p for pair in self.layers for p in pair]
-        if [id(p) for p in optimiser.params] != [id(p) for p in self._params]:
-            raise ValueError("the critic's optimiser must hold the critic's parameters in layer order")
+        _check_optimiser(optimiser, self._params, "critic")
 
     def step(self, inputs: torch.Tensor, target: torch.Tensor) -> dict[str, torch.Tensor]:
         """One Adam step on the minibatch ``inputs`` ``[R, B, in]`` with returns ``target`` ``[R, B, 1]``;
@@ -155,12 +175,12 @@ class FusedCritic:
             for i, (weight, bias) in enumerate(self.layers):
                 x = kernel_ops._forward(x, weight, bias)
                 if i < last:
-                    x = _tanh(x)
+                    x = fast_tanh(x)
                     seen.append(x)
             value = x[:, :batch] if rows != batch else x
             error = target - value
-            loss = error.pow(2).reshape(members, -1).mean(-1)
-            value_mean = value.reshape(members, -1).mean(-1)
+            loss = F.mean(error.pow(2), True)
+            value_mean = F.mean(value, True)
             # backward: d/d value of sum_r active_r * mean((G - value)^2)
             count = error[0].numel()
             grad = self.active.unsqueeze(-1).expand(members, count) / count
@@ -181,14 +201,6 @@ class FusedCritic:
         return {"loss_critic": loss, "value_mean": value_mean}
 
 
-def actor_available(actor_net: torch.nn.Module) -> bool:
-    """Whether ``GaussianPolicyPass`` computes this actor's pass (else the loss module's path)."""
-    if type(actor_net) is not StackedGaussianPolicyNet or type(actor_net.body) is not StackedMLP:
-        return False
-    return (kernels.active() and actor_net.body.activation is fast_tanh
-            and all(p.device.type == "cpu" and p.dtype == torch.float32 for p in actor_net.parameters()))
-
-
 class GaussianPolicyPass:
     """The actor's forward pass with what its backward needs kept, and that backward: what
     ``StackedGaussianPolicyNet.forward`` and autograd compute, bit for bit."""
@@ -202,8 +214,7 @@ class GaussianPolicyPass:
         self.loc_head = (actor_net.loc_head.weight, actor_net.loc_head.bias)
         self.scale_head = (actor_net.scale_head.weight, actor_net.scale_head.bias)
         self.params = [p for pair in (*self.body, self.loc_head, self.scale_head) for p in pair]
-        if [id(p) for p in optimiser.params] != [id(p) for p in self.params]:
-            raise ValueError("the actor's optimiser must hold the actor's parameters in layer order")
+        _check_optimiser(optimiser, self.params, "actor")
         self.optimiser = optimiser
         self.multiple = actor_net.act_rows
 
@@ -214,7 +225,7 @@ class GaussianPolicyPass:
         x = observation if rows == batch else torch.nn.functional.pad(observation, (0, 0, 0, rows - batch))
         self._seen = [x]
         for weight, bias in self.body:
-            x = _tanh(kernel_ops._forward(x, weight, bias))
+            x = fast_tanh(kernel_ops._forward(x, weight, bias))
             self._seen.append(x)
         self._loc = torch.tanh(kernel_ops._forward(x, *self.loc_head))
         self._scale_input = kernel_ops._forward(x, *self.scale_head)
@@ -307,9 +318,8 @@ class FusedSPGActor:
             terms = F.per_dimension_or_joint(log_prob, joint)
             weighted = terms if weight is None else weight * terms
             members = weighted.shape[0]
-            loss_objective = -weighted.reshape(members, -1).mean(-1)
-            entropy = F.mean(F.per_dimension_or_joint(0.5 + _LOG_SQRT_2PI + F.per_member(torch.log, scale), joint),
-                             True)
+            loss_objective = -F.mean(weighted, True)
+            entropy = F.mean(F.per_dimension_or_joint(_entropy(loc, scale), joint), True)
             entries = {
                 "loss_objective": loss_objective,
                 "loss_entropy": -loss.entropy_coeff * entropy,
@@ -334,9 +344,9 @@ class FusedSPGActor:
         return entries
 
 
-def _repeat(value: torch.Tensor, count: int) -> torch.Tensor:
-    """[..., B, F] -> [..., B, count, F] without copying (``losses.spg``'s pairs)."""
-    return value.unsqueeze(-2).expand(*value.shape[:-1], count, value.shape[-1])
+def _entropy(loc: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """The policy's entropy per dimension (``MemberNormal.entropy``)."""
+    return MemberNormal(loc, scale, validate_args=False).entropy()
 
 
 class FusedPPOActor:
@@ -371,7 +381,7 @@ class FusedPPOActor:
             clipped = bounded * advantage
             objective = torch.minimum(unclipped, clipped)
             members = objective.shape[0]
-            entropy_terms = F.per_dimension_or_joint(0.5 + _LOG_SQRT_2PI + F.per_member(torch.log, scale), joint)
+            entropy_terms = F.per_dimension_or_joint(_entropy(loc, scale), joint)
             entropy = F.mean(entropy_terms, True)
             entries = {
                 "loss_objective": -F.mean(objective, True),

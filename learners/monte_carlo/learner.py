@@ -16,6 +16,7 @@ import torch
 from tensordict import TensorDictBase
 
 from collectors import ReplayMemory, sample_minibatch
+from collectors.replay import member_minibatch
 from collectors.returns import TRANSITION_KEYS
 from learners.base import (Learner, MetricTotals, Optimisers, diverged_members, freeze_member, objective,
                            prioritised_minibatch)
@@ -79,7 +80,7 @@ def make_optimisers(cfg, networks: Networks) -> Optimisers:
                       critic=MemberAdam(networks.critic_net.parameters(), lr=algo.critic_lr, eps=algo.adam_eps))
 
 
-FUSED = True  # the critic steps on plain tensors where FusedCritic allows (False: always the loss module)
+FUSED = True  # the steps on plain tensors where learners.monte_carlo.fused allows (False: always the loss module)
 
 
 class PhaseRunner:
@@ -94,9 +95,9 @@ class PhaseRunner:
         """``sampler``: a ``collectors.prioritised.ProportionalSampler`` holding the replay
         memory's priorities (prioritised replay: every minibatch is drawn by priority, the critic's
         loss weighted by importance and its errors |G - critic| become the new priorities), or None.
-        ``compiled``: compile each step's objective (``learners.compiling``). ``critic_net``: the
-        critic's stacked network; when given and ``FUSED``, uniform critic steps it allows run as
-        ``learners.monte_carlo.fused.FusedCritic`` (the loss module's numbers, bit for bit)."""
+        ``compiled``: compile each step's objective (``learners.compiling``). ``critic_net``,
+        ``actor_net``: the stacked networks; when given and ``FUSED``, the steps
+        ``learners.monte_carlo.fused`` computes run there (the loss module's numbers, bit for bit)."""
         self.loss = loss
         self.optimisers = optimisers
         self.value_epochs = value_epochs
@@ -165,28 +166,24 @@ class PhaseRunner:
         return diverged_members(self.optimisers, totals, self.active)
 
     def _fused_critic_phase(self, data: TensorDictBase, size: int, totals: "MetricTotals") -> None:
-        """``value_epochs`` critic steps by ``FusedCritic``, each on a minibatch drawn as
-        ``sample_minibatch`` draws it (the same indices from the same generators)."""
+        """``value_epochs`` critic steps by ``FusedCritic``."""
         parts = [data.get(key) for key in self._critic_in_keys]
-        inputs = parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
-        target = data.get(self.loss.tensor_keys.value_target)
-        n = data.batch_size[1]
-        rows = torch.arange(len(self.generators), device=inputs.device).unsqueeze(1)
-        for _ in range(self.value_epochs):
-            index = torch.stack([torch.randint(n, (size,), generator=g, device=g.device) for g in self.generators])
-            entries = self.fused_critic.step(inputs[rows, index], target[rows, index])
-            totals.add("critic", entries)
+        tensors = {"inputs": parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1),
+                   "target": data.get(self.loss.tensor_keys.value_target)}
+        self._fused_steps(tensors, data.batch_size[1], self.value_epochs, size,
+                          lambda batch: self.fused_critic.step(batch["inputs"], batch["target"]), "critic", totals)
 
     def _fused_actor_phase(self, data: TensorDictBase, size: int, totals: "MetricTotals") -> None:
-        """``policy_epochs`` actor steps by the fused actor, each minibatch drawn as ``sample_minibatch``
-        draws it."""
+        """``policy_epochs`` actor steps by the fused actor."""
         tensors = {key: data.get(key) for key in self._actor_in_keys}
-        n = data.batch_size[1]
-        rows = torch.arange(len(self.generators)).unsqueeze(1)
-        for _ in range(self.policy_epochs):
-            index = torch.stack([torch.randint(n, (size,), generator=g, device=g.device) for g in self.generators])
-            entries = self.fused_actor.step({key: value[rows, index] for key, value in tensors.items()})
-            totals.add("actor", entries)
+        self._fused_steps(tensors, data.batch_size[1], self.policy_epochs, size, self.fused_actor.step, "actor", totals)
+
+    def _fused_steps(self, tensors: dict, n: int, steps: int, size: int, step, prefix: str,
+                     totals: "MetricTotals") -> None:
+        """``steps`` fused steps, each on a minibatch of ``tensors`` (``[R, n, ...]``) drawn as
+        ``sample_minibatch`` draws it (the same indices from the same generators)."""
+        for _ in range(steps):
+            totals.add(prefix, step(member_minibatch(tensors, n, size, self.generators)))
 
     def _minibatch(self, data: TensorDictBase, size: int) -> tuple[TensorDictBase, torch.Tensor | None]:
         """A minibatch per member, uniform (and no index) or by priority (with its slot indices)."""
