@@ -335,21 +335,17 @@ class StackedGaussianPolicyNet(nn.Module):
 
     def _act_plan(self):
         """What ``act_values`` reads, or None where the project's products do not apply (``numerics``
-        other than fma, float64, a GPU). Gathered once and kept while the network holds the same layers
-        and they the same parameter objects (a replaced layer or parameter gathers it again)."""
+        other than fma, float64, a GPU). Read through the modules' own dictionaries: the attribute
+        lookups of ``nn.Module`` would cost more than the products at one row per member."""
         modules = self._modules
-        layers = [*modules["body"]._modules["layers"]._modules.values(), modules["loc_head"], modules["scale_head"]]
-        current = [(layer, layer._parameters["weight"], layer._parameters["bias"]) for layer in layers]
-        cached = self.__dict__.get("_act_cache")
-        if cached is None or len(cached[0]) != len(current) or not all(
-                a is b for old, new in zip(cached[0], current) for a, b in zip(old, new)):
-            pairs = [(weight, bias) for _, weight, bias in current]
-            cached = current, (pairs[:-2], self.body.activation, self.act_rows, pairs[-2], pairs[-1])
-            self.__dict__["_act_cache"] = cached
-        first = current[0][1]
+        body = modules["body"]
+        layers = [*body._modules["layers"]._modules.values(), modules["loc_head"], modules["scale_head"]]
+        pairs = [(layer._parameters["weight"], layer._parameters["bias"]) for layer in layers]
+        first = pairs[0][0]
         if not (kernels.active() and first.device.type == "cpu" and first.dtype == torch.float32):
             return None
-        return cached[1]
+        rows = math.lcm(body.row_multiple, ALIGN // math.gcd(ALIGN, pairs[-2][0].shape[1]))
+        return pairs[:-2], body.activation, rows, pairs[-2], pairs[-1]
 
     @property
     def act_rows(self) -> int:
