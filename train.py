@@ -50,7 +50,7 @@ from omegaconf.errors import OmegaConfBaseException
 from engine import numerics
 from engine.config import ConfigError, RunConfig, config_mapping, register_resolvers
 from engine.limits import check_memory
-from engine.outputs import DiskFull, RunFolderError
+from racing.files import DiskFull, FileRefused
 
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")  # torchrl's INFO lines (set before it loads)
 register_resolvers()  # the run folder's name (conf/config.yaml) uses one
@@ -74,14 +74,13 @@ def _end(message: str, status: int, prefix: str = "Refusing to run: ", quiet: bo
 def save_hydra_record(cfg: DictConfig, out_dir: Path) -> None:
     """Hydra's record of the run (``.hydra/config.yaml``, ``hydra.yaml``, ``overrides.yaml``), written
     atomically once the run is sure to start (``hydra.output_subdir: null`` stops Hydra's own)."""
-    from engine.outputs import write_atomic
+    from racing import files
 
-    record = out_dir / ".hydra"
-    record.mkdir(parents=True, exist_ok=True)
+    record = files.folder(out_dir / ".hydra", out_dir, create=True)  # a real folder of the run's, not a link
     hydra_cfg = HydraConfig.get()
     for name, node in (("config.yaml", cfg), ("hydra.yaml", OmegaConf.create({"hydra": hydra_cfg})),
                        ("overrides.yaml", hydra_cfg.overrides.task)):
-        write_atomic(record / name, OmegaConf.to_yaml(node).encode())
+        files.write_atomic(record / name, OmegaConf.to_yaml(node).encode(), root=out_dir)
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
@@ -95,7 +94,7 @@ def main(cfg: DictConfig) -> float | list | None:
         _end(str(err).strip().splitlines()[0], 2, prefix="Invalid configuration: ")
     try:
         numerics.apply(run_cfg.numerics)  # before torch loads: it reads the kernel settings then
-    except numerics.NumericsError as err:
+    except numerics.NumericsError as err:  # also a bad $RACING_KERNEL_ISA
         _end(str(err), 2)
     from engine.checkpoint import CheckpointError
     from engine.processes import RunStopped
@@ -103,13 +102,14 @@ def main(cfg: DictConfig) -> float | list | None:
     from engine.version import describe
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
-    stop_file = None
+    stop_file, root = None, None
     if HydraConfig.get().mode == RunMode.MULTIRUN:  # a sweep asked to stop starts no job, and stops its runs
         from engine.processes import STOP_FILE, idle_between_jobs, read_stop_file
 
         idle_between_jobs()  # a sweep's worker: a signal between its jobs is the sweep's, not the worker's end
 
-        stop_file = Path(HydraConfig.get().sweep.dir) / STOP_FILE
+        root = Path(HydraConfig.get().sweep.dir)  # every folder below it to the run's is checked (no link)
+        stop_file = root / STOP_FILE
         asked = read_stop_file(stop_file)
         if asked is not None:
             _end(f"the sweep was stopped by {asked} before this job started; the same command starts it", 2,
@@ -117,10 +117,11 @@ def main(cfg: DictConfig) -> float | list | None:
     skipped: list[tuple[Path, dict]] = []
     try:
         summaries = train_population(run_cfg, out_dir, settings, skipped=skipped,
-                                     on_start=lambda: save_hydra_record(cfg, out_dir), stop_file=stop_file)
+                                     on_start=lambda: save_hydra_record(cfg, out_dir), stop_file=stop_file,
+                                     root=root)
     except DiskFull as err:
         _end(str(err), 1, prefix="Stopped: ")
-    except (ConfigError, CheckpointError, RunFolderError, numerics.NumericsError) as err:
+    except (ConfigError, CheckpointError, FileRefused, numerics.NumericsError) as err:  # FileRefused: the file door's
         _end(str(err), 2)
     except RunStopped as stopped:
         if stop_file is not None:  # a job stopped by a signal stops its sweep: no further job starts

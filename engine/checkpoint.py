@@ -30,7 +30,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from engine.outputs import first_line, read_own, write_atomic
+from racing import files
+from engine.outputs import first_line, write_atomic
 from engine.rundir import checkpoints as in_folder  # noqa: F401 (part of this module's interface)
 
 CHECKPOINT_FILE = "checkpoint.pt"  # a population's; each part of a split one has checkpoint-<first seed>.pt
@@ -110,12 +111,14 @@ def load_tensors(path: Path, what: str = "file", sealed: bool = False):
     checkpoint, whose seal (``unsealed``) is checked first."""
     path = Path(path)
     try:
-        data = read_own(path, _load_limit(), what)
+        data = files.read(path, _load_limit(), what)
         if len(data) == 0:
             raise ValueError(f"{path} is empty (0 bytes)")
         if sealed:
             data = unsealed(path, data)
         return torch.load(io.BytesIO(data), weights_only=True, map_location="cpu")
+    except files.FileRefused as err:
+        raise ValueError(str(err)) from None
     except ValueError:
         raise
     except pickle.UnpicklingError as err:
@@ -129,12 +132,13 @@ def load_tensors(path: Path, what: str = "file", sealed: bool = False):
         raise ValueError(f"{path} is not a readable {what} ({first_line(err)})") from None
 
 
-def _load_limit() -> int | None:
-    """The largest file a load may read: half the memory available (it is read, then unpacked)."""
+def _load_limit() -> int:
+    """The largest file a load may read: half the memory available (it is read, then unpacked; 64 GiB
+    where the memory available is unknown)."""
     from engine.limits import available_bytes
 
     available = available_bytes()
-    return None if available is None else max(available // 2, 1 << 20)
+    return 1 << 36 if available is None else max(available // 2, 1 << 20)
 
 
 def _unpickler_reason(message: str) -> str:

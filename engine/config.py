@@ -32,12 +32,26 @@ def seed_dir(seeds, seed) -> str:
     return f"/seed{seed}" if seeds is None else ""
 
 
+def run_path(algo, er, seeds, seed) -> str:
+    """A run's folder below ``outputs/runs/`` or a sweep's folder (``conf/config.yaml``):
+    ``<algo>/<er>/seed<seed>`` for one run, ``<algo>/<er>`` for a population. The names are checked
+    as names (``racing.files.name``: no separator, no ``..``) before Hydra makes the folder, so a
+    configuration value never makes a folder outside ``outputs/``."""
+    from racing import files
+
+    parts = [files.name(algo, "algo.name"), files.name(er, "er.name")]
+    return "/".join(parts) + seed_dir(seeds, seed)
+
+
 def register_resolvers() -> None:
-    """Make ``${racing_seed_dir:...}`` known to OmegaConf (before Hydra composes the config)."""
+    """Make ``${racing_run_path:...}`` and ``${racing_seed_dir:...}`` known to OmegaConf (before Hydra
+    composes the config)."""
     from omegaconf import OmegaConf
 
     if not OmegaConf.has_resolver("racing_seed_dir"):
         OmegaConf.register_new_resolver("racing_seed_dir", seed_dir)
+    if not OmegaConf.has_resolver("racing_run_path"):
+        OmegaConf.register_new_resolver("racing_run_path", run_path)
 
 
 _noted: set[str] = set()
@@ -108,18 +122,13 @@ def track_file_sha256(path) -> str | None:
     """The SHA-256 of a track file's bytes (None if it is not a regular file of at most the size a
     track file may have, or cannot be read: validation then says why)."""
     import hashlib
-    import os
-    import stat
 
+    from racing import files
     from racing.track_file import MAX_BYTES
 
     try:
-        info = os.stat(path)  # before opening: opening a pipe waits for a writer
-        if not stat.S_ISREG(info.st_mode) or info.st_size > MAX_BYTES:
-            return None  # never read: a device or a pipe would be read without end
-        with open(path, "rb") as f:
-            return hashlib.sha256(f.read(MAX_BYTES + 1)).hexdigest()
-    except (OSError, TypeError, ValueError):
+        return hashlib.sha256(files.read(path, MAX_BYTES, "track file", follow=True)).hexdigest()
+    except (OSError, TypeError, ValueError):  # a FIFO, a device or a larger file is refused unread (FileRefused)
         return None
 
 
@@ -206,9 +215,11 @@ def algo_titles() -> dict[str, str]:
     joins them by itself."""
     import yaml
 
+    from racing import files
+
     titles = {}
     for path in sorted((CONF_DIR / "algo").glob("*.yaml")):
-        node = yaml.safe_load(path.read_text()) or {}
+        node = yaml.safe_load(files.read_text(path, 1 << 20, "configuration file")) or {}
         titles[node.get("name", path.stem)] = node.get("title") or node.get("name", path.stem)
     return titles
 

@@ -239,13 +239,17 @@ def check_video_path(path: Path) -> None:
 
 
 def write_video(frames: list, path: Path, fps: int = 30) -> int:
-    """Frames (RGB arrays) as a GIF or MP4 at ``fps``; returns how many."""
-    import imageio.v2 as imageio
+    """Frames (RGB arrays) as a GIF or MP4 at ``fps``, encoded in memory and written whole through the
+    file door (``racing.files.write_atomic``); returns how many."""
+    import imageio.v3 as imageio
+
+    from racing import files
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     if path.suffix.lower() == ".gif":
-        imageio.mimsave(path, frames, duration=1000 / fps, loop=0)
+        data = imageio.imwrite("<bytes>", frames, extension=".gif", duration=1000 / fps, loop=0)
     else:
-        imageio.mimsave(path, frames, fps=fps, macro_block_size=16)
+        data = imageio.imwrite("<bytes>", frames, extension=".mp4", plugin="FFMPEG", fps=fps, macro_block_size=16)
+    files.folder(path.parent, path.parent, create=True)
+    files.write_atomic(path, data)
     return len(frames)

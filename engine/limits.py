@@ -17,7 +17,6 @@ Two checks, both before a run writes anything (train.py, and the sweeper for eve
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 from learners.options import ConfigError
 
@@ -143,17 +142,22 @@ def estimate(cfg) -> dict[str, int]:
 def available_bytes() -> int | None:
     """Memory this process may still take: MemAvailable (``/proc/meminfo``), or the cgroup's limit
     less its usage if that is lower; None where neither can be read (not Linux)."""
+    from racing import files
+
+    def system(path: str) -> str:
+        return files.read_text(path, 1 << 16, "system file", follow=True)
+
     found = []
     try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
+        for line in system("/proc/meminfo").splitlines():
             if line.startswith("MemAvailable:"):
                 found.append(int(line.split()[1]) * 1024)
     except (OSError, ValueError, IndexError):
         pass
     try:
-        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        limit = system("/sys/fs/cgroup/memory.max").strip()
         if limit != "max":
-            used = int(Path("/sys/fs/cgroup/memory.current").read_text())
+            used = int(system("/sys/fs/cgroup/memory.current"))
             found.append(int(limit) - used)
     except (OSError, ValueError):
         pass

@@ -56,6 +56,12 @@ def apply(mode: str) -> None:
     the stacked layers' products to the project's kernels (``fma``) or to torch's."""
     if mode not in MODES:
         raise ValueError(f"numerics must be one of {MODES}, got {mode!r}")
+    from learners import kernels
+
+    try:
+        kernels.isa_cap()  # a bad $RACING_KERNEL_ISA is refused before anything is written
+    except kernels.KernelError as err:
+        raise NumericsError(str(err)) from None
     if "torch" not in sys.modules:
         for key, value in PORTABLE_ENV.items():
             if mode in ("fma", "portable"):
@@ -96,11 +102,13 @@ def _portable_kernels_available() -> bool:
 
     if platform.machine().lower() not in ("x86_64", "amd64"):
         return False
+    from racing import files
+
     try:
-        with open("/proc/cpuinfo") as f:
-            flags = next((line for line in f if line.startswith("flags")), "").split()
+        text = files.read_text("/proc/cpuinfo", 1 << 24, "system file", follow=True)
+        flags = next((line for line in text.splitlines() if line.startswith("flags")), "").split()
         return "avx2" in flags and "fma" in flags
-    except OSError:
+    except (OSError, ValueError):
         return True  # not Linux: torch says after loading (in_effect)
 
 

@@ -9,10 +9,11 @@ import io
 import json
 import math
 import os
-import shutil
-import stat
 from pathlib import Path
 from typing import Any
+
+from racing import files
+from racing.files import DiskFull, FileRefused, free_bytes  # noqa: F401 (part of this module's interface)
 
 METRICS_FILE = "metrics.csv"
 SUMMARY_FILE = "summary.json"
@@ -26,27 +27,8 @@ FINAL_STATUSES = ("completed", "diverged", "incomplete")  # a run that ended ("i
 SUMMARY_KEYS = ("algo", "er", "seed", "status", "final_mean", "episodes", "settings")
 
 
-class RunFolderError(ValueError):
+class RunFolderError(FileRefused):
     """A folder that does not hold a usable trained run."""
-
-
-class DiskFull(RunFolderError):
-    """A file could not be written for want of space; the previous version of it (if any) is intact."""
-
-    def __init__(self, path: Path, needed: int):
-        self.path, self.needed = Path(path), needed
-        free = free_bytes(self.path.parent)
-        have = "" if free is None else f", {free:,} are free"
-        what = f"writing it needs {needed:,} bytes{have}" if needed else f"it could not be flushed to the disk{have}"
-        super().__init__(f"no space left on the device of {self.path}: {what}; "
-                         "the folder keeps its last good files (free some space and run the same command again)")
-
-
-def free_bytes(folder: Path) -> int | None:
-    try:
-        return shutil.disk_usage(folder).free
-    except OSError:
-        return None
 
 
 def first_line(err: BaseException, limit: int = 200) -> str:
@@ -79,14 +61,14 @@ class MetricsWriter:
         csv.DictWriter(text, fieldnames=columns).writeheader()
         write_atomic(self.path, text.getvalue().encode() + kept)  # a crash now leaves the old file whole
         # then rows are appended, each in one write; one that does not fit is cut off again
-        self.fd = open_new_or_own(self.path, os.O_WRONLY | os.O_APPEND)
+        self.fd = files.open_append(self.path)
         self.size = os.fstat(self.fd).st_size
         self.logger = make_torchrl_logger(logger_kind, out_dir)
 
     def record(self) -> dict:
         """Size and SHA-256 of the file as it is on the disk now (a checkpoint keeps it: ``expect``)."""
         self.sync()
-        return bytes_record(read_own(self.path))
+        return bytes_record(files.read(self.path, ROWS_LIMIT, "metrics.csv"))
 
     def write(self, row: dict[str, Any]) -> None:
         line = {key: _format(row.get(key)) for key in self.columns}
@@ -138,7 +120,7 @@ def kept_rows(path: Path, count: int, expect: dict | None, header: str | None = 
     if count == 0:
         return b""
     try:
-        data = read_own(path, ROWS_LIMIT, "metrics.csv")
+        data = files.read(path, ROWS_LIMIT, "metrics.csv")
         if expect is not None and isinstance(expect.get("bytes"), int):
             data = data[:expect["bytes"]]  # the rows it recorded; those after it are written again
     except FileNotFoundError:
@@ -162,40 +144,9 @@ def bytes_record(data: bytes) -> dict:
     return {"bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
 
 
-def open_new_or_own(path: Path, flags: int, mode: int = 0o644) -> int:
-    """``os.open`` that never follows a symbolic link at ``path`` (``RunFolderError``: a run writes
-    only its own files, never through a link to another)."""
-    try:
-        return os.open(path, flags | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0), mode)
-    except OSError as err:
-        if err.errno == errno.ELOOP:
-            raise RunFolderError(f"{path} is a symbolic link; a run writes only its own files, never through a link: "
-                                 "remove the link") from None
-        raise
-
-
-def read_own(path: Path, limit: int | None = None, what: str = "file") -> bytes:
-    """The bytes of a run's own file: ``RunFolderError`` if it is a symbolic link, not a regular file,
-    or larger than ``limit`` bytes (read no further: a file grown to gigabytes is refused, not loaded)."""
-    fd = open_new_or_own(path, os.O_RDONLY)
-    with os.fdopen(fd, "rb") as f:
-        info = os.fstat(f.fileno())
-        if not stat.S_ISREG(info.st_mode):
-            raise RunFolderError(f"{path} is not a regular file")
-        if limit is not None and info.st_size > limit:
-            raise RunFolderError(f"{path} is {info.st_size:,} bytes, more than a {what} of a run holds "
-                                 f"(at most {limit:,}): damaged or not a run's")
-        return f.read(limit + 1 if limit is not None else -1)
-
-
 def file_digest(path: Path) -> dict:
     """{"bytes", "sha256"} of a file, read in pieces (a file of any size, in little memory)."""
-    digest, size = hashlib.sha256(), 0
-    with open(path, "rb") as f:
-        while chunk := f.read(1 << 20):
-            digest.update(chunk)
-            size += len(chunk)
-    return {"bytes": size, "sha256": digest.hexdigest()}
+    return files.digest(path)
 
 
 def _format(value: Any) -> Any:
@@ -218,6 +169,10 @@ def make_torchrl_logger(kind: str, out_dir: Path):
                                "pip install -c constraints/cpu.txt -e '.[tensorboard]'") from None
     from torchrl.record.loggers import get_logger
 
+    # TorchRL's loggers open their own files: they write only into a logs/ folder checked whole first
+    # (a real folder of the run's, nothing below it a link, a special file or a hard link)
+    files.folder(Path(out_dir) / "logs", out_dir, create=True)
+    files.check_tree(Path(out_dir) / "logs")
     return get_logger(kind, logger_name=str(out_dir), experiment_name="logs")
 
 
@@ -228,45 +183,12 @@ def write_table(path: Path, rows: list[dict]) -> None:
     writer = csv.DictWriter(text, fieldnames=list(rows[0]))
     writer.writeheader()
     writer.writerows(rows)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    files.folder(path.parent, path.parent, create=True)  # a folder the user names (it may be a link)
     write_atomic(path, text.getvalue().encode())
     print(f"wrote {path} ({len(rows)} rows)")
 
 
-def write_atomic(path: Path, data) -> None:
-    """Replace ``path`` with ``data`` (bytes, or a list of byte buffers written one after another) so
-    that a crash at any byte leaves the old file or the new one: a temporary file beside it, flushed
-    to the disk, renamed over it. A full disk raises ``DiskFull`` and leaves no temporary file."""
-    path = Path(path)
-    chunks = data if isinstance(data, list) else [data]
-    size = sum(len(memoryview(chunk).cast("B")) for chunk in chunks)
-    tmp = path.with_name(path.name + ".tmp")
-    free = free_bytes(path.parent)
-    if free is not None and free < size:
-        raise DiskFull(path, size)
-    if tmp.is_symlink():  # a link where the temporary goes: removed (the link only), never written through
-        tmp.unlink()
-    try:
-        with os.fdopen(open_new_or_own(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC), "wb") as f:
-            for chunk in chunks:
-                f.write(chunk)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)  # a link at ``path`` itself is replaced, not followed
-    except OSError as err:
-        if not tmp.is_symlink():
-            tmp.unlink(missing_ok=True)
-        if err.errno in (errno.ENOSPC, errno.EDQUOT):
-            raise DiskFull(path, size) from None
-        raise
-    try:  # the rename itself reaches the disk
-        fd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-    except OSError:
-        pass
+write_atomic = files.write_atomic  # the door's (racing/files.py)
 
 
 def write_json_atomic(path: Path, data: dict) -> None:
@@ -301,7 +223,7 @@ def file_record(folder: Path, names: tuple[str, ...]) -> dict:
     record = {}
     for name in names:
         path = Path(folder) / name
-        if path.is_file():
+        if files.is_file(path):
             record[name] = file_digest(path)
     return record
 
@@ -312,11 +234,11 @@ def read_summary(out_dir: Path) -> dict | None:
     object, keys missing). A damaged summary is never taken for a missing one."""
     path = Path(out_dir) / SUMMARY_FILE
     try:
-        text = read_own(path, SUMMARY_LIMIT, "summary").decode()
+        text = files.read_text(path, SUMMARY_LIMIT, "summary")
     except FileNotFoundError:
         return None
-    except (OSError, UnicodeDecodeError) as err:
-        raise RunFolderError(f"{path} cannot be read ({first_line(err)})") from None
+    except FileRefused as err:
+        raise RunFolderError(str(err)) from None
     try:
         summary = json.loads(text)
     except json.JSONDecodeError as err:

@@ -26,13 +26,21 @@ def run_tool(name: str, main) -> int:
     """A command-line tool's ``main()`` (score.py, evaluate.py, tracks.py, drive.py, report.py,
     imitate.py, baseline.py): SIGINT or SIGTERM ends it with one line and status 130 or 143 instead
     of a traceback. The readers write their files whole at their end, so nothing is left half
-    written; baseline.py's interrupted run folder stays unfinished (no summary), as train.py's."""
+    written; baseline.py's interrupted run folder stays unfinished (no summary), as train.py's.
+    A file the tool may not read or write (``racing.files.FileRefused``: a FIFO, a link, a folder
+    where a file goes, a read-only disk, a name too long) ends it with that one line and status 2
+    (1 for a full disk)."""
+    from racing.files import DiskFull, FileRefused
+
     def stop(number, frame):
         raise KeyboardInterrupt(signal.Signals(number).name)
 
     signal.signal(signal.SIGTERM, stop)
     try:
         return main()
+    except FileRefused as err:
+        print(f"{name}: {err}", file=sys.stderr)
+        return 1 if isinstance(err, DiskFull) else 2
     except KeyboardInterrupt as err:
         received = str(err) or "SIGINT"
         print(f"{name}: stopped by {received} before it finished", file=sys.stderr)
@@ -186,25 +194,24 @@ def idle_between_jobs() -> None:
 
 def read_stop_file(path: Path) -> str | None:
     """The signal named by a sweep's stop file (None: there is none)."""
+    from racing import files
+
     try:
-        text = Path(path).read_text().strip()
-    except (FileNotFoundError, NotADirectoryError):
+        text = files.read_text(path, 64, "stop file").strip()
+    except FileNotFoundError:
         return None
-    except OSError:
+    except (OSError, files.FileRefused):  # something is there that is not the stop file: stop all the same
         return "SIGTERM"
     return text if text in ("SIGINT", "SIGTERM") else "SIGTERM"
 
 
 def write_stop_file(path: Path, name: str) -> None:
     """Ask every job of a sweep to stop (``StopSignals``'s ``stop_file``), never through a link."""
-    path = Path(path)
+    from racing import files
+
     try:
-        if path.is_symlink():
-            path.unlink()
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_NOFOLLOW", 0), 0o644)
-        with os.fdopen(fd, "w") as f:
-            f.write(name + "\n")
-    except OSError:
+        files.write_atomic(path, (name + "\n").encode())  # replaces a link there, never writes through it
+    except (OSError, files.FileRefused):
         pass
 
 
@@ -222,6 +229,8 @@ def stop_at_once(pids: list[int]) -> None:
 
 def descendants(pid: int | None = None) -> list[int]:
     """The processes started by ``pid`` (default: this one) and theirs, from /proc (Linux; [] elsewhere)."""
+    from racing import files
+
     pid = os.getpid() if pid is None else pid
     children: dict[int, list[int]] = {}
     try:
@@ -231,10 +240,10 @@ def descendants(pid: int | None = None) -> list[int]:
     for entry in entries:
         if entry.isdigit():
             try:
-                with open(f"/proc/{entry}/stat") as f:
-                    fields = f.read().rsplit(")", 1)[1].split()
+                fields = files.read_text(f"/proc/{entry}/stat", 1 << 16, "process status",
+                                         follow=True).rsplit(")", 1)[1].split()
                 children.setdefault(int(fields[1]), []).append(int(entry))
-            except (OSError, IndexError, ValueError):
+            except (OSError, IndexError, ValueError):  # FileRefused is a ValueError
                 continue
     found, queue = [], [pid]
     while queue:

@@ -26,13 +26,13 @@ from __future__ import annotations
 import contextlib
 import os
 import re
-import shutil
 import socket
 from dataclasses import dataclass
 from pathlib import Path
 
+from racing import files
 from engine.outputs import (DIGEST_KEY, FINAL_STATUSES, METRICS_FILE, SUMMARY_FILE, RunFolderError, file_digest,
-                            first_line, open_new_or_own, read_summary)
+                            first_line, read_summary)
 
 WEIGHT_FILES = ("actor.pt", "critic.pt")
 RECORDED_FILES = (METRICS_FILE, *WEIGHT_FILES)  # what a summary's "files" record covers
@@ -142,7 +142,7 @@ def legacy_era(commit) -> str | None:
     global _legacy
     if _legacy is None:
         _legacy = {}
-        for line in LEGACY_FILE.read_text().splitlines():
+        for line in files.read_text(LEGACY_FILE, 1 << 20, "list of commits").splitlines():
             if line.strip() and not line.startswith("#"):
                 full, era = line.split()
                 _legacy[full] = era
@@ -173,9 +173,13 @@ def _mismatch(folder: Path, summary: dict) -> str | None:
             path = folder / name
             if name in WEIGHT_FILES and not os.path.lexists(path):
                 continue  # not kept (archives keep the actor, or nothing): whoever needs it says it is missing
-            if not path.is_file():
+            try:
+                info = os.lstat(path)
+            except OSError:
                 return f"{path} is missing (its summary records it)"
-            size = path.stat().st_size  # sizes first: a file grown to gigabytes is not read
+            if not files.is_file(path):
+                return f"{path} is {files.kind(info.st_mode)}, not the file its summary records"
+            size = info.st_size  # sizes first: a file grown to gigabytes is not read
             if size != expected.get("bytes"):
                 return (f"{path} is not the file its summary records ({size} bytes where "
                         f"{expected.get('bytes')} were written)")
@@ -186,8 +190,8 @@ def _mismatch(folder: Path, summary: dict) -> str | None:
     needed = (METRICS_FILE, *(weights if summary["status"] == "completed" else ()))
     for name in needed:  # summaries from before the record
         path = folder / name
-        if not path.is_file() or path.stat().st_size == 0:
-            return f"{path} is {'missing' if not path.exists() else 'empty'}"
+        if not files.is_file(path) or path.stat().st_size == 0:
+            return f"{path} is {'missing' if not os.path.lexists(path) else 'empty or not a regular file'}"
     return None
 
 
@@ -195,30 +199,39 @@ def clear(folder: Path) -> None:
     """Remove a run's files from ``folder``, the summary first (so the folder never shows an old
     summary beside a new run's files); other files are left alone."""
     folder = Path(folder)
-    (folder / SUMMARY_FILE).unlink(missing_ok=True)
+    files.remove(folder / SUMMARY_FILE)
     for path in [folder / name for name in (METRICS_FILE, *WEIGHT_FILES)] + checkpoints(folder):
-        path.unlink(missing_ok=True)
-    shutil.rmtree(folder / LOGS_DIR, ignore_errors=True)
+        files.remove(path)
+    files.remove_tree(folder / LOGS_DIR)  # refused whole if anything in it is not a run's own file
     remove_temporaries(folder)
 
 
 def remove_temporaries(folder: Path) -> None:
-    """Temporary files a killed writer left behind (``engine.outputs.write_atomic``'s ``<name>.tmp``,
-    for the files a run writes only: a user's own ``*.tmp`` stays)."""
+    """Temporary files a killed writer left behind (``racing.files.write_atomic``'s
+    ``<name>.<8 hex>.tmp``, or an older ``<name>.tmp``), for the files a run writes only: a user's own
+    ``*.tmp`` stays."""
     for path in Path(folder).glob("*.tmp"):
-        if _is_run_file(path.name.removesuffix(".tmp")) and (path.is_file() or path.is_symlink()):
-            path.unlink(missing_ok=True)
+        match = files.TEMPORARY.fullmatch(path.name)
+        if match and _is_run_file(match["name"]) and (files.is_file(path) or path.is_symlink()):
+            files.remove(path)
 
 
 _held: dict[Path, list] = {}  # folder -> [file descriptor, depth]: a process may nest its own locks
 
 
 @contextlib.contextmanager
-def lock(folders) -> None:
+def lock(folders, root=None) -> None:
     """Hold the lock of every folder (created if missing) for the block; ``RunFolderBusy`` at once
-    if another process holds one of them. Re-entrant within a process."""
+    if another process holds one of them. Re-entrant within a process. Every folder from ``root``
+    (default: each folder itself) down to each folder is checked first (``racing.files.folder``):
+    a member's folder that is a link to another folder is refused, never written through."""
     taken: list[Path] = []
     try:
+        for folder in folders:
+            try:
+                files.folder(folder, root if root is not None else folder, create=True)
+            except (OSError, files.FileRefused) as err:  # a path that cannot be a run folder: before anything runs
+                raise RunFolderError(f"cannot use {folder} as a run folder ({err})") from None
         for folder in dict.fromkeys(Path(f).resolve() for f in folders):
             _acquire(folder)
             taken.append(folder)
@@ -239,10 +252,9 @@ def _acquire(folder: Path) -> None:
         return
     path = folder / LOCK_FILE
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        fd = open_new_or_own(path, os.O_RDWR | os.O_CREAT)  # never through a link (RunFolderError)
-    except OSError as err:  # a path that cannot be a run folder: checked before anything runs
-        raise RunFolderError(f"cannot use {folder} as a run folder ({first_line(err)})") from None
+        fd = files.open_in_place(path)  # never through a link, never a hard link to a file elsewhere
+    except (OSError, files.FileRefused) as err:  # a path that cannot be a run folder: checked before anything runs
+        raise RunFolderError(f"cannot use {folder} as a run folder ({err})") from None
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
@@ -282,7 +294,7 @@ def find_runs(paths: list[Path]) -> list[Path]:
     for path in paths:
         if not path.is_dir():
             raise RunFolderError(f"{path} is not a folder")
-        found = [path] if (path / "summary.json").exists() else sorted(p.parent for p in path.rglob("summary.json"))
+        found = [path] if os.path.lexists(path / "summary.json") else [p.parent for p in files.find(path, "summary.json")]
         if not found:
             raise RunFolderError(f"{path} holds no finished train.py run (no summary.json in it or below it)")
         runs.extend(found)

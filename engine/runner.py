@@ -38,6 +38,7 @@ from tensordict import TensorDictBase
 from collectors import add_monte_carlo_returns, n_step_transitions
 from engine import checkpoint, numerics, setup
 from engine import rundir
+from racing import files
 from engine.processes import (RunStopped, StopSignals, descendants, exit_with_parent, keep_freed_memory,
                               spawn_context, stop_at_once)
 from engine.config import ConfigError, RunConfig, settings_difference
@@ -104,7 +105,8 @@ def train(cfg: RunConfig, out_dir: Path, settings: dict | None = None) -> dict:
 
 
 def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None,
-                     skipped: list | None = None, on_start=None, stop_file: Path | None = None) -> list[dict]:
+                     skipped: list | None = None, on_start=None, stop_file: Path | None = None,
+                     root: Path | None = None) -> list[dict]:
     """Train one run per seed of ``cfg.members`` together; returns their summaries (in that order).
 
     ``settings`` (the config as a plain mapping) is stored in each summary.json (as the
@@ -116,7 +118,9 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
     The run holds its folders' locks (``engine.rundir.lock``) throughout; every refusal (another
     process on the folder, a damaged folder, a finished run or checkpoint of other settings) comes
     before anything is written, and ``on_start()`` (if given) is called once the run is sure to
-    train. SIGINT or SIGTERM stops it at the end of the episode with a checkpoint (``RunStopped``),
+    train. Every folder from ``root`` (a sweep's folder; default ``out_dir``) down to each member's is
+    a real folder, never a link (``racing.files.folder``), checked before anything is written.
+    SIGINT or SIGTERM stops it at the end of the episode with a checkpoint (``RunStopped``),
     as does ``stop_file`` appearing (a sweep's, ``engine.processes.STOP_FILE``); a population split
     over processes passes the stop on to every part, and ends when they all have.
     """
@@ -125,7 +129,7 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
     cfg, compiled = _compile_mode(cfg)
     out_dir = Path(out_dir)
     folders = [out_dir, *(member_folder(cfg, out_dir, s) for s in cfg.members)]
-    with rundir.lock(folders), StopSignals(stop_file=stop_file) as stop:  # refused at once if a folder is in use
+    with rundir.lock(folders, root=out_dir if root is None else root), StopSignals(stop_file=stop_file) as stop:  # refused at once if a folder is in use
         return _train_locked(cfg, out_dir, folders, settings, skipped, on_start, compiled, stop)
 
 
@@ -142,7 +146,7 @@ def _train_locked(cfg: RunConfig, out_dir: Path, folders: list[Path], settings: 
             raise rundir.RunFolderError(f"{folder} cannot be used: {problem}")
     if cfg.overwrite:  # start afresh: no checkpoint is continued
         for path in checkpoint.in_folder(out_dir):
-            path.unlink()
+            files.remove(path)
     for folder in folders:
         rundir.remove_temporaries(folder)  # a killed writer's; never a finished file
     parts = _resumed_parts(out_dir, settings)  # each continues as the population it was
@@ -324,7 +328,7 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
     memory, phases = learner.memory, learner.phases
     members = [Member(s, member_folder(cfg, out_dir, s), member_settings[s]) for s in seeds]
     for member in members:
-        member.folder.mkdir(parents=True, exist_ok=True)
+        files.folder(member.folder, out_dir, create=True)
 
     parts = learner.state_parts()
     first, timing = 0, {"rollout_s": 0.0, "train_s": 0.0}
@@ -421,7 +425,7 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             if member.status == "completed":  # the paper's: in the solo networks' layout (learners.solo)
                 checkpoint.save_tensors(path, weights[name])
             else:  # non-finite weights are of no use; no stale file from an earlier run either
-                path.unlink(missing_ok=True)
+                files.remove(path)
         window = member.rewards[-cfg.final_window:]
         evaluation = (_evaluate(cfg, member.seed, weights["actor"])
                       if cfg.eval_seeds is not None and member.status == "completed" else None)
@@ -441,7 +445,7 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             "files": file_record(member.folder, rundir.RECORDED_FILES),  # what this summary stands for
         }
         summaries.append(write_summary(member.folder, summary))
-    checkpoint_path.unlink(missing_ok=True)  # the runs are finished: summaries and weights remain
+    files.remove(checkpoint_path)  # the runs are finished: summaries and weights remain
     return summaries
 
 

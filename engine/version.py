@@ -19,6 +19,8 @@ import hashlib
 import subprocess
 from pathlib import Path
 
+from racing import files
+
 ROOT = Path(__file__).resolve().parent.parent
 SOURCE_PATHS = ("racing", "losses", "collectors", "learners", "engine", "analysis", "conf", "train.py")
 SOURCE_SUFFIXES = (".py", ".yaml", ".csv")
@@ -42,7 +44,7 @@ def source_hash(root: Path = ROOT) -> str:
     digest = hashlib.sha256()
     for path in source_files(root):
         digest.update(path.relative_to(root).as_posix().encode() + b"\0")
-        digest.update(path.read_bytes() + b"\0")
+        digest.update(files.read(path, 1 << 26, "source file") + b"\0")
     return digest.hexdigest()[:16]
 
 
@@ -68,8 +70,8 @@ def _git_version(root: Path) -> dict | None:
 
 def _export_version() -> dict | None:
     try:
-        commit = COMMIT_FILE.read_text().strip()
-    except OSError:
+        commit = files.read_text(COMMIT_FILE, 1024, "commit file").strip()
+    except (OSError, ValueError):
         return None
     if len(commit) == 40 and all(c in "0123456789abcdef" for c in commit):
         # An export holds exactly the commit's files; a later edit shows in the source hash only.

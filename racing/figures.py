@@ -72,9 +72,15 @@ def track_file_figure(track: Track, path: str | Path, title: str | None = None) 
 
 
 def _save(plt, fig, path: str | Path) -> Path:
+    import io
+
+    from racing import files
+
     fig.tight_layout()
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    buffer = io.BytesIO()
+    fig.savefig(buffer, dpi=120, format=path.suffix.lstrip(".").lower() or "png")
     plt.close(fig)
+    files.folder(path.parent, path.parent, create=True)
+    files.write_atomic(path, buffer.getvalue())
     return path

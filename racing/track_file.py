@@ -49,6 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
+from racing import files
 from racing.config import RacingConfig
 from racing.track import Track
 
@@ -77,16 +78,12 @@ def read_rows(path: Path) -> tuple[np.ndarray, list[int], dict]:
     """The file's points (M, 4), the line number of each, and its ``# key: value`` settings; at
     most ``MAX_ROWS`` points in a file of at most ``MAX_BYTES`` (a UTF-8 byte-order mark is allowed)."""
     path = Path(path)
-    try:
-        if not path.is_file():  # a device (/dev/zero) or a pipe would be read without end
-            raise TrackFileError(f"{path}: cannot be read (not a regular file: a device, a pipe or a folder)"
-                                 if path.exists() else f"{path}: cannot be read (no such file)")
-        with open(path, "rb") as f:
-            data = f.read(MAX_BYTES + 1)
-        if len(data) > MAX_BYTES:
-            raise TrackFileError(f"{path}: more than {MAX_BYTES:,} bytes, more than a track file holds (at most "
-                                 f"{MAX_ROWS:,} points)")
-        text = data.decode("utf-8-sig")
+    try:  # the door's rules: a device or a pipe is refused unopened, a larger file unread
+        text = files.read(path, MAX_BYTES, "track file", follow=True).decode("utf-8-sig")
+    except FileNotFoundError:
+        raise TrackFileError(f"{path}: cannot be read (no such file)") from None
+    except files.FileRefused as err:
+        raise TrackFileError(str(err)) from None
     except (OSError, UnicodeDecodeError) as err:
         raise TrackFileError(f"{path}: cannot be read ({type(err).__name__}: {err})") from None
     rows, lines, settings = [], [], {}
@@ -329,8 +326,8 @@ def save_track(track: Track, path: Path | str, scale: float = 1.0) -> Path:
              f"# scale: {scale!r}", "# " + ",".join(COLUMNS)]
     lines += [f"{x / scale!r},{y / scale!r},{w / scale!r},{w / scale!r}"
               for (x, y), w in zip(centre.tolist(), half.tolist())]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines) + "\n")
+    files.folder(path.parent, path.parent, create=True)
+    files.write_text(path, "\n".join(lines) + "\n")
     return path
 
 
@@ -362,7 +359,7 @@ def write_rows(path: Path | str, rows: np.ndarray) -> Path:
     comment, three decimals, no ``closed`` or ``scale`` comment."""
     path = Path(path)
     lines = ["# " + ",".join(COLUMNS)] + [f"{x:.3f},{y:.3f},{r:.3f},{l:.3f}" for x, y, r, l in rows.tolist()]
-    path.write_text("\n".join(lines) + "\n")
+    files.write_text(path, "\n".join(lines) + "\n")
     return path
 
 

@@ -443,7 +443,7 @@ def test_a_file_grown_to_gigabytes_is_refused_unread(finished, tmp_path):
     (folder / "summary.json").unlink()
     with open(folder / "checkpoint.pt", "wb") as f:
         f.truncate(200 * 2**30)
-    with pytest.raises(Exception, match=r"checkpoint.pt is 214,748,364,800 bytes, more than a checkpoint of a run holds"):
+    with pytest.raises(Exception, match=r"checkpoint.pt is 214,748,364,800 bytes, more than a checkpoint holds"):
         train([*TINY], folder)
     assert time.perf_counter() - start < 10
 

@@ -99,14 +99,12 @@ class CheckedSweeper(BasicSweeper):
             raise SweepRefused(2)
         from engine.processes import STOP_FILE, read_stop_file
 
-        sweep_dir = Path(str(self.config.hydra.sweep.dir))
-        sweep_dir.mkdir(parents=True, exist_ok=True)
-        from engine.outputs import write_atomic
+        from racing import files
 
-        write_atomic(sweep_dir / "multirun.yaml", OmegaConf.to_yaml(self.config).encode())  # never through a link
+        sweep_dir = files.folder(Path(str(self.config.hydra.sweep.dir)), create=True)
+        files.write_atomic(sweep_dir / "multirun.yaml", OmegaConf.to_yaml(self.config).encode())  # never through a link
         stop_file = sweep_dir / STOP_FILE
-        if stop_file.exists() or stop_file.is_symlink():
-            stop_file.unlink()  # an earlier sweep's: this one starts anew
+        files.remove(stop_file)  # an earlier sweep's: this one starts anew
         returns, failed, first = [], [], 0
         with _SweepSignals(stop_file):
             while not self.is_done() and read_stop_file(stop_file) is None:
@@ -124,7 +122,7 @@ class CheckedSweeper(BasicSweeper):
                 first += len(batch)
                 returns.append(results)
         stopped = read_stop_file(stop_file)
-        stop_file.unlink(missing_ok=True)  # every job has ended: the next sweep starts anew
+        files.remove(stop_file)  # every job has ended: the next sweep starts anew
         if stopped is not None:  # counted from the folders: a job's own report may not have come back
             from engine import rundir
 
@@ -191,6 +189,10 @@ def check_jobs(loader, master, jobs: list[list[str]], folders: list | None = Non
         if subdir is None:
             continue
         folder = Path(os.path.abspath(sweep_dir / subdir))  # ".." taken out: folders that alias each other meet
+        if not folder.is_relative_to(os.path.abspath(sweep_dir)) or folder == Path(os.path.abspath(sweep_dir)):
+            problems.append(f"{label}: its folder {subdir!r} (hydra.sweep.subdir) is not a folder inside the sweep's "
+                            f"{sweep_dir}: a configuration value there holds '..' or an absolute path")
+            continue
         members = {seed: folder if run_cfg.seeds is None else folder / f"seed{seed}" for seed in run_cfg.members}
         if folders is not None:
             folders.append([folder, *(p for p in members.values() if p != folder)])
@@ -209,7 +211,7 @@ def check_jobs(loader, master, jobs: list[list[str]], folders: list | None = Non
 
 def _folder_problem(rundir, RunConfig, run_cfg, settings: dict, folder: Path, members: dict) -> str | None:
     """Why a job's folders would refuse it (None if they would not)."""
-    from engine.outputs import RunFolderError
+    from racing.files import FileRefused
 
     training = RunConfig.run_settings(settings)
     for seed, path in members.items():
@@ -220,8 +222,8 @@ def _folder_problem(rundir, RunConfig, run_cfg, settings: dict, folder: Path, me
             return problem
     if folder.exists() or any(p.exists() for p in members.values()):
         try:
-            with rundir.lock([p for p in [folder, *members.values()] if p.exists()]):
+            with rundir.lock([p for p in [folder, *members.values()] if p.exists()], root=folder):
                 pass
-        except RunFolderError as err:
+        except FileRefused as err:
             return str(err)
     return None

@@ -27,8 +27,10 @@ import os
 import platform
 import shutil
 import subprocess
-import tempfile
+import warnings
 from pathlib import Path
+
+from racing import files
 
 
 SOURCE = Path(__file__).with_name("gemm.cpp")
@@ -55,8 +57,11 @@ def _compiler() -> str | None:
     return None
 
 
-def _build() -> Path:
-    """The compiled library's path, compiling it first if this source and compiler have none yet."""
+def _build() -> tuple[Path, str]:
+    """The compiled library's path and SHA-256, compiling it first if this source and compiler have
+    none yet, or if the cached one is not the file that was built (its digest, recorded beside it when
+    it was built, does not match: a damaged or altered library is rebuilt, never loaded, and a
+    warning says so)."""
     cxx = _compiler()
     if cxx is None:
         raise KernelError("no C++ compiler found (set CXX, or install g++)")
@@ -64,38 +69,46 @@ def _build() -> Path:
         version = subprocess.run([cxx, "--version"], capture_output=True, text=True, timeout=60).stdout
     except (OSError, subprocess.SubprocessError) as err:
         raise KernelError(f"the C++ compiler {cxx} does not run: {err}") from None
-    key = hashlib.sha256(b"\0".join([SOURCE.read_bytes(), " ".join(FLAGS).encode(), version.encode(),
+    source = files.read(SOURCE, 1 << 22, "kernel source")
+    key = hashlib.sha256(b"\0".join([source, " ".join(FLAGS).encode(), version.encode(),
                                      platform.machine().encode()])).hexdigest()[:16]
     folder = cache_dir()
     path = folder / f"gemm-{key}.so"
-    if path.is_file():
-        return path
+    record = folder / f"gemm-{key}.so.sha256"
+    if os.path.lexists(path):
+        try:
+            recorded = files.read_text(record, 200, "kernel digest").strip()
+            if files.digest(path)["sha256"] == recorded:
+                return path, recorded
+            problem = "differs from the library that was built (its SHA-256 does not match the one recorded)"
+        except FileNotFoundError:
+            problem = "has no record of its SHA-256 (built by an earlier version, or its record was lost)"
+        except (OSError, files.FileRefused) as err:
+            problem = f"cannot be checked ({err})"
+        warnings.warn(f"the cached kernel library {path} {problem}; it is rebuilt, not loaded", RuntimeWarning,
+                      stacklevel=4)
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".gemm-{key}-", suffix=".so", dir=folder)
-        os.close(fd)
-    except OSError as err:
-        raise KernelError(f"cannot write the kernel cache {folder}: {err} (set RACING_KERNEL_CACHE)") from None
-    try:
-        result = subprocess.run([cxx, *FLAGS, str(SOURCE), "-o", tmp], capture_output=True, text=True, timeout=300)
-        if result.returncode != 0:
-            raise KernelError(f"{cxx} failed to compile {SOURCE.name}: {result.stderr.strip()[-2000:]}")
-        os.replace(tmp, path)  # atomic: processes building at once each install a complete library
-    except (OSError, subprocess.SubprocessError) as err:
-        raise KernelError(f"compiling {SOURCE.name} with {cxx} failed: {err}") from None
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+        files.folder(folder, folder, create=True)
+        with files.build(path) as tmp:
+            result = subprocess.run([cxx, *FLAGS, str(SOURCE), "-o", str(tmp)], capture_output=True, text=True,
+                                    timeout=300)
+            if result.returncode != 0:
+                raise KernelError(f"{cxx} failed to compile {SOURCE.name}: {result.stderr.strip()[-2000:]}")
+            sha256 = files.digest(tmp)["sha256"]
+            files.write_text(record, sha256 + "\n")  # before the library: a library is never without its record
+    except (OSError, subprocess.SubprocessError, files.FileRefused) as err:
+        raise KernelError(f"compiling {SOURCE.name} with {cxx} into the kernel cache {folder} failed: {err} "
+                          "(set RACING_KERNEL_CACHE to a folder this user can write)") from None
+    return path, sha256
 
 
 @functools.lru_cache(maxsize=None)
 def _load() -> tuple[ctypes.CDLL | None, str | None]:
     try:
-        lib = ctypes.CDLL(str(_build()))
+        lib = files.load_library(*_build())  # the very bytes whose digest was checked
     except KernelError as err:
         return None, str(err)
-    except OSError as err:
+    except (OSError, files.FileRefused) as err:
         return None, f"the compiled kernels do not load: {err}"
     i64, ptr = ctypes.c_int64, ctypes.c_void_p
     lib.racing_gemm_isas.restype, lib.racing_gemm_isas.argtypes = ctypes.c_int, []
@@ -133,12 +146,20 @@ def best_isa() -> str:
     at most ``$RACING_KERNEL_ISA`` (``scalar``, ``avx2`` or ``avx512``; tests use it to take the
     wider instruction sets away, as an older CPU would). Read once per process."""
     available = isas()
-    cap = os.environ.get("RACING_KERNEL_ISA")
+    cap = isa_cap()
     if cap:
-        if cap not in ISAS:
-            raise KernelError(f"RACING_KERNEL_ISA must be one of {sorted(ISAS)}, got {cap!r}")
         available = [isa for isa in available if ISAS[isa] <= ISAS[cap]]
     return available[-1]
+
+
+def isa_cap() -> str | None:
+    """``$RACING_KERNEL_ISA`` (None where unset); ``KernelError`` if it names no instruction set
+    (``engine.numerics.apply`` checks it before a run writes anything)."""
+    cap = os.environ.get("RACING_KERNEL_ISA")
+    if cap and cap not in ISAS:
+        raise KernelError(f"the environment variable RACING_KERNEL_ISA must be one of {sorted(ISAS)} (or unset), "
+                          f"got {cap!r}")
+    return cap or None
 
 
 LANES = {"scalar": 1, "avx2": 8, "avx512": 16}
