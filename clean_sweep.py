@@ -19,12 +19,13 @@ from __future__ import annotations
 import argparse
 import io
 import os
-import shutil
 import subprocess
 import sys
 import tarfile
 import tempfile
 from pathlib import Path
+
+from racing import files
 
 ROOT = Path(__file__).resolve().parent
 
@@ -55,8 +56,8 @@ COMMIT_FILES = (Path("engine") / "COMMIT", Path("experiment") / "COMMIT")
 def exported_commit(code_dir: Path) -> str | None:
     """The commit an export's COMMIT file names, or None if ``code_dir`` holds none."""
     for name in COMMIT_FILES:
-        if (code_dir / name).is_file():
-            return (code_dir / name).read_text().strip()
+        if files.is_file(code_dir / name):
+            return files.read_text(code_dir / name, 1024, "commit file").strip()
     return None
 
 
@@ -72,7 +73,7 @@ def export(commit: str, code_dir: Path) -> Path:
     archive = git("archive", "--format=tar", commit, binary=True)
     # unpacked into a folder of this process's own, so that sweeps started together can export
     # the same commit at once: the first rename wins and the others drop their copy
-    code_dir.parent.mkdir(parents=True, exist_ok=True)
+    files.folder(code_dir.parent, code_dir.parent, create=True)
     partial = Path(tempfile.mkdtemp(prefix=code_dir.name + ".partial-", dir=code_dir.parent))
     try:
         with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
@@ -88,7 +89,8 @@ def export(commit: str, code_dir: Path) -> Path:
             if exported_commit(code_dir) is None:
                 raise
     finally:
-        shutil.rmtree(partial, ignore_errors=True)
+        if partial.exists():
+            files.remove_tree(partial)
     return code_dir
 
 

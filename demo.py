@@ -29,7 +29,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the start state")
     parser.add_argument("--out", type=Path, default=Path("outputs/demo"))
     args = parser.parse_args()
-    args.out.mkdir(parents=True, exist_ok=True)
+    from racing import files
+
+    files.folder(args.out, args.out, create=True)
 
     env = RacingEnv(track_seed=args.track_seed, render_mode="rgb_array")
     obs, info = env.reset(seed=args.seed)

@@ -38,6 +38,7 @@ import sys
 from pathlib import Path
 
 from engine import numerics
+from racing import files
 from analysis.beyond import beyond_markdown, generalisation_markdown
 from analysis.report import (cells, code_versions, collapse_markdown, conclusions_markdown, find_runs,
                              normalised_markdown, numerics_groups, read_oracle, read_paper_table, table_markdown,
@@ -82,18 +83,17 @@ def main(argv: list[str] | None = None) -> int:
         numerics.apply(mode if mode in numerics.MODES else numerics.DEFAULT)
     except numerics.NumericsError as err:
         print(f"report: the agent frame is drawn under this process's numerics ({err})")
-    out = args.sweep_dir / "report"
-    out.mkdir(exist_ok=True)
+    out = files.folder(args.sweep_dir / "report", args.sweep_dir, create=True)  # a real folder, not a link
     every = runs
     runs = [r for r in runs if r.track_mode == "fixed"]  # Table 1 and its conclusions: fixed-track training
     table = cells(runs, read_paper_table())
     markdown = versions_markdown(versions) + "\n" + table_markdown(table)
-    (out / "table.md").write_text(markdown)
+    files.write_text(out / "table.md", markdown)
     write_table_csv(table, out / "table.csv")
     oracle = read_oracle()
     write_runs_csv(every, out / "runs.csv", args.sweep_dir, oracle)
-    (out / "conclusions.md").write_text(versions_markdown(versions) + "\n" + conclusions_markdown(runs))
-    (out / "collapse.md").write_text(versions_markdown(versions) + "\n" + collapse_markdown(runs))
+    files.write_text(out / "conclusions.md", versions_markdown(versions) + "\n" + conclusions_markdown(runs))
+    files.write_text(out / "collapse.md", versions_markdown(versions) + "\n" + collapse_markdown(runs))
     print(markdown)
     for status in ("diverged", "partial", "damaged"):
         listed = [r for r in every if r.status == status]
@@ -107,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     for name, text in (("beyond.md", beyond_markdown(every)), ("generalisation.md", generalisation_markdown(every)),
                        ("normalised.md", normalised_markdown(runs, oracle))):
         if text:
-            (out / name).write_text(versions_markdown(versions) + "\n" + text)
+            files.write_text(out / name, versions_markdown(versions) + "\n" + text)
             print(text)
             extra.append(name)
     unsealed = sum(r.status in ("completed", "diverged") and not r.sealed for r in every)
@@ -136,7 +136,7 @@ def write_figures(runs, out: Path) -> None:
     lines = ["IQM of the runs' final performances per cell; 95% interval from resampling runs (tracks).", "",
              "| cell | IQM | 95% CI | runs |", "|---|---:|---|---:|"]
     lines += [f"| {label} | {point:.1f} | [{low:.1f}, {high:.1f}] | {n} |" for label, point, low, high, n in rows]
-    (out / "iqm.md").write_text("\n".join(lines) + "\n")
+    files.write_text(out / "iqm.md", "\n".join(lines) + "\n")
     written = figures.learning_curve_figures(runs, out)
     frontier = figures.frontier_figure(runs, read_oracle(), out / "curves_beyond.png")
     written += [frontier] if frontier is not None else []

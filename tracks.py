@@ -125,7 +125,9 @@ def main(argv: list[str] | None = None) -> int:
         try:
             track = load_track(path)
         except TrackFileError as err:
-            path.unlink()
+            from racing import files
+
+            files.remove(path)
             print(f"tracks: the track of seed {args.seed} cannot be a file: {err}", file=sys.stderr)
             return 2
         print(f"wrote {path}: {describe(track)}")

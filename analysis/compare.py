@@ -17,7 +17,6 @@ instead: one learner against another on the same tracks.
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import sys
 from collections import defaultdict
@@ -26,11 +25,14 @@ from pathlib import Path
 
 def read_runs(path: Path) -> dict[tuple[str, str, int], float]:
     """{(er, algo, seed): final_mean} of the completed runs of a report's ``runs.csv``."""
+    from racing import files
+
     try:
-        with open(path, newline="") as f:
-            rows = list(csv.DictReader(f))
+        rows = files.read_csv(path, 1 << 28, "runs.csv")
     except OSError as err:
         raise SystemExit(f"compare: cannot read {path}: {err.strerror}") from None
+    except ValueError as err:  # the file door's refusal (a FIFO, a folder, a file too large)
+        raise SystemExit(f"compare: {err}") from None
     needed = {"er", "algo", "seed", "status", "final_mean"}
     if not rows or not needed <= set(rows[0]):
         raise SystemExit(f"compare: {path} is not a report's runs.csv (columns {sorted(needed)} expected)")
@@ -115,7 +117,9 @@ def main(argv: list[str] | None = None) -> int:
     text = heading + compare(new, old, args.collapse)
     print(text, end="")
     if args.markdown:
-        args.markdown.write_text(text)
+        from racing import files
+
+        files.write_text(args.markdown, text)
     return 0
 
 

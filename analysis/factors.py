@@ -17,7 +17,6 @@ run, or a configuration missing a track of the base's, is refused.
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import statistics
 import sys
@@ -149,12 +148,13 @@ def main(argv: list[str] | None = None) -> int:
     text = markdown(rows)
     print(text, end="")
     if args.markdown:
-        args.markdown.write_text(text)
+        from racing import files
+
+        files.write_text(args.markdown, text)
     if args.table:
-        with open(args.table, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
+        from engine.outputs import write_table
+
+        write_table(args.table, rows)
     return 0
 
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from analysis.aggregate import stratified_bootstrap_ci
 from analysis.report import ALGO_COLUMNS, COLUMN_TITLES, ER_ROWS, Run
-from racing.figures import import_pyplot, tracks_figure
+from racing.figures import import_pyplot, save_figure, tracks_figure
 
 
 def curves(runs: list[Run], algo: str, er: str) -> np.ndarray | None:
@@ -50,9 +50,7 @@ def learning_curve_figures(runs: list[Run], out: Path) -> list[Path]:
         ax.set(title=title, xlabel="episode", ylabel="total reward (mean over tracks, ±1 SE)")
         ax.axhline(0, color="grey", linewidth=0.5)
         ax.legend(loc="lower right", fontsize=8)
-        fig.tight_layout()
-        fig.savefig(out / name, dpi=110)
-        plt.close(fig)
+        save_figure(fig, out / name, dpi=110)
         written.append(out / name)
     return written
 
@@ -126,10 +124,7 @@ def frontier_figure(runs: list[Run], oracle: dict[int, float], path: Path, smoot
         ax.set(title=f"On {title}", xlabel="environment steps",
                ylabel=f"total reward per episode (last {smooth}; mean over tracks ±1 SE)")
         ax.legend(loc="lower right", fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def iqm_rows(runs: list[Run], reps: int = 2000) -> list[tuple[str, float, float, float, int]]:
@@ -159,10 +154,7 @@ def iqm_figure(rows: list[tuple[str, float, float, float, int]], path: Path) -> 
         ax.plot(point, yi, "o", color="tab:blue")
     ax.set_yticks(y, [r[0] for r in rows], fontsize=8)
     ax.set(xlabel="IQM of the runs' final performance (95% bootstrap CI over runs)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)
 
 
 def paper_tracks_figure(path: Path) -> Path:
@@ -172,14 +164,15 @@ def paper_tracks_figure(path: Path) -> Path:
 
 def agent_frame(run_dir: Path, path: Path, step: int = 120) -> Path:
     """Frame ``step`` of one episode of the run's deterministic policy on its own track."""
-    import imageio.v2 as imageio
+    import imageio.v3 as imageio
 
     from engine.evaluation import load_policy, make_env, run_episode
+    from racing import files
 
     net, settings = load_policy(run_dir)
     env = make_env(settings, settings["seed"], render_mode="rgb_array")
     frames: list = []
     run_episode(net, env, seed=0, frames=frames)
     env.close()
-    imageio.imwrite(path, frames[min(step, len(frames) - 1)])
+    files.write_atomic(path, imageio.imwrite("<bytes>", frames[min(step, len(frames) - 1)], extension=Path(path).suffix))
     return path

@@ -13,7 +13,6 @@ speed. Loads torch; reads the run's ``actor.pt`` and ``critic.pt``.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -79,7 +78,9 @@ def curvature(run: Path) -> dict[str, float]:
         trace = naf_precision(trained(x)[0, :, 1:], 2).diagonal(dim1=-2, dim2=-1).sum(-1)
         initial = naf_precision(fresh(x)[0, :, 1:], 2).diagonal(dim1=-2, dim2=-1).sum(-1)
     actions = np.array(actions)
-    summary = json.loads((run / "summary.json").read_text())
+    from engine.outputs import read_summary
+
+    summary = read_summary(run)
     return {"final": summary["final_mean"], "trace_median": float(trace.median()), "trace_low": float(trace.min()),
             "trace_high": float(trace.max()), "initial_median": float(initial.median()),
             "throttle": float(actions[:, 0].mean()), "steering": float(actions[:, 1].mean()),

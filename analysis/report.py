@@ -9,13 +9,15 @@ the reason, never counted.
 from __future__ import annotations
 
 import csv
+import io
 import math
 import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from engine.config import algo_titles
-from engine.outputs import METRICS_FILE, SUMMARY_FILE
+from engine.outputs import METRICS_FILE, ROWS_LIMIT, SUMMARY_FILE
+from racing import files
 
 PAPER_TABLE = Path(__file__).resolve().parent / "data" / "paper_table1.csv"
 EPISODE_STEPS = 200  # racing.RacingConfig.max_steps (not imported: the report reads folders only)
@@ -120,7 +122,8 @@ def find_runs(sweep_dir: Path) -> list[Run]:
     if not sweep_dir.is_dir():
         raise FileNotFoundError(f"{sweep_dir} is not a folder; give the sweep's output folder "
                                 "(e.g. outputs/sweeps/paper_grid)")
-    folders = sorted({p.parent for p in sweep_dir.rglob(METRICS_FILE)} | {p.parent for p in sweep_dir.rglob(SUMMARY_FILE)})
+    folders = sorted({p.parent for p in files.find(sweep_dir, METRICS_FILE)}
+                     | {p.parent for p in files.find(sweep_dir, SUMMARY_FILE)})  # links never followed
     folders = [f for f in folders if "report" not in f.relative_to(sweep_dir).parts]
     if not folders:
         raise FileNotFoundError(f"no runs under {sweep_dir}: expected folders with {SUMMARY_FILE} and "
@@ -133,8 +136,9 @@ def read_run(folder: Path) -> Run:
     summary yet: killed or running) or damaged (with the reason); never taken for another state."""
     from engine import rundir
 
-    rewards = _read_rewards(folder / METRICS_FILE)
-    found = rundir.state(folder)
+    found = rundir.state(folder)  # first: a finished run's metrics.csv is read only at the size its summary records
+    recorded = ((found.summary or {}).get("files") or {}).get(METRICS_FILE) if found.kind == "finished" else None
+    rewards = _read_rewards(folder / METRICS_FILE, recorded["bytes"] if recorded else ROWS_LIMIT)
     if found.kind in ("empty", "resumable"):
         return Run(folder, "partial", rewards=rewards)
     if found.kind == "damaged":
@@ -177,23 +181,36 @@ def versions_markdown(groups: dict[str, list[Run]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _read_rewards(path: Path) -> list[float]:
-    """The learning curve in metrics.csv; a last row cut short (a run killed while appending it) is
-    left out, as a resume drops it; any other malformed row: no curve."""
+def _read_rewards(path: Path, limit: int) -> list[float]:
+    """The learning curve in metrics.csv (read only if it holds at most ``limit`` bytes); a last row cut
+    short (a run killed while appending it) is left out, as a resume drops it; any other malformed
+    row, or a file that is not a regular one of at most that size: no curve."""
     try:
-        with open(path, newline="") as f:
-            rows = list(csv.DictReader(f))
+        rows = list(csv.DictReader(io.StringIO(files.read_text(path, limit, "metrics.csv"), newline="")))
         if rows and None in rows[-1].values():  # fields missing: a row cut short
             rows = rows[:-1]
         return [float(row["total_reward"]) for row in rows]
-    except (OSError, UnicodeDecodeError, csv.Error, KeyError, ValueError, TypeError):
+    except (OSError, csv.Error, KeyError, ValueError, TypeError):  # FileRefused is a ValueError
         return []
+
+
+def _read_csv(path: Path, what: str) -> list[dict]:
+    """The rows of a small shipped CSV table (at most 16 MB); '#' lines are comments."""
+    return files.read_csv(path, 16 << 20, what)
+
+
+def _write_csv(path: Path, header: list[str], rows) -> None:
+    """A CSV table written whole (``racing.files.write_atomic``)."""
+    text = io.StringIO(newline="")
+    writer = csv.writer(text)
+    writer.writerow(header)
+    writer.writerows(rows)
+    files.write_text(path, text.getvalue())
 
 
 def read_paper_table(path: Path = PAPER_TABLE) -> dict[tuple[str, str], tuple[float, float]]:
     """{(er, algo): (mean, sem)} in this project's names."""
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(line for line in f if not line.startswith("#")))
+    rows = _read_csv(path, "table of the paper's results")
     table = {}
     for row in rows:
         er = "hybrid" if row["er_mode"] == "both" else row["er_mode"]
@@ -244,12 +261,9 @@ def table_markdown(table: list[Cell]) -> str:
 
 
 def write_table_csv(table: list[Cell], path: Path) -> None:
-    with open(path, "w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(["er", "algo", "n", "mean", "sem", "diverged", "paper_mean", "paper_sem", "z"])
-        for c in table:
-            writer.writerow([c.er, c.algo, c.n, _num(c.mean), _num(c.sem), c.diverged, _num(c.paper_mean),
-                             _num(c.paper_sem), _num(c.z)])
+    _write_csv(path, ["er", "algo", "n", "mean", "sem", "diverged", "paper_mean", "paper_sem", "z"],
+               [[c.er, c.algo, c.n, _num(c.mean), _num(c.sem), c.diverged, _num(c.paper_mean), _num(c.paper_sem),
+                 _num(c.z)] for c in table])
 
 
 def read_oracles() -> dict[int, float]:
@@ -264,8 +278,7 @@ def read_oracle(path: Path | None = None) -> dict[int, float]:
     path = Path(path if path is not None else ORACLE_TABLE)
     if not path.exists():
         return {}
-    with open(path) as f:
-        return {int(row["track"]): float(row["mean_reward"]) for row in csv.DictReader(f)}
+    return {int(row["track"]): float(row["mean_reward"]) for row in _read_csv(path, "table of oracle scores")}
 
 
 def normalised(run: Run, oracle: dict[int, float]) -> float | None:
@@ -280,19 +293,18 @@ def write_runs_csv(runs: list[Run], path: Path, root: Path, oracle: dict[int, fl
     """One row per run folder: cell, track seed, final performance, status, code version, numerics,
     and, where the oracle scored the track, its score and the run's oracle-normalised score."""
     oracle = oracle or {}
-    with open(path, "w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(["er", "algo", "seed", "status", "final_mean", "episodes", "code", "folder", "train_tracks",
-                         "eval_own_track", "eval_unseen_mean", "numerics", "oracle", "normalised"])
-        for r in sorted(runs, key=lambda r: (r.er or "", r.algo or "", r.seed or -1, str(r.path))):
-            final = "" if r.final_mean is None else repr(float(r.final_mean))
-            own, unseen = ((repr(float(r.evaluation["own_track"])), repr(float(r.evaluation["mean"])))
-                           if r.evaluation else ("", ""))
-            score = normalised(r, oracle)
-            writer.writerow([r.er or "", r.algo or "", "" if r.seed is None else r.seed, r.status, final,
-                             len(r.rewards), r.version, r.path.relative_to(root).as_posix(), r.track_mode, own, unseen,
-                             r.numerics, repr(oracle[r.seed]) if score is not None else "",
-                             repr(score) if score is not None else ""])
+    rows = []
+    for r in sorted(runs, key=lambda r: (r.er or "", r.algo or "", r.seed or -1, str(r.path))):
+        final = "" if r.final_mean is None else repr(float(r.final_mean))
+        own, unseen = ((repr(float(r.evaluation["own_track"])), repr(float(r.evaluation["mean"])))
+                       if r.evaluation else ("", ""))
+        score = normalised(r, oracle)
+        rows.append([r.er or "", r.algo or "", "" if r.seed is None else r.seed, r.status, final,
+                     len(r.rewards), r.version, r.path.relative_to(root).as_posix(), r.track_mode, own, unseen,
+                     r.numerics, repr(oracle[r.seed]) if score is not None else "",
+                     repr(score) if score is not None else ""])
+    _write_csv(path, ["er", "algo", "seed", "status", "final_mean", "episodes", "code", "folder", "train_tracks",
+                      "eval_own_track", "eval_unseen_mean", "numerics", "oracle", "normalised"], rows)
 
 
 def _num(value: float | None) -> str:

@@ -40,6 +40,112 @@ class BaselineError(ValueError):
     """An argument the baseline cannot run with."""
 
 
+MODEL_LIMIT = 1 << 30  # bytes of a model.zip read (SB3's default networks: well under 10 MB)
+ENTRY_LIMIT = 1 << 28  # bytes of one entry of it, unpacked
+# Which policy class a zip's "policy_class" names, read as text (its "__module__" and the class whose
+# __init__ it records), never unpickled: each known class is built here from the zip's plain settings.
+POLICIES = {("stable_baselines3.sac.policies", "SACPolicy"): "SAC",
+            ("stable_baselines3.td3.policies", "TD3Policy"): "TD3",
+            ("stable_baselines3.common.policies", "ActorCriticPolicy"): "PPO"}  # PPO and A2C share their policy
+POLICY_KEYS = {"net_arch", "use_sde", "log_std_init", "use_expln", "clip_mean", "n_critics",
+               "share_features_extractor", "ortho_init", "full_std", "squash_output", "normalize_images"}
+
+
+class ModelRefused(ValueError):
+    """A model.zip that cannot be loaded as weights alone; the message names it and says why."""
+
+
+def load_model(path) -> tuple[object, str]:
+    """``(policy, algorithm)`` of a Stable-Baselines3 ``model.zip`` loaded as weights only: its plain
+    JSON settings (``data``) choose one of ``POLICIES`` and its layers, the policy is built here for
+    the racing environment's spaces, and its tensors (``policy.pth``) are loaded with
+    ``torch.load(weights_only=True)``. Nothing in the zip is unpickled, so nothing in it runs: a zip
+    whose policy needs an unpickled setting (a custom class, activation or feature extractor) is
+    refused with one sentence (``ModelRefused``), as is any zip not made for this environment."""
+    import io
+    import json
+    import re
+    import zipfile
+
+    from engine.checkpoint import load_tensors_from
+    from racing import files
+    from racing.gym_env import RacingEnv
+
+    try:
+        data = files.read(path, MODEL_LIMIT, "Stable-Baselines3 model.zip", follow=True)
+    except FileNotFoundError:
+        raise ModelRefused(f"{path} does not exist (a Stable-Baselines3 model.zip was expected)") from None
+    except (OSError, files.FileRefused) as err:
+        raise ModelRefused(str(err)) from None
+
+    def entry(name: str) -> bytes:
+        info = archive.getinfo(name)
+        if info.file_size > ENTRY_LIMIT:
+            raise ModelRefused(f"{path}: its {name} unpacks to {info.file_size:,} bytes, more than a model holds")
+        return archive.read(info)
+
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as archive:
+            settings = json.loads(entry("data"))
+            weights = entry("policy.pth")
+    except ModelRefused:
+        raise
+    except (zipfile.BadZipFile, KeyError, json.JSONDecodeError, UnicodeDecodeError, ValueError, OSError,
+            EOFError, RuntimeError, zipfile.LargeZipFile) as err:
+        raise ModelRefused(f"{path} is not a Stable-Baselines3 model.zip ({type(err).__name__}: "
+                           f"{str(err)[:120]})") from None
+    if not isinstance(settings, dict) or not isinstance(settings.get("policy_class"), dict):
+        raise ModelRefused(f"{path} is not a Stable-Baselines3 model.zip (its data names no policy class)")
+    named = settings["policy_class"]
+    module = str(named.get("__module__", ""))
+    found = re.match(r"<function (\w+)\.__init__", str(named.get("__init__", "")))
+    algo = POLICIES.get((module, found.group(1) if found else ""))
+    if algo is None:
+        raise ModelRefused(f"{path}: its policy ({module}.{found.group(1) if found else '?'}) is not one of "
+                           f"Stable-Baselines3's MlpPolicy classes this tool builds (SAC, TD3/DDPG, PPO/A2C); other "
+                           "policies would have to be unpickled, which could run code, so it is refused")
+    kwargs = settings.get("policy_kwargs") or {}
+    bad = [key for key, value in kwargs.items() if key not in POLICY_KEYS or not _plain(value)] \
+        if isinstance(kwargs, dict) else ["policy_kwargs"]
+    if bad:
+        raise ModelRefused(f"{path}: its policy settings {bad} need unpickling (a custom class or function), which "
+                           "could run code; only plain settings (net_arch, use_sde, ...) are loaded")
+    env = RacingEnv()
+    for key, space in (("observation_space", env.observation_space), ("action_space", env.action_space)):
+        saved = settings.get(key) if isinstance(settings.get(key), dict) else {}
+        if list(saved.get("_shape") or []) != list(space.shape) or saved.get("dtype") != str(space.dtype):
+            raise ModelRefused(f"{path}: its {key.replace('_', ' ')} is {saved.get('_shape')} {saved.get('dtype')}, "
+                               f"not the racing environment's {list(space.shape)} {space.dtype}")
+    env.close()
+    if algo == "SAC":
+        from stable_baselines3.sac.policies import SACPolicy as policy_class
+    elif algo == "TD3":
+        from stable_baselines3.td3.policies import TD3Policy as policy_class
+    else:
+        from stable_baselines3.common.policies import ActorCriticPolicy as policy_class
+    try:
+        policy = policy_class(env.observation_space, env.action_space, lambda _: 0.0, **kwargs)
+    except (TypeError, ValueError, AssertionError) as err:
+        raise ModelRefused(f"{path}: its policy settings do not build a {algo} policy ({str(err)[:120]})") from None
+    try:
+        state = load_tensors_from(io.BytesIO(weights), f"{path}'s policy.pth", "policy's weights")
+        policy.load_state_dict(state, strict=True)
+    except (ValueError, RuntimeError, TypeError, AttributeError) as err:
+        raise ModelRefused(f"{path}: its policy.pth is not the weights of its policy ({str(err).splitlines()[0][:200]})"
+                           ) from None
+    policy.set_training_mode(False)
+    return policy, algo
+
+
+def _plain(value) -> bool:
+    """Whether a JSON value is plain data (no SB3 ``:serialized:`` object inside)."""
+    if isinstance(value, dict):
+        return ":serialized:" not in value and ":type:" not in value and all(_plain(v) for v in value.values())
+    if isinstance(value, list):
+        return all(_plain(v) for v in value)
+    return isinstance(value, (str, int, float, bool, type(None)))
+
+
 def run_folder(out: Path, algo: str, seed: int) -> Path:
     """``<out>/sb3_<algo>/default/seed<seed>``: the report's cell is (sb3_<algo>, default)."""
     return Path(out) / f"sb3_{algo}" / "default" / f"seed{seed}"

@@ -110,7 +110,9 @@ def main(argv: list[str] | None = None) -> int:
     lines = ["| agent | runs | score [95% interval] | oracle-normalised [95% interval] |", "|---|---:|---:|---:|"]
     lines += [f"| {r['agent']} | {r['runs']} | {r['score']:.1f} [{r['low']:.1f}, {r['high']:.1f}] | "
               f"{r['normalised']:.3f} [{r['normalised_low']:.3f}, {r['normalised_high']:.3f}] |" for r in board]
-    (args.out / "leaderboard.md").write_text("\n".join(lines) + "\n")
+    from racing import files
+
+    files.write_text(args.out / "leaderboard.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
     for line in skipped:
         print(f"skipped {line}", file=sys.stderr)

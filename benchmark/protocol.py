@@ -21,12 +21,10 @@ An agent is named by one string (``load_agent``):
 
 from __future__ import annotations
 
-import csv
 import importlib
-import json
 import math
+import os
 import sys
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -59,8 +57,13 @@ def load_agent(spec: str) -> Agent:
     if spec in BUILTIN:
         return _builtin(spec)
     path = Path(spec)
-    if path.is_dir() and (path / "model.zip").is_file() and not (path / "actor.pt").exists():
-        return _sb3(path / "model.zip")  # a run folder of baseline.py (Stable-Baselines3)
+    if path.is_dir() and os.path.lexists(path / "model.zip") and not os.path.lexists(path / "actor.pt"):
+        from engine import rundir
+
+        found = rundir.state(path)  # a run folder of baseline.py (Stable-Baselines3): by the folder rules
+        if found.kind == "damaged":
+            raise AgentError(found.refusal().split(". Its files")[0] + "; it is not scored")
+        return _sb3(path / "model.zip")
     if path.is_dir():
         from engine.evaluation import RunFolderError, load_policy
 
@@ -94,27 +97,20 @@ def _builtin(name: str) -> Agent:
 
 
 def _sb3(path: Path) -> Agent:
-    if not path.is_file():
-        raise AgentError(f"{path} does not exist (a Stable-Baselines3 model.zip was expected)")
+    """A Stable-Baselines3 model.zip as weights only (``baselines.sb3.load_model``: nothing in it runs)."""
     try:
-        import stable_baselines3
+        import stable_baselines3  # noqa: F401
     except ImportError:
         raise AgentError("scoring a model.zip needs Stable-Baselines3: pip install -c constraints/cpu.txt "
                          "-e '.[baselines]'") from None
+    from baselines.sb3 import ModelRefused, load_model
+
     try:
-        with zipfile.ZipFile(path) as archive:
-            data = json.loads(archive.read("data"))
-        module = str((data.get("policy_class") or {}).get("__module__", ""))
-    except (zipfile.BadZipFile, KeyError, json.JSONDecodeError, OSError, AttributeError) as err:
-        raise AgentError(f"{path} is not a Stable-Baselines3 model.zip ({type(err).__name__})") from None
-    # The policy's module names the off-policy algorithms; the on-policy ones share theirs
-    algo = next((name for name in ("SAC", "TD3", "DDPG") if f".{name.lower()}." in module), None)
-    if algo is None and module.endswith("common.policies"):
-        algo = "PPO" if "clip_range" in data else "A2C" if "n_steps" in data else None
-    if algo is None:
-        raise AgentError(f"{path}: cannot tell which Stable-Baselines3 algorithm saved it (policy {module})")
-    model = getattr(stable_baselines3, algo).load(path, device="cpu")
-    return Agent(str(path), lambda env, obs: model.predict(obs, deterministic=True)[0], kind=f"Stable-Baselines3 {algo}")
+        policy, algo = load_model(path)
+    except ModelRefused as err:
+        raise AgentError(str(err)) from None
+    return Agent(str(path), lambda env, obs: policy.predict(obs, deterministic=True)[0],
+                 kind=f"Stable-Baselines3 {algo}")
 
 
 def _callable(spec: str) -> Agent:
@@ -205,8 +201,9 @@ def score(agent: Agent, tracks=TRACKS, episodes: int = EPISODES, first_seed: int
 
 def read_oracle(path: Path = ORACLE_SCORES) -> dict[int, float]:
     """{track: the oracle's mean total reward} for the benchmark tracks (shipped)."""
-    with open(path, newline="") as f:
-        return {int(row["track"]): float(row["mean_reward"]) for row in csv.DictReader(f)}
+    from racing import files
+
+    return {int(row["track"]): float(row["mean_reward"]) for row in files.read_csv(path, 1 << 20, "oracle table")}
 
 
 def summarise(per_track: dict[int, float], oracle: dict[int, float]) -> dict:

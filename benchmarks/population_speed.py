@@ -28,7 +28,6 @@ compare the ratios, all measured in this run):
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import subprocess
 import sys
@@ -50,6 +49,7 @@ from torch.utils.flop_counter import flop_registry  # noqa: E402
 
 from engine.config import RunConfig  # noqa: E402
 from benchmarks.train_speed import best_of, table  # noqa: E402
+from engine.outputs import read_summary  # noqa: E402
 from engine.runner import train_population  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -132,7 +132,7 @@ def before_solo(commit: str, cell: str, episodes: int) -> dict:
         subprocess.run(cmd, cwd=code, check=True, capture_output=True,
                        env={**os.environ, "PYTHONPATH": str(code)})
         wall = time.perf_counter() - start
-        summary = json.loads((Path(out) / "summary.json").read_text())
+        summary = read_summary(Path(out))
     return {"wall": wall, "rollout": summary["time/rollout_s"], "train": summary["time/train_s"]}
 
 

@@ -19,7 +19,6 @@ draws each member's indices from its own priorities with its own generator.
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import torch
 from torchrl.data.replay_buffers.samplers import Sampler
@@ -104,11 +103,15 @@ class ProportionalSampler(Sampler):
         self._max.fill_(1.0)
 
     def dumps(self, path) -> None:
-        Path(path).mkdir(parents=True, exist_ok=True)
-        torch.save(self.state_dict(), Path(path) / "sampler.pt")
+        """Not a file writer: the sampler's state is its ``state_dict``, which a run's checkpoint holds
+        (engine/checkpoint.py writes every file of a run, through the file door)."""
+        raise NotImplementedError("PrioritisedSampler is saved with the run's checkpoint (its state_dict), not by "
+                                  "ReplayBuffer.dumps")
 
     def loads(self, path) -> None:
-        self.load_state_dict(torch.load(Path(path) / "sampler.pt", weights_only=True))
+        """Not a file reader: see ``dumps``."""
+        raise NotImplementedError("PrioritisedSampler is restored from the run's checkpoint (load_state_dict), not by "
+                                  "ReplayBuffer.loads")
 
     # ----------------------------------------------------------------------- populations
     @torch.no_grad()

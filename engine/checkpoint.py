@@ -112,15 +112,23 @@ def load_tensors(path: Path, what: str = "file", sealed: bool = False):
     path = Path(path)
     try:
         data = files.read(path, _load_limit(), what)
-        if len(data) == 0:
-            raise ValueError(f"{path} is empty (0 bytes)")
-        if sealed:
-            data = unsealed(path, data)
-        return torch.load(io.BytesIO(data), weights_only=True, map_location="cpu")
     except files.FileRefused as err:
         raise ValueError(str(err)) from None
-    except ValueError:
-        raise
+    except OSError as err:
+        raise ValueError(f"{path} is not a readable {what} ({first_line(err)})") from None
+    if len(data) == 0:
+        raise ValueError(f"{path} is empty (0 bytes)")
+    if sealed:
+        data = unsealed(path, data)
+    return load_tensors_from(io.BytesIO(data), path, what)
+
+
+def load_tensors_from(source: io.BytesIO, path, what: str = "file"):
+    """``torch.load(source, weights_only=True)`` of bytes already read (``path`` names them in
+    messages); the one place tensors are unpacked: ``ValueError`` with one clear sentence if they
+    are not torch's or hold more than tensors and plain containers."""
+    try:
+        return torch.load(source, weights_only=True, map_location="cpu")
     except pickle.UnpicklingError as err:
         reason = _unpickler_reason(str(err))
         if reason.startswith("Unsupported global"):

@@ -365,6 +365,7 @@ class RunConfig:
     logger: str
     overwrite: bool
     checkpoint_every: int
+    resume_numerics: str
     eval_seeds: tuple[int, ...] | None
     eval_episodes: int
     algo: AlgoConfig
@@ -393,6 +394,7 @@ class RunConfig:
         _at_least("processes", self.processes, 1)
         _check_device(self.device)
         _choice("numerics", self.numerics, NUMERIC_MODES)
+        _choice("resume_numerics", self.resume_numerics, ("same", "any"))
         _at_least("eval_episodes", self.eval_episodes, 1)
         if self.eval_seeds is not None:
             if not self.eval_seeds:
@@ -475,7 +477,7 @@ class RunConfig:
 
     # Keys that change how a run reports or is scheduled, not what it computes (every member
     # computes what its solo run does, so splitting a population over processes changes nothing).
-    PRESENTATION_KEYS = ("progress", "logger", "overwrite", "checkpoint_every", "processes")
+    PRESENTATION_KEYS = ("progress", "logger", "overwrite", "checkpoint_every", "processes", "resume_numerics")
     # Keys that decide only the evaluation after training: a checkpoint of a run continues under other values.
     EVALUATION_KEYS = ("eval_seeds", "eval_episodes")
 

@@ -149,7 +149,7 @@ def _train_locked(cfg: RunConfig, out_dir: Path, folders: list[Path], settings: 
             files.remove(path)
     for folder in folders:
         rundir.remove_temporaries(folder)  # a killed writer's; never a finished file
-    parts = _resumed_parts(out_dir, settings)  # each continues as the population it was
+    parts = _resumed_parts(out_dir, settings, cfg.resume_numerics)  # each continues as the population it was
     resumed = {seed for _, seeds, _ in parts for seed in seeds}
     for seed in sorted(resumed):  # a checkpoint beside a damaged summary (or a link) is not resumed over
         found = rundir.state(member_folder(cfg, out_dir, seed))
@@ -271,10 +271,28 @@ def split_members(seeds: tuple[int, ...], parts: int, at_least: int = 1) -> list
     return [tuple(seeds[a:b]) for a, b in zip(bounds, bounds[1:])]
 
 
-def _resumed_parts(out_dir: Path, settings: dict | None) -> list[tuple[Path, tuple[int, ...], dict]]:
+NUMERICS_KEYS = ("mode", "kernels", "mkl_branch", "products")  # what decides a run's bits (numerics.in_effect)
+
+
+def numerics_segment(first_episode: int) -> dict:
+    """The products this process computes with, from episode ``first_episode`` on (a checkpoint
+    keeps one per session that computed differently; the summary reports them all)."""
+    effect = numerics.in_effect()
+    return {"from_episode": first_episode, **{key: effect.get(key) for key in NUMERICS_KEYS},
+            **({"fallback": effect["fallback"]} if "fallback" in effect else {})}
+
+
+def _same_numerics(a: dict, b: dict) -> bool:
+    return all(a.get(key) == b.get(key) for key in NUMERICS_KEYS)
+
+
+def _resumed_parts(out_dir: Path, settings: dict | None,
+                   resume_numerics: str = "same") -> list[tuple[Path, tuple[int, ...], dict]]:
     """The checkpoints in ``out_dir`` (``checkpoint.pt``, or one per part of a split population):
-    (path, members, payload) each; ``ConfigError`` if one is of other settings."""
+    (path, members, payload) each; ``ConfigError`` if one is of other settings, or (unless
+    ``resume_numerics="any"``) was computed with other products than this process computes with."""
     parts = []
+    now = numerics_segment(0)
     for path in checkpoint.in_folder(out_dir):
         payload = checkpoint.load(path)
         old, new = RunConfig.training_settings(payload.get("settings")), RunConfig.training_settings(settings)
@@ -282,6 +300,14 @@ def _resumed_parts(out_dir: Path, settings: dict | None) -> list[tuple[Path, tup
             raise ConfigError(f"the run folder holds a checkpoint of a different configuration ({path.name}: "
                               f"{settings_difference(old, new)}); choose another folder (hydra.run.dir=...) or pass "
                               "overwrite=true to start afresh")
+        segments = payload.get("numerics") or []
+        if segments and not _same_numerics(segments[-1], now) and resume_numerics != "any":
+            before, here = (", ".join(f"{k} {seg.get(k)}" for k in NUMERICS_KEYS) for seg in (segments[-1], now))
+            why = f" ({now['fallback']})" if "fallback" in now else ""
+            raise ConfigError(f"{path} was computed with other numerics ({before}) than this process computes with "
+                              f"({here}{why}); continuing would make one run of two, whose numbers no uninterrupted "
+                              "run gives. Remove the cause and run the same command again, or pass "
+                              "resume_numerics=any to continue (summary.json then records both)")
         parts.append((path, tuple(payload["members"]), payload))
     return parts
 
@@ -336,8 +362,12 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
     earlier_wall: float | None = 0.0  # wall time of the sessions before a resume (None: not recorded)
     earlier_cpu: float | None = 0.0  # CPU time of the sessions before a resume (None: not recorded)
     code = dict(code_version())
+    segments = [numerics_segment(0)]  # the products each session computed with (a new one where they differ)
     if payload is not None:
         first, timing = _restore(payload, parts, env, generators, phases, members)
+        segments = [dict(seg) for seg in payload.get("numerics") or []] or [{**numerics_segment(0), "recorded": False}]
+        if not _same_numerics(segments[-1], numerics_segment(first)) or segments[-1].get("recorded") is False:
+            segments.append(numerics_segment(first))
         earlier_wall = timing.pop("wall_s", None)
         earlier_cpu = timing.pop("cpu_s", None)
         earlier = payload.get("code") or {"source": None}
@@ -393,7 +423,7 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
                 so_far = {**({} if earlier_wall is None else {"wall_s": earlier_wall + time.perf_counter() - start}),
                           **({} if earlier_cpu is None else {"cpu_s": earlier_cpu + time.process_time() - cpu_start})}
                 checkpoint.save(checkpoint_path, _payload(done, {**timing, **so_far, **compile_time()}, settings,
-                                                          parts, env, code,
+                                                          parts, env, code, segments,
                                                           generators, phases, members, learner.sampler))
                 saved = done
             if stopping:
@@ -440,13 +470,23 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             "population": {"seeds": list(seeds), "size": len(seeds)},
             **({"evaluation": evaluation} if evaluation is not None else {}),
             **({"track_file": env.sim.file_track.reading.record()} if env.sim.file_track is not None else {}),
-            "code": code, "software": software_versions(), "numerics": numerics.in_effect(),
+            "code": code, "software": software_versions(), "numerics": _numerics_record(segments),
             "compile": compiled, "settings": member.settings,
             "files": file_record(member.folder, rundir.RECORDED_FILES),  # what this summary stands for
         }
         summaries.append(write_summary(member.folder, summary))
     files.remove(checkpoint_path)  # the runs are finished: summaries and weights remain
     return summaries
+
+
+def _numerics_record(segments: list[dict]) -> dict:
+    """summary.json's "numerics": what this process ran (``numerics.in_effect()``) when every session
+    computed with the same products; otherwise mode ``mixed``, and each session's products from the
+    episode it began with (a run never reports one mode for numbers made with two)."""
+    effect = numerics.in_effect()
+    if len(segments) <= 1:
+        return effect
+    return {"mode": "mixed", "kernels": effect.get("kernels"), "segments": segments}
 
 
 def _evaluate(cfg: RunConfig, seed: int, actor: dict) -> dict:
@@ -473,12 +513,12 @@ def _freeze(failed: dict[int, str], episode: int, members: list[Member], phases)
         phases.freeze(r)
 
 
-def _payload(episodes_done: int, timing: dict, settings: dict | None, parts: dict, env, code: dict,
+def _payload(episodes_done: int, timing: dict, settings: dict | None, parts: dict, env, code: dict, segments: list,
              generators: list[torch.Generator], phases, members: list[Member], sampler) -> dict:
     if not sampler.at_block_boundary:
         raise RuntimeError("a checkpoint must be taken between episodes")
     return {
-        "settings": settings, "code": code, "episodes_done": episodes_done, "timing": dict(timing),
+        "settings": settings, "code": code, "numerics": segments, "episodes_done": episodes_done, "timing": dict(timing),
         "members": [m.seed for m in members], "member_states": [m.state() for m in members],
         **{name: part.state_dict() for name, part in parts.items()},
         "generators": [g.get_state() for g in generators], "active": phases.active.clone(),

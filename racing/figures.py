@@ -72,14 +72,21 @@ def track_file_figure(track: Track, path: str | Path, title: str | None = None) 
 
 
 def _save(plt, fig, path: str | Path) -> Path:
+    return save_figure(fig, path, dpi=120)
+
+
+def save_figure(fig, path: str | Path, dpi: int = 120) -> Path:
+    """Draw ``fig`` into memory (its format from the suffix), close it, and write it whole through
+    the file door (``racing.files.write_atomic``; its folder made if missing)."""
     import io
 
     from racing import files
 
+    plt = import_pyplot()
     fig.tight_layout()
     path = Path(path)
     buffer = io.BytesIO()
-    fig.savefig(buffer, dpi=120, format=path.suffix.lstrip(".").lower() or "png")
+    fig.savefig(buffer, dpi=dpi, format=path.suffix.lstrip(".").lower() or "png")
     plt.close(fig)
     files.folder(path.parent, path.parent, create=True)
     files.write_atomic(path, buffer.getvalue())

@@ -150,6 +150,15 @@ def read_text(path, limit: int, what: str = "file", follow: bool = False) -> str
         raise FileRefused(f"{path} is not text (UTF-8): byte {err.start} cannot be read; not a {what}") from None
 
 
+def read_csv(path, limit: int, what: str = "table", follow: bool = True) -> list[dict]:
+    """The rows of a CSV table (``read_text``'s rules; lines starting with '#' are comments)."""
+    import csv
+    import io
+
+    text = read_text(path, limit, what, follow)
+    return list(csv.DictReader(line for line in io.StringIO(text, newline="") if not line.startswith("#")))
+
+
 @contextlib.contextmanager
 def stream(path, follow: bool = False):
     """A binary file object of the regular file at ``path`` (for reading a file of any size in pieces)."""

@@ -54,8 +54,9 @@ class SlurmLauncher(_SubmititSlurmLauncher):
         executor = submitit.AutoExecutor(folder=folder, cluster="slurm", **init)
         generic = set(OmegaConf.structured(BaseQueueConf).keys())
         executor.update_parameters(**{k if k in generic else f"slurm_{k}": v for k, v in params.items()})
-        sweep_dir = Path(str(self.config.hydra.sweep.dir))
-        sweep_dir.mkdir(parents=True, exist_ok=True)
+        from racing import files
+
+        sweep_dir = files.folder(Path(str(self.config.hydra.sweep.dir)), create=True)
         log.info(f"Submitit 'slurm' sweep output dir : {sweep_dir}")
         arguments = []
         for idx, overrides in enumerate(job_overrides, start=initial_job_idx):
@@ -128,11 +129,14 @@ def job_state(job) -> str:
 
 def last_message(job) -> str:
     """The project's message from the job's stderr log, else its last line, else a pointer to it."""
+    from racing import files
+
     path = Path(job.paths.stderr)
-    try:
-        lines = [line.strip() for line in path.read_text(errors="replace").splitlines() if line.strip()]
-    except OSError:
-        return f"no log at {path}"
+    try:  # the log's last 64 MB at most: read bounded, as every file
+        text = files.read(path, 1 << 26, "job log").decode(errors="replace")
+        lines = [line.strip() for line in text.splitlines() if line.strip()]
+    except (OSError, files.FileRefused) as err:
+        return f"no log at {path}" if isinstance(err, FileNotFoundError) else str(err)
     for line in reversed(lines):
         if line.startswith(PROJECT_MESSAGES):
             return line
