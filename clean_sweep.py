@@ -17,12 +17,9 @@ install the commit's own pins first if its ``pyproject.toml`` differs from the i
 from __future__ import annotations
 
 import argparse
-import io
 import os
 import subprocess
 import sys
-import tarfile
-import tempfile
 from pathlib import Path
 
 from racing import files
@@ -74,18 +71,14 @@ def export(commit: str, code_dir: Path) -> Path:
     # unpacked into a folder of this process's own, so that sweeps started together can export
     # the same commit at once: the first rename wins and the others drop their copy
     files.folder(code_dir.parent, code_dir.parent, create=True)
-    partial = Path(tempfile.mkdtemp(prefix=code_dir.name + ".partial-", dir=code_dir.parent))
+    partial = files.private_folder(code_dir.parent, code_dir.name + ".partial-")
     try:
-        with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
-            if hasattr(tarfile, "data_filter"):  # Python >= 3.10.12 / 3.11.4
-                tar.extractall(partial, filter="data")
-            else:
-                tar.extractall(partial)
+        files.extract_tar(archive, partial)
         if exported_commit(partial) != commit:
             raise SweepError("the export's COMMIT file was not filled in; is .gitattributes in the commit?")
         try:
-            partial.rename(code_dir)
-        except OSError:  # another sweep's export of the same commit landed first
+            files.rename_folder(partial, code_dir)
+        except FileExistsError:  # another sweep's export of the same commit landed first
             if exported_commit(code_dir) is None:
                 raise
     finally:

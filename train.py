@@ -16,6 +16,7 @@ when stopped by SIGINT or SIGTERM (one line: where it was saved; the same comman
 from __future__ import annotations
 
 import os
+import re
 import signal
 import sys
 from pathlib import Path
@@ -186,6 +187,13 @@ class _HydraErrors:
         if not lines:
             return None
         first = lines[0]
+        if first.startswith("Traceback (most recent call last)"):  # Hydra failed outside its own checks
+            last = next((line for line in reversed(lines) if re.match(r"[A-Za-z_][\w.]*(Error|Exception)\b", line)),
+                        lines[-1])
+            kind, _, message = last.partition(": ")
+            if kind in ("OSError", "PermissionError", "FileNotFoundError", "FileExistsError", "NotADirectoryError"):
+                return f"the run's folder cannot be made or used ({message[:300]})"
+            return last[:300]
         if "Available options" in " ".join(lines):
             start = next(i for i, line in enumerate(lines) if line.startswith("Available options")) + 1
             end = next((i for i, line in enumerate(lines) if line.startswith("Config search path")), len(lines))

@@ -118,7 +118,7 @@ def state(folder: Path) -> FolderState:
         if summary["status"] not in FINAL_STATUSES:
             return FolderState("damaged", folder, problem=f"{folder / SUMMARY_FILE} records status "
                                f"{summary['status']!r}, not a finished run")
-        problem = _unverifiable(summary) or _mismatch(folder, summary)
+        problem = _unverifiable(summary) or _bad_values(folder, summary) or _mismatch(folder, summary)
         if problem is not None:
             return FolderState("damaged", folder, summary, problem)
         return FolderState("finished", folder, summary)
@@ -162,6 +162,20 @@ def _unverifiable(summary: dict) -> str | None:
     if DIGEST_KEY not in summary and era is None:
         return (f"{SUMMARY_FILE} records no SHA-256 of its own content and its commit ({str(commit)[:12]}) is not one "
                 "from before summaries recorded it: edited or damaged")
+    return None
+
+
+def _bad_values(folder: Path, summary: dict) -> str | None:
+    """What makes a summary's numbers unusable (None: nothing): a final performance that is not a
+    finite number (or null, for a run without one), an episode count that is not a count."""
+    import math
+
+    final = summary.get("final_mean")
+    if final is not None and (isinstance(final, bool) or not isinstance(final, (int, float)) or not math.isfinite(final)):
+        return f"{folder / SUMMARY_FILE} records final_mean {final!r}, not a finite number"
+    episodes = summary.get("episodes")
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 0:
+        return f"{folder / SUMMARY_FILE} records episodes {episodes!r}, not a count of episodes"
     return None
 
 

@@ -283,7 +283,15 @@ def numerics_segment(first_episode: int) -> dict:
 
 
 def _same_numerics(a: dict, b: dict) -> bool:
-    return all(a.get(key) == b.get(key) for key in NUMERICS_KEYS)
+    """Whether two sessions compute the same bits: the same mode, torch kernels, MKL branch and
+    products (the project's kernels on any instruction set count as one: ``fma-avx512``,
+    ``fma-avx2`` and ``fma-scalar`` give the same bits, tested)."""
+    def key(segment: dict) -> tuple:
+        products = str(segment.get("products"))
+        return (segment.get("mode"), segment.get("kernels"), segment.get("mkl_branch"),
+                "fma" if products.startswith("fma-") else products)
+
+    return key(a) == key(b)
 
 
 def _resumed_parts(out_dir: Path, settings: dict | None,

@@ -19,7 +19,7 @@ import hashlib
 import subprocess
 from pathlib import Path
 
-from racing import files
+from racing import files as door
 
 ROOT = Path(__file__).resolve().parent.parent
 SOURCE_PATHS = ("racing", "losses", "collectors", "learners", "engine", "analysis", "conf", "train.py")
@@ -34,8 +34,7 @@ def source_files(root: Path = ROOT) -> list[Path]:
         if path.is_file():
             files.append(path)
         elif path.is_dir():
-            files += [p for p in path.rglob("*") if p.is_file() and p.suffix in SOURCE_SUFFIXES
-                      and "__pycache__" not in p.parts]
+            files += [p for p in door.tree(path) if p.suffix in SOURCE_SUFFIXES and "__pycache__" not in p.parts]
     return sorted(files)
 
 
@@ -44,7 +43,7 @@ def source_hash(root: Path = ROOT) -> str:
     digest = hashlib.sha256()
     for path in source_files(root):
         digest.update(path.relative_to(root).as_posix().encode() + b"\0")
-        digest.update(files.read(path, 1 << 26, "source file") + b"\0")
+        digest.update(door.read(path, 1 << 26, "source file") + b"\0")
     return digest.hexdigest()[:16]
 
 
@@ -70,7 +69,7 @@ def _git_version(root: Path) -> dict | None:
 
 def _export_version() -> dict | None:
     try:
-        commit = files.read_text(COMMIT_FILE, 1024, "commit file").strip()
+        commit = door.read_text(COMMIT_FILE, 1024, "commit file").strip()
     except (OSError, ValueError):
         return None
     if len(commit) == 40 and all(c in "0123456789abcdef" for c in commit):

@@ -193,6 +193,15 @@ def is_folder(path) -> bool:
         return False
 
 
+def tree(root) -> list[Path]:
+    """Every regular file at or below the folder ``root`` (sorted), links never followed."""
+    found = []
+    for folder, folders, names in os.walk(root, followlinks=False):
+        folders.sort()
+        found += [Path(folder) / entry for entry in names if is_file(Path(folder) / entry)]
+    return sorted(found)
+
+
 def find(root, name: str) -> list[Path]:
     """Every file called ``name`` at or below the folder ``root`` (sorted), links never followed
     (a link loop cannot hang it)."""
@@ -373,6 +382,45 @@ def build(path):
         with contextlib.suppress(OSError):
             os.unlink(tmp)
     _sync_folder(path.parent)
+
+
+def private_folder(parent, prefix: str) -> Path:
+    """A new folder of this process's own inside ``parent`` (made exclusively, mode 0700)."""
+    import tempfile
+
+    folder(parent)
+    try:
+        return Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
+    except OSError as err:
+        raise _refusal(parent, err, "make a folder in") from None
+
+
+def rename_folder(source, target) -> None:
+    """Move the folder ``source`` (one of this process's own, ``private_folder``) to ``target``, which
+    must not exist (``FileExistsError`` if another process's landed first)."""
+    folder(source)
+    try:
+        os.rename(source, target)
+    except OSError as err:
+        if err.errno in (errno.EEXIST, errno.ENOTEMPTY):
+            raise FileExistsError(errno.EEXIST, "exists already", str(target)) from None
+        raise _refusal(target, err, "move a folder to") from None
+
+
+def extract_tar(data: bytes, into) -> None:
+    """Unpack a tar archive (bytes) into the folder ``into`` by tarfile's ``data`` filter: nothing
+    outside the folder, no links out of it, no device or FIFO, no setuid bits."""
+    import io
+    import tarfile
+
+    folder(into)
+    with tarfile.open(fileobj=io.BytesIO(data)) as archive:
+        if not hasattr(tarfile, "data_filter"):  # Python before 3.10.12 / 3.11.4
+            raise FileRefused("unpacking an archive safely needs Python 3.11.4 or newer (tarfile's data filter)")
+        try:
+            archive.extractall(into, filter="data")
+        except tarfile.FilterError as err:
+            raise FileRefused(f"the archive holds {err}; nothing of it is used") from None
 
 
 # ---------------------------------------------------------------------------------------------- deleting
