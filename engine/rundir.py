@@ -92,10 +92,31 @@ def _run_files(folder: Path) -> list[Path]:
 
 
 def linked_file(folder: Path) -> str | None:
-    """The problem of a symbolic link where a run keeps one of its files (None: there is none)."""
-    links = [path for path in _run_files(Path(folder)) if path.is_symlink()]
-    return (f"{links[0]} is a symbolic link where a run keeps its own file (a run never reads or writes through a "
-            "link): remove the link") if links else None
+    """What is where a run keeps its own files and is not one of them (None: nothing): a symbolic
+    link, a FIFO, a device or a folder at a file's name, a file at a folder's name, or anything
+    below ``logs/`` or ``.hydra/`` that is a link, a special file or a hard link (TorchRL's loggers
+    open their files themselves: their folder is checked whole, ``racing.files.check_tree``)."""
+    import stat
+
+    folder = Path(folder)
+    for path in _run_files(folder):
+        try:
+            info = os.lstat(path)
+        except OSError:
+            continue
+        if stat.S_ISLNK(info.st_mode):
+            return (f"{path} is a symbolic link where a run keeps its own file (a run never reads or writes through a "
+                    "link): remove the link")
+        wanted = stat.S_ISDIR if path.name in (LOGS_DIR, ".hydra") else stat.S_ISREG
+        if not wanted(info.st_mode):
+            return (f"{path} is {files.kind(info.st_mode)} where a run keeps its own "
+                    f"{'folder' if wanted is stat.S_ISDIR else 'file'}: move it away")
+    for name in (LOGS_DIR, ".hydra"):
+        try:
+            files.check_tree(folder / name)
+        except (OSError, files.FileRefused) as err:
+            return str(err)
+    return None
 
 
 def checkpoints(folder: Path) -> list[Path]:

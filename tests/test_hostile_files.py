@@ -1,0 +1,309 @@
+"""What a hostile user tried (issue 64), each case end to end: no input a tool reads can run code,
+hang it, make it lie, or make it write elsewhere. Each test names the class and the case it holds
+against; the rules themselves are tested once in tests/test_files.py."""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import shutil
+import stat
+from pathlib import Path
+
+import pytest
+
+from engine import rundir
+from engine.outputs import seal
+from tests.test_run_folders import TINY, train
+from tests.test_train import ENV, ROOT
+
+CHECKPOINTED = [*TINY, "checkpoint_every=1"]
+
+
+def run(script: str, *args: str, env: dict | None = None, timeout: int = 300):
+    from tests import zygote
+
+    return zygote.run([ROOT / script, *args], cwd=ROOT, env=env or ENV, timeout=timeout)
+
+
+def one_line(result) -> str:
+    """The tool's stderr, which must be one line (warnings aside), without a traceback."""
+    lines = [line for line in result.stderr.splitlines() if line.strip() and "Warning" not in line
+             and not line.startswith(("  warnings.warn", "Note: "))]
+    assert "Traceback" not in result.stderr, result.stderr[-3000:]
+    assert len(lines) == 1, result.stderr[-3000:]
+    return lines[0]
+
+
+# ------------------------------------------------------------------ code runs from a file a tool reads
+
+class Payload:
+    """Unpickled, it writes a marker file: the proof that loading ran the file's code."""
+
+    def __init__(self, marker: Path):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (Path.touch, (Path(self.marker),))
+
+
+def sb3_zip(folder: Path, payload_in: str | None, marker: Path) -> Path:
+    """A Stable-Baselines3 SAC model.zip; ``payload_in``: the ``data`` entry whose ``:serialized:``
+    (cloudpickle, which SB3's own ``load`` unpickles) carries ``Payload``."""
+    import zipfile
+
+    import cloudpickle
+    import gymnasium as gym
+    import stable_baselines3
+
+    import racing
+
+    path = folder / "model.zip"
+    stable_baselines3.SAC("MlpPolicy", gym.make(racing.ENV_ID, track_seed=1), seed=0, device="cpu").save(path)
+    if payload_in is None:
+        return path
+    with zipfile.ZipFile(path) as archive:
+        entries = {name: archive.read(name) for name in archive.namelist()}
+    data = json.loads(entries["data"])
+    data[payload_in] = {":type:": "<class 'x'>", ":serialized:": base64.b64encode(cloudpickle.dumps(Payload(marker))).decode()}
+    entries["data"] = json.dumps(data).encode()
+    with zipfile.ZipFile(path, "w") as archive:
+        for name, content in entries.items():
+            archive.writestr(name, content)
+    return path
+
+
+def test_a_downloaded_sb3_model_never_runs_its_code_when_scored_or_filmed(tmp_path):
+    """Class: code runs from a file. On 6b09ff3 SB3's load unpickled the zip's settings first."""
+    pytest.importorskip("stable_baselines3")
+    marker = tmp_path / "marker"
+    schedule = sb3_zip(tmp_path, "lr_schedule", marker)  # a setting SB3 unpickles and a policy never needs
+    scored = run("score.py", str(schedule), "--tracks", "3011430478", "--episodes", "1")
+    assert scored.returncode == 0 and "Stable-Baselines3 SAC" in scored.stdout, scored.stderr[-2000:]
+    filmed = run("evaluate.py", str(schedule), "--video", str(tmp_path / "x.gif"))
+    assert filmed.returncode == 0, filmed.stderr[-2000:]
+    (tmp_path / "policy").mkdir()
+    needed = sb3_zip(tmp_path / "policy", "policy_kwargs", marker)  # a setting the policy would need: refused
+    refused = run("score.py", str(needed))
+    assert refused.returncode == 2
+    assert "need unpickling" in one_line(refused) and str(needed) in one_line(refused)
+    assert not marker.exists()
+
+
+def test_a_damaged_sb3_run_folder_is_not_scored(tmp_path):
+    """Class: results that lie. rundir calls it damaged; on 6b09ff3 score.py scored it all the same."""
+    pytest.importorskip("stable_baselines3")
+    from engine.outputs import file_record, write_summary
+
+    folder = tmp_path / "sb3_sac" / "default" / "seed1"
+    folder.mkdir(parents=True)
+    sb3_zip(folder, None, tmp_path / "marker")
+    (folder / "metrics.csv").write_text("episode,total_reward,crashes,final_checkpoint\n0,1.0,0,3\n")
+    write_summary(folder, {"algo": "sb3_sac", "er": "default", "seed": 1, "status": "completed", "final_mean": 1.0,
+                           "episodes": 1, "settings": {}, "code": {"commit": "0" * 40},
+                           "files": file_record(folder, ("metrics.csv", "model.zip"))})
+    assert rundir.state(folder).kind == "finished"
+    with open(folder / "model.zip", "ab") as f:
+        f.write(b"\0")
+    result = run("score.py", str(folder))
+    assert result.returncode == 2 and "differs from the file its summary records" in one_line(result) or \
+        "is not the file its summary records" in one_line(result)
+
+
+# ------------------------------------------------------------------ writes outside the run folder
+
+def test_a_lock_that_is_a_hard_link_is_refused_and_its_other_file_untouched(tmp_path):
+    outside = tmp_path / "thesis.tex"
+    outside.write_text("chapter one\n")
+    folder = tmp_path / "run"
+    folder.mkdir()
+    os.link(outside, folder / ".lock")
+    result = run("train.py", *TINY, f"hydra.run.dir={folder}")
+    assert result.returncode == 2 and "2 names (a hard link)" in one_line(result)
+    assert outside.read_text() == "chapter one\n" and sorted(p.name for p in folder.iterdir()) == [".lock"]
+
+
+@pytest.mark.parametrize("where", ["logs/scalars/train/total_reward.csv", "logs/scalars", ".hydra/config.yaml"])
+def test_a_link_below_a_folder_the_run_writes_into_is_refused(tmp_path, where):
+    """TorchRL's CSV logger opens its files itself: on 6b09ff3 it appended 20 rows through the link."""
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    (outside / "total_reward.csv").write_text("mine\n")
+    folder = tmp_path / "run"
+    link = folder / where
+    link.parent.mkdir(parents=True)
+    link.symlink_to(outside / "total_reward.csv" if where.endswith((".csv", ".yaml")) else outside)
+    for overwrite in ("overwrite=false", "overwrite=true"):
+        result = run("train.py", *TINY, "logger=csv", overwrite, f"hydra.run.dir={folder}")
+        assert result.returncode == 2 and str(link) in one_line(result), result.stderr[-2000:]
+        assert (outside / "total_reward.csv").read_text() == "mine\n" and link.is_symlink()
+    assert not (folder / "metrics.csv").exists()
+
+
+def test_a_member_folder_that_is_a_link_is_never_written_through_or_cleared(tmp_path):
+    """On 6b09ff3, overwrite=true deleted the files of the folder the member's link pointed to."""
+    mine = tmp_path / "my_folder"
+    (mine / "logs").mkdir(parents=True)
+    (mine / "logs" / "draft.tex").write_text("a thesis draft\n")
+    (mine / "metrics.csv").write_text("my own numbers\n")
+    population = tmp_path / "population"
+    population.mkdir()
+    (population / "seed7").symlink_to(mine)
+    before = {p: p.read_bytes() for p in mine.rglob("*") if p.is_file()}
+    for overwrite in ("overwrite=false", "overwrite=true"):
+        result = run("train.py", *TINY, "seeds=[6,7]", overwrite, f"hydra.run.dir={population}")
+        assert result.returncode == 2 and "seed7 is a symbolic link" in one_line(result)
+        assert {p: p.read_bytes() for p in mine.rglob("*") if p.is_file()} == before
+    assert not (population / "seed6").exists() or not any((population / "seed6").iterdir())
+
+
+def test_a_configuration_value_never_makes_a_folder_outside(tmp_path):
+    result = run("train.py", "-m", *TINY, "algo.name=../../../escaped", f"hydra.sweep.dir={tmp_path}/sweep",
+                 "hydra/launcher=basic")
+    assert result.returncode != 0 and not (tmp_path.parent / "escaped").exists()
+    assert "algo.name must be a name" in result.stderr or "is not a folder inside the sweep" in result.stderr
+
+
+# ------------------------------------------------------------------ hangs
+
+@pytest.mark.parametrize("name", ["summary.json", "metrics.csv", "checkpoint.pt", "actor.pt"])
+def test_a_fifo_where_a_run_file_goes_never_hangs_train(tmp_path, name):
+    """On 6b09ff3 a FIFO at summary.json blocked train.py for 11 minutes."""
+    folder = tmp_path / "run"
+    folder.mkdir()
+    os.mkfifo(folder / name)
+    result = run("train.py", *TINY, f"hydra.run.dir={folder}", timeout=120)
+    assert result.returncode == 2 and "FIFO" in one_line(result) and str(folder / name) in one_line(result)
+    assert stat.S_ISFIFO(os.lstat(folder / name).st_mode) and not (folder / ".hydra").exists()
+
+
+def test_a_fifo_where_a_temporary_goes_is_never_opened(tmp_path):
+    folder = tmp_path / "run"
+    folder.mkdir()
+    os.mkfifo(folder / "summary.json.tmp")
+    result = run("train.py", *TINY, f"hydra.run.dir={folder}", timeout=120)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert rundir.state(folder).kind == "finished"
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("finished") / "sweep" / "spg" / "recent" / "seed2067791"
+    train([*TINY], folder)
+    return folder
+
+
+def test_a_fifo_never_hangs_report_evaluate_or_score(tmp_path, finished):
+    sweep = tmp_path / "sweep"
+    shutil.copytree(finished.parent.parent.parent, sweep)
+    folder = sweep / "spg" / "recent" / "seed2067791"
+    (folder / "summary.json").unlink()
+    os.mkfifo(folder / "summary.json")
+    report = run("report.py", str(sweep), "--no-figures", timeout=120)
+    assert report.returncode in (0, 2) and "FIFO" in report.stdout + report.stderr, report.stderr[-2000:]
+    for script, args in (("evaluate.py", [str(folder)]), ("score.py", [str(folder)])):
+        result = run(script, *args, timeout=120)
+        assert result.returncode == 2 and "FIFO" in one_line(result), result.stderr[-2000:]
+
+
+# ------------------------------------------------------------------ results that lie
+
+def test_a_resume_under_other_numerics_is_refused_or_recorded_as_mixed(tmp_path, monkeypatch):
+    """On 6b09ff3 a run made half with portable products (a kernel cache it could not use) and half
+    with fma was sealed as fma, and its numbers were no uninterrupted run's."""
+    from engine import numerics
+    from engine.config import ConfigError
+    from learners import kernels
+    from tests.fault_injection import stopped_after
+
+    folder = tmp_path / "run"
+    monkeypatch.setattr(kernels, "_load", lambda: (None, "no compiler (a test)"))
+    with pytest.warns(RuntimeWarning, match="running numerics=portable instead"):
+        numerics.apply("fma")
+    with stopped_after(2):
+        train(CHECKPOINTED, folder)
+    assert (folder / "checkpoint.pt").exists()
+    monkeypatch.undo()
+    numerics.apply("fma")
+    with pytest.raises(ConfigError, match="computed with other numerics .*resume_numerics=any"):
+        train(CHECKPOINTED, folder)
+    summary = train([*CHECKPOINTED, "resume_numerics=any"], folder)
+    assert summary["numerics"]["mode"] == "mixed"
+    assert [(s["from_episode"], s["mode"], s["products"]) for s in summary["numerics"]["segments"]] == [
+        (0, "portable", "torch"), (summary["resumed_at"], "fma", summary["numerics"]["segments"][1]["products"])]
+    assert summary["numerics"]["segments"][1]["products"].startswith("fma-")
+
+
+def test_a_damaged_compiled_kernel_is_rebuilt_not_loaded(tmp_path, monkeypatch):
+    """On 6b09ff3 an altered library gave other numbers, sealed as valid, and 200 flipped bits made
+    every later run end in a segfault (exit 139) with no message."""
+    import random
+
+    from learners import kernels
+
+    if kernels._compiler() is None:
+        pytest.skip("no C++ compiler here")
+    monkeypatch.setenv("RACING_KERNEL_CACHE", str(tmp_path / "cache"))
+    path, digest = kernels._build()
+    good = path.read_bytes()
+    data = bytearray(good)
+    rng = random.Random(64)
+    for _ in range(200):
+        data[rng.randrange(len(data))] ^= 1 << rng.randrange(8)
+    path.write_bytes(bytes(data))
+    with pytest.warns(RuntimeWarning, match="differs from the library that was built .* rebuilt, not loaded"):
+        again, again_digest = kernels._build()
+    assert again == path and again_digest == digest and path.read_bytes() == good
+    path.with_name(path.name + ".sha256").unlink()  # a library without its record: rebuilt too
+    with pytest.warns(RuntimeWarning, match="no record of its SHA-256"):
+        kernels._build()
+    # a whole run on a damaged cache: rebuilt, and the run completes (a fresh process loads it)
+    path.write_bytes(bytes(data))
+    result = run("train.py", *TINY, f"hydra.run.dir={tmp_path / 'run'}",
+                 env={**ENV, "RACING_KERNEL_CACHE": str(tmp_path / "cache")})
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["numerics"]["mode"] == "fma"
+
+
+def test_a_summary_with_a_final_performance_that_is_not_a_number_is_damaged(tmp_path, finished):
+    folder = tmp_path / "run"
+    shutil.copytree(finished, folder)
+    summary = json.loads((folder / "summary.json").read_text())
+    summary["final_mean"] = float("nan")
+    (folder / "summary.json").write_text(json.dumps(seal(summary)))
+    found = rundir.state(folder)
+    assert found.kind == "damaged" and "final_mean nan, not a finite number" in found.problem
+
+
+def test_report_refuses_a_metrics_file_grown_to_gigabytes_unread(tmp_path, finished):
+    """On 6b09ff3 report.py read a 3 GB sparse metrics.csv whole (6.3 GB at its peak)."""
+    import tracemalloc
+
+    from analysis.report import read_run
+    from engine.outputs import ROWS_LIMIT
+
+    folder = tmp_path / "run"
+    shutil.copytree(finished, folder)
+    with open(folder / "metrics.csv", "r+b") as f:
+        f.truncate(ROWS_LIMIT + 2**20)  # sparse
+    tracemalloc.start()
+    found = read_run(folder)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert found.status == "damaged" and found.rewards == [] and peak < 50 * 2**20
+
+
+# ------------------------------------------------------------------ unbounded and unclear
+
+def test_a_path_too_long_and_a_bad_kernel_variable_end_in_one_line_before_anything_is_written(tmp_path):
+    long = run("train.py", *TINY, f"hydra.run.dir={tmp_path / ('x' * 300) / 'run'}")
+    assert long.returncode == 2 and "File name too long" in one_line(long)
+    folder = tmp_path / "run"
+    import subprocess
+    import sys
+
+    isa = subprocess.run([sys.executable, ROOT / "train.py", *TINY, f"hydra.run.dir={folder}"], cwd=ROOT,
+                         env={**ENV, "RACING_KERNEL_ISA": "garbage"}, capture_output=True, text=True, timeout=300)
+    assert isa.returncode == 2 and "RACING_KERNEL_ISA must be one of" in one_line(isa)
+    assert not folder.exists() or list(folder.iterdir()) == []
