@@ -56,6 +56,8 @@ class MetricsWriter:
         checked before they are kept."""
         self.path = out_dir / METRICS_FILE
         self.columns = columns
+        # the logger first: a file it cannot write is refused before metrics.csv is touched
+        self.logger = make_torchrl_logger(logger_kind, out_dir, [f"train/{c}" for c in columns if c != "episode"])
         kept = kept_rows(self.path, keep_rows, expect, ",".join(columns))
         text = io.StringIO(newline="")
         csv.DictWriter(text, fieldnames=columns).writeheader()
@@ -63,7 +65,6 @@ class MetricsWriter:
         # then rows are appended, each in one write; one that does not fit is cut off again
         self.fd = files.open_append(self.path)
         self.size = os.fstat(self.fd).st_size
-        self.logger = make_torchrl_logger(logger_kind, out_dir)
 
     def record(self) -> dict:
         """Size and SHA-256 of the file as it is on the disk now (a checkpoint keeps it: ``expect``)."""
@@ -111,6 +112,8 @@ class MetricsWriter:
         if self.fd is not None:
             os.close(self.fd)
             self.fd = None
+        for handle in getattr(getattr(self.logger, "experiment", None), "files", {}).values():
+            handle.close()
 
 
 def kept_rows(path: Path, count: int, expect: dict | None, header: str | None = None) -> bytes:
@@ -157,8 +160,12 @@ def _format(value: Any) -> Any:
     return value
 
 
-def make_torchrl_logger(kind: str, out_dir: Path):
-    """A ``torchrl.record.loggers`` logger writing under ``out_dir/logs`` (``None`` for "none")."""
+def make_torchrl_logger(kind: str, out_dir: Path, scalars: list[str] = ()):
+    """A ``torchrl.record.loggers`` logger writing under ``out_dir/logs`` (``None`` for "none"). Its
+    folder is checked whole first (``racing.files.check_tree``); the CSV logger's file of each of
+    ``scalars`` is opened through the file door and handed to it (its ``experiment.files``), so it
+    writes through the door, never opening a file of its own; TensorBoard's logger writes one new
+    event file of a fresh name into the checked folder."""
     if kind == "none":
         return None
     if kind == "tensorboard":
@@ -171,9 +178,18 @@ def make_torchrl_logger(kind: str, out_dir: Path):
 
     # TorchRL's loggers open their own files: they write only into a logs/ folder checked whole first
     # (a real folder of the run's, nothing below it a link, a special file or a hard link)
-    files.folder(Path(out_dir) / "logs", out_dir, create=True)
-    files.check_tree(Path(out_dir) / "logs")
-    return get_logger(kind, logger_name=str(out_dir), experiment_name="logs")
+    logs = Path(out_dir) / "logs"
+    files.folder(logs, out_dir, create=True)
+    files.check_tree(logs)
+    opened = {}
+    if kind == "csv":  # TorchRL's CSVExperiment.add_scalar opens os.path.join(log_dir, "scalars", name + ".csv")
+        for name in scalars:
+            path = os.path.join(str(logs), "scalars", name + ".csv")
+            opened[path] = files.open_log(path, logs)
+    logger = get_logger(kind, logger_name=str(out_dir), experiment_name="logs")
+    if kind == "csv":
+        logger.experiment.files.update(opened)
+    return logger
 
 
 def write_table(path: Path, rows: list[dict]) -> None:

@@ -174,14 +174,15 @@ def _train_locked(cfg: RunConfig, out_dir: Path, folders: list[Path], settings: 
     for chunk in chunks:
         name = checkpoint.CHECKPOINT_FILE if not parts and len(chunks) == 1 else f"checkpoint-{chunk[0]}.pt"
         parts.append((out_dir / name, chunk, None))
-    if parts and on_start is not None:
-        on_start()
     if not parts:  # every member had finished
         summaries = []
-    elif len(parts) == 1:
+    elif len(parts) == 1:  # on_start once its output files are open (a file they cannot be is refused before it)
         path, seeds, payload = parts[0]
-        summaries = _train(cfg, out_dir, seeds, member_settings, settings, payload, path, start, compiled, stop)
+        summaries = _train(cfg, out_dir, seeds, member_settings, settings, payload, path, start, compiled, stop,
+                           on_start)
     else:  # one process per part, ``cfg.processes`` at a time
+        if on_start is not None:
+            on_start()
         summaries = _train_parts(cfg, out_dir, parts, member_settings, settings, compiled, stop)
     for summary in summaries:
         done[summary["seed"]] = summary
@@ -353,7 +354,7 @@ def _compile_mode(cfg: RunConfig) -> tuple[RunConfig, dict]:
 
 def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_settings: dict, settings: dict | None,
            payload: dict | None, checkpoint_path: Path, start: float, compiled: dict,
-           stop: StopSignals) -> list[dict]:
+           stop: StopSignals, on_start=None) -> list[dict]:
     if compiled["enabled"]:
         compiling.configure(cfg.numerics)  # from a clean slate, so a run compiles the same in any process
     compile_start = compiling.seconds_spent() if compiled["enabled"] else 0.0
@@ -395,6 +396,8 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
     for member in members:
         member.metrics = MetricsWriter(member.folder, columns, cfg.logger, keep_rows=len(member.rewards),
                                        expect=member.rows)
+    if on_start is not None:
+        on_start()
 
     progress = _progress(cfg, seeds, initial=first)
     episodes = iter(collector)

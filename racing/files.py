@@ -357,6 +357,15 @@ def open_in_place(path, create: bool = True) -> int:
     return _open(path, os.O_RDWR | (os.O_CREAT if create else 0), "write", single_link=True)[0]
 
 
+def open_log(path, root):
+    """A text file object appending to ``path`` (made if missing, with its folders below ``root``), by
+    rules 1 to 3: for a writer that keeps its files open (TorchRL's CSV logger takes it as its own)."""
+    path = Path(path)
+    folder(path.parent, root, create=True)
+    fd = _open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, "append to", single_link=True)[0]
+    return os.fdopen(fd, "a")
+
+
 def open_append(path) -> int:
     """An append-only descriptor of an existing file written in place (rules 1 and 2)."""
     return _open(path, os.O_WRONLY | os.O_APPEND, "append to", single_link=True)[0]

@@ -13,7 +13,15 @@ and a partial run (stopped with a checkpoint), then tries faults drawn at random
 - ``link``: a run file (or its .lock) replaced by a symbolic link to a file outside the folder;
 - ``disk``: the disk full at the n-th write of a fresh run (every file write and fsync counts);
 - ``signal``: SIGKILL, SIGTERM or SIGINT at a random moment of a run (a forked session of
-  tests/fault_server.py), again and again until it has finished.
+  tests/fault_server.py), again and again until it has finished;
+- ``special``: at any path a run touches, at any depth (its files, its lock, its temporaries,
+  ``logs/`` and every folder and file below it, ``.hydra/``), in a fresh, a partial or a finished
+  folder: a symbolic link (to a file or a folder outside), a hard link to a file outside, a FIFO,
+  a folder where a file goes (or a file where a folder goes), or a device;
+- ``kernel``: the compiled matrix kernel in a copy of the cache with bits flipped or cut short;
+- ``pickle``: a model file whose pickle runs code when loaded (a run's ``actor.pt``, and with
+  Stable-Baselines3 installed, a ``model.zip``'s settings);
+- ``numerics``: a partial run resumed under other products (the first part ran without the kernels).
 
 Then the same command runs again, as a user would, and the outcome is classed:
 
@@ -21,8 +29,10 @@ Then the same command runs again, as a user would, and the outcome is classed:
   names the file, with the folder's files left as they were (and nothing written through a link);
 - ``exact``: the run finished with the reference's metrics.csv, actor.pt and critic.pt, byte for byte;
 - ``unchanged``: a finished run whose fault changed no value (a flip of ``e`` to ``E`` in a number);
+- ``escaped``: a file outside the folder changed, or code in a file ran. Must be 0;
+- ``hung``: the run blocked (60 s without an end). Must be 0;
 - ``misreported``: anything else: a run that finished with other bytes, a damaged folder taken for a
-  finished one, a file outside the folder changed, or any other exception. Must be 0.
+  finished one, or any other exception. Must be 0.
 """
 
 from __future__ import annotations
@@ -34,6 +44,7 @@ import os
 import random
 import shutil
 import signal
+import stat
 import sys
 import tempfile
 from collections import Counter
@@ -62,7 +73,7 @@ FAMILIES = {
 RESULT_FILES = ("metrics.csv", "actor.pt", "critic.pt")
 FINISHED_FILES = ("summary.json", *RESULT_FILES)
 PARTIAL_FILES = ("checkpoint.pt", "metrics.csv")
-CLEAR = (ConfigError, outputs.RunFolderError, CheckpointError)
+CLEAR = (ConfigError, outputs.FileRefused, CheckpointError)  # FileRefused: the file door's, RunFolderError among them
 
 
 class Trial:
@@ -107,8 +118,214 @@ def stopped_after(episodes: int):
 
 
 def snapshot(folder: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
-            if p.is_file() and not p.is_symlink() and p.name != ".lock"}
+    found = {}
+    for here, _, names in os.walk(folder):  # links not followed
+        for name in names:
+            path = Path(here) / name
+            if name != ".lock" and not path.is_symlink() and path.is_file():
+                found[str(path.relative_to(folder))] = path.read_bytes()
+    return found
+
+
+@contextmanager
+def deadline(seconds: int):
+    """``TimeoutError`` if the block has not ended within ``seconds`` (a FIFO opened blocking would wait forever)."""
+    def hung(number, frame):
+        raise TimeoutError(f"no end after {seconds} s")
+
+    previous = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(seconds)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, previous)
+
+
+# Where a run reads or writes (relative to its folder), and whether a folder or a file belongs there.
+SPECIAL_PLACES = {"summary.json": "file", "metrics.csv": "file", "actor.pt": "file", "critic.pt": "file",
+                  "checkpoint.pt": "file", ".lock": "file", "summary.json.tmp": "file", "metrics.csv.tmp": "file",
+                  "logs": "folder", "logs/scalars": "folder", "logs/scalars/train": "folder",
+                  "logs/scalars/train/total_reward.csv": "file", ".hydra": "folder", ".hydra/config.yaml": "file"}
+SPECIAL_KINDS = ("symlink", "hardlink", "fifo", "folder", "device")
+VICTIM = b"a file outside the run folder\n"
+
+
+def make_special(target: Path, kind: str, belongs: str, victim: Path) -> str:
+    """Put ``kind`` at ``target`` (its folders made real); returns what was put there."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    if os.path.lexists(target):
+        if target.is_dir() and not target.is_symlink():
+            shutil.rmtree(target)
+        else:
+            target.unlink()
+    if kind == "hardlink" and belongs == "folder":
+        kind = "symlink"
+    if kind == "symlink":
+        target.symlink_to(victim.parent if belongs == "folder" else victim)
+    elif kind == "hardlink":
+        os.link(victim, target)
+    elif kind == "fifo":
+        os.mkfifo(target)
+    elif kind == "folder":
+        if belongs == "folder":
+            target.write_bytes(b"a file where a folder goes\n")
+            kind = "file"
+        else:
+            target.mkdir()
+    elif os.geteuid() == 0:
+        os.mknod(target, stat.S_IFCHR | 0o666, os.makedev(1, 3))
+    else:
+        target.symlink_to("/dev/null")
+        kind = "link to a device"
+    return kind
+
+
+def try_special(trial: Trial, rng: random.Random, folder: Path) -> tuple[str, str]:
+    """A link, hard link, FIFO, folder or device where a run reads or writes, at any depth; then the same command."""
+    source = rng.choice(("fresh", "partial", "reference"))
+    place = rng.choice(sorted(SPECIAL_PLACES))
+    if source == "fresh":
+        folder.mkdir(parents=True)
+    else:
+        shutil.copytree(getattr(trial, source), folder, symlinks=True)
+    victims = folder.parent / f"{folder.name}.outside"
+    victims.mkdir()
+    victim = victims / "victim.txt"
+    victim.write_bytes(VICTIM)
+    target = folder / place
+    kind = make_special(target, rng.choice(SPECIAL_KINDS), SPECIAL_PLACES[place], victim)
+    label = f"special {source}/{place}: {kind}"
+    before = snapshot(folder)
+    try:
+        with deadline(60):
+            summary = trial.train(folder, [*trial.overrides, "logger=csv"])
+    except TimeoutError:
+        return "hung", label
+    except CLEAR as err:
+        if victim.read_bytes() != VICTIM or sorted(p.name for p in victims.iterdir()) != ["victim.txt"]:
+            return "escaped", f"{label}: refused, but a file outside the folder changed"
+        if snapshot(folder) != before:
+            return "misreported", f"{label}: refused ({err}) but the folder changed"
+        if str(target) not in str(err):
+            return "misreported", f"{label}: refused without naming {target}: {err}"
+        return "refused", label
+    except Exception as err:  # noqa: BLE001 (any other ending is a failure of the guarantee)
+        return "misreported", f"{label}: {type(err).__name__}: {err}"
+    finally:
+        escaped = victim.read_bytes() != VICTIM or sorted(p.name for p in victims.iterdir()) != ["victim.txt"]
+    if escaped:
+        return "escaped", f"{label}: a file outside the folder changed"
+    if not trial.exact(folder) or summary["status"] != "completed":
+        return "misreported", f"{label}: finished with other results"
+    return ("unchanged" if source == "reference" else "exact"), label
+
+
+def try_kernel(rng: random.Random, work: Path) -> tuple[str, str]:
+    """The compiled kernel in a copy of the cache damaged (bits flipped, or cut short): it must be
+    rebuilt, with a warning, never loaded, and the rebuilt library must be the one built before."""
+    import warnings
+
+    from learners import kernels
+
+    if kernels._compiler() is None:
+        return "unchanged", "kernel: no compiler here (nothing is cached)"
+    saved = os.environ.get("RACING_KERNEL_CACHE")
+    cache = work / f"cache-{rng.randrange(1 << 30)}"
+    try:
+        os.environ["RACING_KERNEL_CACHE"] = str(cache)
+        path, digest = kernels._build()
+        good = path.read_bytes()
+        if rng.random() < 0.5:
+            data = bytearray(good)
+            for _ in range(rng.choice((1, 10, 200))):
+                data[rng.randrange(len(data))] ^= 1 << rng.randrange(8)
+            detail = "bits flipped"
+        else:
+            data = good[:rng.randrange(len(good))]
+            detail = "cut short"
+        path.write_bytes(bytes(data))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            again, again_digest = kernels._build()
+        warned = any("rebuilt, not loaded" in str(w.message) for w in caught)
+        if bytes(data) == good:
+            return "unchanged", f"kernel: {detail} (no byte changed)"
+        if again_digest != digest or path.read_bytes() != good or not warned:
+            return "misreported", f"kernel: {detail}: not rebuilt to the library built before (warned: {warned})"
+        return "refused", f"kernel: {detail}"
+    finally:
+        if saved is None:
+            os.environ.pop("RACING_KERNEL_CACHE", None)
+        else:
+            os.environ["RACING_KERNEL_CACHE"] = saved
+        shutil.rmtree(cache, ignore_errors=True)
+
+
+class _Marker:
+    def __init__(self, path: str):
+        self.path = path
+
+    def __reduce__(self):
+        return (Path.touch, (Path(self.path),))
+
+
+def try_pickle(trial: Trial, rng: random.Random, folder: Path) -> tuple[str, str]:
+    """A finished run whose weights file carries a pickle that runs code when unpickled."""
+    import pickle
+
+    import torch
+
+    from engine.evaluation import load_policy
+
+    shutil.copytree(trial.reference, folder, symlinks=True)
+    marker = folder.parent / f"{folder.name}.marker"
+    name = rng.choice(("actor.pt", "critic.pt"))
+    payload = {"weight": torch.zeros(1), "hook": _Marker(str(marker))}
+    with open(folder / name, "wb") as f:
+        torch.save(payload, f, pickle_module=pickle)
+    label = f"pickle {name}"
+    try:
+        load_policy(folder)
+        trial.train(folder)
+    except CLEAR + (ValueError,) as err:
+        if marker.exists():
+            return "escaped", f"{label}: its code ran"
+        return ("refused", label) if name in str(err) else ("misreported", f"{label}: refused without naming it: {err}")
+    except Exception as err:  # noqa: BLE001
+        return ("escaped" if marker.exists() else "misreported"), f"{label}: {type(err).__name__}: {err}"
+    return ("escaped" if marker.exists() else "misreported"), f"{label}: loaded"
+
+
+def try_numerics(trial: Trial, rng: random.Random, folder: Path) -> tuple[str, str]:
+    """A partial run made without the kernels (portable products), resumed with them: refused."""
+    from learners import kernels
+
+    import warnings
+
+    real = kernels._load
+    kernels._load = lambda: (None, "no compiler (fault injection)")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the fallback's own warning: the point of this fault
+            numerics.apply(numerics.DEFAULT)
+        with stopped_after(rng.randint(2, 4)):  # a checkpoint after one episode at least
+            trial.train(folder)
+    finally:
+        kernels._load = real
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            numerics.apply(numerics.DEFAULT)
+    label = "numerics: resumed with the kernels after a part without them"
+    if kernels.unavailable_reason() is not None:
+        return "unchanged", "numerics: no kernels here, one products throughout"
+    try:
+        trial.train(folder)
+    except ConfigError as err:
+        return ("refused", label) if "resume_numerics=any" in str(err) else ("misreported", f"{label}: {err}")
+    except Exception as err:  # noqa: BLE001
+        return "misreported", f"{label}: {type(err).__name__}: {err}"
+    return "misreported", f"{label}: resumed silently"
 
 
 def flip(path: Path, rng: random.Random) -> str:
@@ -286,32 +503,48 @@ def run(trials: int, signals: int, seed: int, families: list[str], work: Path,
         trial = Trial(family, base)
         writes = count_writes(trial, base / "count")
         for i in range(trials):
-            kind = rng.choice(("flip", "flip", "truncate", "link", "disk"))
+            kind = rng.choice(KINDS)
             folder = base / f"t{i}"
-            outcome, label = (try_disk_full(trial, rng, folder, writes) if kind == "disk"
-                              else try_file_fault(trial, kind, rng, folder))
+            if kind == "disk":
+                outcome, label = try_disk_full(trial, rng, folder, writes)
+            elif kind == "special":
+                outcome, label = try_special(trial, rng, folder)
+            elif kind == "kernel":
+                outcome, label = try_kernel(rng, base)
+            elif kind == "pickle":
+                outcome, label = try_pickle(trial, rng, folder)
+            elif kind == "numerics":
+                outcome, label = try_numerics(trial, rng, folder)
+            else:
+                outcome, label = try_file_fault(trial, kind, rng, folder)
             counts[(family, kind, outcome)] += 1
-            if outcome == "misreported":
-                failures.append(f"{family}: {label}")
-            shutil.rmtree(folder, ignore_errors=True)
+            if outcome in BAD:
+                failures.append(f"{family}: {outcome}: {label}")
+            for leftover in (folder, base / f"t{i}.outside"):
+                if leftover.is_dir() and not leftover.is_symlink():
+                    shutil.rmtree(leftover, ignore_errors=True)
         if signals:
             for outcome, label in try_signals(family, base, rng, signals, signal_episodes):
                 counts[(family, "signal", outcome)] += 1
-                if outcome == "misreported":
+                if outcome in BAD:
                     failures.append(f"{family}: {label}")
     return counts, failures
 
 
+OUTCOMES = ("refused", "exact", "unchanged", "misreported", "escaped", "hung")
+BAD = ("misreported", "escaped", "hung")
+# faults drawn per trial (flips twice as often: they reach every byte)
+KINDS = ("flip", "flip", "truncate", "link", "disk", "special", "special", "kernel", "pickle", "numerics")
+
+
 def table(counts: Counter) -> str:
     kinds = sorted({(f, k) for f, k, _ in counts})
-    lines = ["| family | fault | tried | refused | exact | unchanged | misreported |", "|---|---|---:|---:|---:|---:|---:|"]
+    lines = ["| family | fault | tried | " + " | ".join(OUTCOMES) + " |", "|---|---|" + "---:|" * (len(OUTCOMES) + 1)]
     for family, kind in kinds:
-        row = {o: counts[(family, kind, o)] for o in ("refused", "exact", "unchanged", "misreported")}
-        lines.append(f"| {family} | {kind} | {sum(row.values())} | {row['refused']} | {row['exact']} | "
-                     f"{row['unchanged']} | {row['misreported']} |")
-    total = sum(counts.values())
-    lost = sum(v for (_, _, o), v in counts.items() if o == "misreported")
-    lines.append(f"| all | all | {total} | | | | {lost} |")
+        row = {o: counts[(family, kind, o)] for o in OUTCOMES}
+        lines.append(f"| {family} | {kind} | {sum(row.values())} | " + " | ".join(str(row[o]) for o in OUTCOMES) + " |")
+    total = {o: sum(v for (_, _, out), v in counts.items() if out == o) for o in OUTCOMES}
+    lines.append(f"| all | all | {sum(total.values())} | " + " | ".join(str(total[o]) for o in OUTCOMES) + " |")
     return "\n".join(lines)
 
 
