@@ -7,7 +7,7 @@ module (stacked networks and, for SPG, the temperatures), both optimisers, the r
 simulator's state (cars, tracks, random streams), the episode counter, each member's learning
 curve and status (frozen members stay frozen), the run's settings and the code version.
 
-Written atomically (``engine.outputs.write_atomic``: a temporary file, fsync, rename), so a crash
+Written atomically (``racing.files.write_atomic``: a temporary file, fsync, rename), so a crash
 mid-write leaves the previous checkpoint in place and a full disk is reported as such. The file
 is sealed: one line, ``racing-rl checkpoint sha256 <digest>``, then torch's zip, the digest that
 of the zip's bytes, so that a flipped bit anywhere (torch does not check its zip's CRCs) is
