@@ -186,6 +186,11 @@ def _unverifiable(summary: dict) -> str | None:
     return None
 
 
+# No episode totals more: at most racing.config.MAX_STEPS steps, each rewarded at most the top speed
+# or penalised a crash (a bound far above any, so that statistics over summaries cannot overflow)
+FINAL_MEAN_BOUND = 1e12
+
+
 def _bad_values(folder: Path, summary: dict) -> str | None:
     """What makes a summary's numbers unusable (None: nothing): a final performance that is not a
     finite number (or null, for a run without one), an episode count that is not a count."""
@@ -194,6 +199,9 @@ def _bad_values(folder: Path, summary: dict) -> str | None:
     final = summary.get("final_mean")
     if final is not None and (isinstance(final, bool) or not isinstance(final, (int, float)) or not math.isfinite(final)):
         return f"{folder / SUMMARY_FILE} records final_mean {final!r}, not a finite number"
+    if final is not None and abs(final) > FINAL_MEAN_BOUND:
+        return (f"{folder / SUMMARY_FILE} records final_mean {final:.3g}, beyond what any episode can total "
+                f"(|{FINAL_MEAN_BOUND:.0e}|)")
     episodes = summary.get("episodes")
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 0:
         return f"{folder / SUMMARY_FILE} records episodes {episodes!r}, not a count of episodes"
