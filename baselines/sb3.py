@@ -41,7 +41,7 @@ class BaselineError(ValueError):
 
 
 MODEL_LIMIT = 1 << 30  # bytes of a model.zip read (SB3's default networks: well under 10 MB)
-ENTRY_LIMIT = 1 << 28  # bytes of one entry of it, unpacked
+ENTRY_LIMITS = {"data": 1 << 24, "policy.pth": 1 << 28}  # bytes of the entries read, unpacked (SB3's: KB and MB)
 # Which policy class a zip's "policy_class" names, read as text (its "__module__" and the class whose
 # __init__ it records), never unpickled: each known class is built here from the zip's plain settings.
 POLICIES = {("stable_baselines3.sac.policies", "SACPolicy"): "SAC",
@@ -80,7 +80,7 @@ def load_model(path) -> tuple[object, str]:
 
     def entry(name: str) -> bytes:
         info = archive.getinfo(name)
-        if info.file_size > ENTRY_LIMIT:
+        if info.file_size > ENTRY_LIMITS[name]:
             raise ModelRefused(f"{path}: its {name} unpacks to {info.file_size:,} bytes, more than a model holds")
         return archive.read(info)
 

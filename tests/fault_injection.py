@@ -127,19 +127,7 @@ def snapshot(folder: Path) -> dict[str, bytes]:
     return found
 
 
-@contextmanager
-def deadline(seconds: int):
-    """``TimeoutError`` if the block has not ended within ``seconds`` (a FIFO opened blocking would wait forever)."""
-    def hung(number, frame):
-        raise TimeoutError(f"no end after {seconds} s")
-
-    previous = signal.signal(signal.SIGALRM, hung)
-    signal.alarm(seconds)
-    try:
-        yield
-    finally:
-        signal.alarm(0)
-        signal.signal(signal.SIGALRM, previous)
+from tests.test_files import Hung, no_hang as deadline  # noqa: E402
 
 
 # Where a run reads or writes (relative to its folder), and whether a folder or a file belongs there.
@@ -200,7 +188,7 @@ def try_special(trial: Trial, rng: random.Random, folder: Path) -> tuple[str, st
     try:
         with deadline(60):
             summary = trial.train(folder, [*trial.overrides, "logger=csv"])
-    except TimeoutError:
+    except Hung:
         return "hung", label
     except CLEAR as err:
         if victim.read_bytes() != VICTIM or sorted(p.name for p in victims.iterdir()) != ["victim.txt"]:

@@ -18,11 +18,15 @@ from racing import files
 from racing.files import FileRefused
 
 
+class Hung(AssertionError):
+    """A block that did not end in time."""
+
+
 @contextmanager
 def no_hang(seconds: int = 10):
-    """Fail instead of blocking (a FIFO opened without O_NONBLOCK would wait for a writer forever)."""
+    """``Hung`` instead of blocking (a FIFO opened without O_NONBLOCK would wait for a writer forever)."""
     def hung(number, frame):
-        raise AssertionError(f"blocked for {seconds} s")
+        raise Hung(f"blocked for {seconds} s")
 
     previous = signal.signal(signal.SIGALRM, hung)
     signal.alarm(seconds)
