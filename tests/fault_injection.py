@@ -195,7 +195,7 @@ def try_special(trial: Trial, rng: random.Random, folder: Path) -> tuple[str, st
             return "escaped", f"{label}: refused, but a file outside the folder changed"
         if snapshot(folder) != before:
             return "misreported", f"{label}: refused ({err}) but the folder changed"
-        if str(target) not in str(err):
+        if str(target) not in str(err) and target.name not in str(err):
             return "misreported", f"{label}: refused without naming {target}: {err}"
         return "refused", label
     except Exception as err:  # noqa: BLE001 (any other ending is a failure of the guarantee)
