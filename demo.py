@@ -10,6 +10,7 @@ following camera with the five rays, like the paper's screenshot) and ``paper_tr
 from __future__ import annotations
 
 import argparse
+import io
 import os
 from pathlib import Path
 
@@ -17,20 +18,18 @@ import numpy as np
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # draw without a screen
 
-from racing import PAPER_TRACK_SEEDS, RacingEnv  # noqa: E402
+from racing import PAPER_TRACK_SEEDS, RacingEnv, files  # noqa: E402
 from racing.driver import ray_follower  # noqa: E402
 from racing.figures import tracks_figure  # noqa: E402
 from racing.render import import_pygame, track_view  # noqa: E402
 
 
-def main() -> None:
+def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--track-seed", type=int, default=PAPER_TRACK_SEEDS[0])
     parser.add_argument("--seed", type=int, default=0, help="seed of the start state")
     parser.add_argument("--out", type=Path, default=Path("outputs/demo"))
     args = parser.parse_args()
-    from racing import files
-
     files.folder(args.out, args.out, create=True)
 
     env = RacingEnv(track_seed=args.track_seed, render_mode="rgb_array")
@@ -50,12 +49,18 @@ def main() -> None:
     canvas = track_view(env.track, size=(900, 700))
     canvas.trail(np.array(trail))
     canvas.car(info["x"], info["y"], info["theta"], obs, env.config)
-    pg.image.save(canvas.surface, str(args.out / "trajectory.png"))
-    pg.image.save(pg.surfarray.make_surface(env.render().transpose(1, 0, 2)), str(args.out / "car.png"))
+    for name, surface in (("trajectory.png", canvas.surface),
+                          ("car.png", pg.surfarray.make_surface(env.render().transpose(1, 0, 2)))):
+        buffer = io.BytesIO()
+        pg.image.save(surface, buffer, name)  # encoded in memory, written whole through the file door
+        files.write_atomic(args.out / name, buffer.getvalue())
     tracks_figure(args.out / "paper_tracks.png")
     env.close()
     print(f"pictures written to {args.out}/: trajectory.png, car.png, paper_tracks.png")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    from engine.processes import run_tool
+
+    raise SystemExit(run_tool("demo", main))

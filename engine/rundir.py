@@ -313,6 +313,28 @@ def _acquire(folder: Path) -> None:
     _held[folder] = [fd, 1]
 
 
+def in_use(folder: Path) -> str | None:
+    """Who holds ``folder``'s lock (None: nobody), found without writing anything: no lock file is
+    made, none is truncated (the sweeper's check before any job starts)."""
+    try:
+        import fcntl
+    except ImportError:
+        return None
+    try:
+        fd = files.open_read(Path(folder) / LOCK_FILE)
+    except (OSError, files.FileRefused):  # no lock file (nobody holds it), or not one: the run itself says so
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return None
+    except BlockingIOError:
+        return f"{folder} is in use by another process ({_holder(fd)}); wait for it to end, or stop it"
+    except OSError:
+        return None
+    finally:
+        os.close(fd)  # releases a lock it took
+
+
 def _holder(fd: int) -> str:
     try:
         text = os.pread(fd, 200, 0).decode(errors="replace").strip()

@@ -346,10 +346,15 @@ def _compile_mode(cfg: RunConfig) -> tuple[RunConfig, dict]:
     if not cfg.compile:
         return cfg, record
     reason = compiling.unavailable_reason(cfg.device)
+    if reason is None:
+        try:
+            cache = compiling.inductor_cache()
+        except RuntimeError as err:
+            reason = str(err)
     if reason is not None:
         warnings.warn(f"compile=true: running eagerly instead, because {reason}", stacklevel=2)
         return dataclasses.replace(cfg, compile=False), {**record, "reason": reason}
-    return cfg, {**record, "enabled": True}
+    return cfg, {**record, "enabled": True, "cache": cache}
 
 
 def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_settings: dict, settings: dict | None,

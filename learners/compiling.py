@@ -16,10 +16,17 @@ gcc 12 (seen on an AVX-512 Xeon). Portable mode also compiles for ``-march=x86-6
 level) instead of ``-march=native``. No loss draws random numbers inside a compiled step (the
 members' draws are made ahead, eagerly); should one, ``fallback_random`` keeps ATen's generators,
 as eager mode does.
+
+Inductor's cache (generated C++ and Python it loads and runs) is kept in a folder of this user's
+own, ``<the kernel cache's parent>/inductor`` (``inductor_cache``: made with mode 0700, owned by
+this user, not a link, never one under a shared ``/tmp`` another user could have made first),
+unless ``$TORCHINDUCTOR_CACHE_DIR`` names one; ``summary.json``'s ``compile`` record names it.
+Like the project's own source, what is in it is trusted as this user's files.
 """
 
 from __future__ import annotations
 
+import os
 import platform
 import shutil
 import sys
@@ -44,6 +51,25 @@ def unavailable_reason(device: str = "cpu") -> str | None:
         return (f"no C++ compiler {compiler!r} found (TorchInductor builds its CPU kernels with one; "
                 "install g++ or set CXX)")
     return None
+
+
+def inductor_cache() -> str:
+    """The folder TorchInductor caches its generated code in (set for this process): the user's
+    ``$TORCHINDUCTOR_CACHE_DIR``, or ``inductor`` beside the project's kernel cache, made private
+    (mode 0700), checked to be this user's and not a link. ``RuntimeError`` saying why otherwise."""
+    from learners.kernels import cache_dir
+    from racing import files
+
+    chosen = os.environ.get("TORCHINDUCTOR_CACHE_DIR")
+    if chosen:
+        return chosen
+    folder = cache_dir().parent / "inductor"
+    try:
+        files.private(folder)  # only this user may plant code in it
+    except (OSError, files.FileRefused) as err:
+        raise RuntimeError(f"the compile cache {folder} cannot be used: {err}") from None
+    os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(folder)
+    return str(folder)
 
 
 def configure(numerics: str) -> None:

@@ -266,6 +266,36 @@ def folder(path, root=None, create: bool = False) -> Path:
     return given
 
 
+def private(path) -> Path:
+    """The folder ``path`` as this user's alone (for a cache whose files are loaded as code): made if
+    missing (its parents too), not a link, owned by this user, and only this user may write it
+    (mode 0700 set where it was wider). ``FileRefused`` if another user owns it."""
+    path = Path(path)
+    folder(path.parent, path.parent, create=True)
+    folder(path, path.parent, create=True)
+    info = os.lstat(path)
+    if hasattr(os, "getuid") and info.st_uid != os.getuid():
+        raise FileRefused(f"{path} belongs to another user (uid {info.st_uid}); a folder whose files are loaded as "
+                          "code must be this user's own: remove it or choose another")
+    if stat.S_IMODE(info.st_mode) & 0o077:
+        try:
+            os.chmod(path, 0o700)
+        except OSError as err:
+            raise _refusal(path, err, "make private") from None
+    return path
+
+
+def check_chain(path, root) -> None:
+    """``folder``'s check of every folder from ``root`` down to ``path`` that exists, making none
+    (a check before anything is written: the folders not there yet are made later, checked again)."""
+    path, root = Path(os.path.abspath(path)), Path(os.path.abspath(root))
+    existing = path
+    while not os.path.lexists(existing) and existing != root and existing.parent != existing:
+        existing = existing.parent
+    if os.path.lexists(existing):
+        folder(existing, root)
+
+
 def check_tree(top) -> None:
     """``FileRefused`` if anything at any depth below the folder ``top`` is a link, a special file,
     or a file with another name (rule 3); nothing there (or no ``top``) is fine."""
@@ -355,6 +385,11 @@ def open_in_place(path, create: bool = True) -> int:
     """A read-write descriptor of a file written in place (a lock, rows appended), by rules 1 and 2:
     made if missing (``create``), never through a link, never a file with another name."""
     return _open(path, os.O_RDWR | (os.O_CREAT if create else 0), "write", single_link=True)[0]
+
+
+def open_read(path) -> int:
+    """A read-only descriptor of the existing regular file at ``path`` (rule 1), for ``flock``."""
+    return _open(path, os.O_RDONLY, "read")[0]
 
 
 def open_log(path, root):

@@ -15,6 +15,7 @@ keeps them apart (``tests/test_report.py``).
 import csv
 import json
 import math
+import os
 import warnings
 
 import pytest
@@ -62,7 +63,8 @@ def test_a_compiled_member_trains_as_its_compiled_solo_run_and_reruns_identicall
         member_weights = torch.load(tmp_path / "ab" / f"seed{B}" / f"{name}.pt")
         assert all(torch.equal(solo_weights[k], member_weights[k]) for k in solo_weights)
     summary = json.loads((tmp_path / "ab" / f"seed{B}" / "summary.json").read_text())
-    assert summary["compile"] == {"requested": True, "enabled": True, "reason": None}
+    assert summary["compile"] == {"requested": True, "enabled": True, "reason": None,
+                                  "cache": os.environ["TORCHINDUCTOR_CACHE_DIR"]}
     assert 0 < summary["time/compile_s"] <= summary["time/train_s"]
 
     # Eager steps round otherwise: the same first episode (it acts before any update), then close values.

@@ -307,3 +307,22 @@ def test_a_path_too_long_and_a_bad_kernel_variable_end_in_one_line_before_anythi
                          env={**ENV, "RACING_KERNEL_ISA": "garbage"}, capture_output=True, text=True, timeout=300)
     assert isa.returncode == 2 and "RACING_KERNEL_ISA must be one of" in one_line(isa)
     assert not folder.exists() or list(folder.iterdir()) == []
+
+
+def test_compiled_code_is_cached_in_a_folder_of_this_users_own(tmp_path, monkeypatch):
+    """TorchInductor loads the code it cached; its default folder sits in a shared /tmp, where another
+    user could have made it first and planted code (found by a hostile trial)."""
+    from learners import compiling
+
+    monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
+    monkeypatch.setenv("RACING_KERNEL_CACHE", str(tmp_path / "cache" / "kernels"))
+    (tmp_path / "cache").mkdir()
+    os.mkdir(tmp_path / "cache" / "inductor", 0o777)
+    os.chmod(tmp_path / "cache" / "inductor", 0o777)
+    assert compiling.inductor_cache() == str(tmp_path / "cache" / "inductor")
+    assert stat.S_IMODE(os.lstat(tmp_path / "cache" / "inductor").st_mode) == 0o700
+    shutil.rmtree(tmp_path / "cache" / "inductor")
+    (tmp_path / "cache" / "inductor").symlink_to(tmp_path)
+    monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
+    with pytest.raises(RuntimeError, match="cannot be used: .*symbolic link"):
+        compiling.inductor_cache()

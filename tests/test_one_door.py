@@ -73,6 +73,9 @@ def violations(path: Path) -> list[str]:
                 what = f"shutil.{name}"
             elif name in ("savefig", "imwrite", "mimwrite") and args and _buffer(args[0], buffers):
                 pass
+            elif name == "save" and isinstance(func.value, ast.Attribute) and func.value.attr == "image":
+                if not (len(args) > 1 and _buffer(args[1], buffers)):  # pygame.image.save(surface, path)
+                    what = "image.save"
             elif name in BY_NAME:
                 what = name
             elif name == "replace" and len(args) == 1 and not node.keywords:  # Path.replace(target), not str's
@@ -108,11 +111,13 @@ def test_the_check_finds_each_kind_of_call(tmp_path):
              "os.replace('a', 'b')", "p.replace(q)", "shutil.rmtree('x')", "shutil.copy('a', 'b')",
              "p.mkdir()", "torch.save(obj, 'x.pt')", "torch.load('x.pt')", "np.load('x.npy')",
              "zipfile.ZipFile('x.zip')", "tarfile.open('x.tar')", "fig.savefig('x.png')", "imageio.imwrite('x.png', f)",
-             "tempfile.mkstemp()", "p.rglob('*')", "tar.extractall('x')", "os.remove('x')", "p.open()"]
+             "tempfile.mkstemp()", "p.rglob('*')", "tar.extractall('x')", "os.remove('x')", "p.open()",
+             "pg.image.save(surface, 'x.png')"]
     fine = ["'a'.replace('b', 'c')", "torch.save(obj, io.BytesIO())", "zipfile.ZipFile(io.BytesIO(b''))",
             "tarfile.open(fileobj=io.BytesIO(b''))", "imageio.imwrite('<bytes>', f, extension='.gif')",
             "buffer = io.BytesIO()\ntorch.save(obj, buffer)", "shutil.which('g++')", "items.remove(3)",
-            "fig.savefig(io.BytesIO(), format='png')", "files.write_text(p, 'x')", "files.remove(p)"]
+            "fig.savefig(io.BytesIO(), format='png')", "files.write_text(p, 'x')", "files.remove(p)",
+            "pg.image.save(surface, io.BytesIO(), 'x.png')"]
     try:
         sample.write_text("\n".join(calls) + "\n")
         assert len(violations(sample)) == len(calls), violations(sample)

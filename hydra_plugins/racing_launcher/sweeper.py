@@ -174,9 +174,16 @@ def check_jobs(loader, master, jobs: list[list[str]], folders: list | None = Non
             problems.append(f"{label}: {_first_line(err)}")
             continue
         try:
+            with open_dict(cfg):
+                cfg.hydra.job.num = index  # as the launcher numbers the jobs (a folder name may use it)
             subdir = str(OmegaConf.select(cfg, "hydra.sweep.subdir"))
-        except Exception:  # a folder name that needs the launcher's values (e.g. hydra.job.num)
+        except Exception:  # a folder name that needs other launcher values (e.g. a SLURM job id)
             subdir = None
+            template = str(OmegaConf.to_container(cfg.hydra.sweep, resolve=False).get("subdir", ""))
+            if template.startswith("/") or ".." in Path(template).parts:
+                problems.append(f"{label}: its folder {template!r} (hydra.sweep.subdir) is not a folder inside the "
+                                f"sweep's {sweep_dir}: it holds '..' or is an absolute path")
+                continue
         with open_dict(cfg):
             del cfg["hydra"]
         try:
@@ -203,16 +210,23 @@ def check_jobs(loader, master, jobs: list[list[str]], folders: list | None = Non
                 break
             owners[path] = label
         else:
-            problem = _folder_problem(rundir, RunConfig, run_cfg, settings, folder, members)
+            problem = _folder_problem(rundir, RunConfig, run_cfg, settings, folder, members, sweep_dir)
             if problem:
                 problems.append(f"{label}: {problem}")
     return problems
 
 
-def _folder_problem(rundir, RunConfig, run_cfg, settings: dict, folder: Path, members: dict) -> str | None:
-    """Why a job's folders would refuse it (None if they would not)."""
-    from racing.files import FileRefused
+def _folder_problem(rundir, RunConfig, run_cfg, settings: dict, folder: Path, members: dict,
+                    sweep_dir: Path) -> str | None:
+    """Why a job's folders would refuse it (None if they would not); writes nothing (no lock is
+    taken: ``rundir.in_use`` only asks)."""
+    from racing import files
 
+    for path in [folder, *members.values()]:  # no link from the sweep's folder down, before anything else
+        try:
+            files.check_chain(path, sweep_dir)
+        except (OSError, files.FileRefused) as err:
+            return str(err)
     training = RunConfig.run_settings(settings)
     for seed, path in members.items():
         if run_cfg.overwrite:
@@ -220,10 +234,8 @@ def _folder_problem(rundir, RunConfig, run_cfg, settings: dict, folder: Path, me
         problem = rundir.refusal(rundir.state(path), run_cfg.member_settings(training, seed), solo=path == folder)
         if problem:
             return problem
-    if folder.exists() or any(p.exists() for p in members.values()):
-        try:
-            with rundir.lock([p for p in [folder, *members.values()] if p.exists()], root=folder):
-                pass
-        except FileRefused as err:
-            return str(err)
+    for path in dict.fromkeys([folder, *members.values()]):
+        holder = rundir.in_use(path)
+        if holder:
+            return holder
     return None
