@@ -64,6 +64,13 @@ def export(commit: str, code_dir: Path) -> Path:
     if existing is not None:
         if existing != commit:
             raise SweepError(f"{code_dir} holds an export of another commit; remove it or choose --code-dir")
+        differences = export_differences(git("archive", "--format=tar", commit, binary=True), code_dir)
+        if differences:
+            raise SweepError(f"{code_dir} is not the commit's export as it was made ({'; '.join(differences[:3])}"
+                             f"{'; ...' if len(differences) > 3 else ''}): its code would run under the commit's "
+                             "name; remove the folder (it is exported again) or choose --code-dir")
+        for cache in sorted({p.parent for p in files.tree(code_dir) if p.parent.name == "__pycache__"}):
+            files.remove_tree(cache)  # compiled bytecode is not checked: Python makes it afresh from the sources
         return code_dir
     if code_dir.exists():
         raise SweepError(f"{code_dir} exists but is not an export; remove it or choose --code-dir")
@@ -85,6 +92,32 @@ def export(commit: str, code_dir: Path) -> Path:
         if partial.exists():
             files.remove_tree(partial)
     return code_dir
+
+
+def export_differences(archive: bytes, code_dir: Path) -> list[str]:
+    """How the folder ``code_dir`` differs from the tar ``archive`` of a commit (empty: it does not):
+    files changed, missing or added (``__pycache__`` folders aside, which are removed before a run)."""
+    import io
+    import tarfile
+
+    expected = {}
+    with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
+        for member in tar.getmembers():
+            if member.isfile():
+                expected[member.name] = tar.extractfile(member).read()
+    found = {p.relative_to(code_dir).as_posix() for p in files.tree(code_dir) if "__pycache__" not in p.parts}
+    differences = [f"{name} was added" for name in sorted(found - set(expected))]
+    for name, data in sorted(expected.items()):
+        if name not in found:
+            differences.append(f"{name} is missing")
+        else:
+            try:
+                same = files.read(code_dir / name, len(data), "file of the export") == data
+            except (OSError, files.FileRefused):
+                same = False
+            if not same:
+                differences.append(f"{name} was changed")
+    return differences
 
 
 def sweep_dir_of(overrides: list[str], commit: str) -> tuple[Path, list[str]]:

@@ -326,3 +326,17 @@ def test_compiled_code_is_cached_in_a_folder_of_this_users_own(tmp_path, monkeyp
     monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
     with pytest.raises(RuntimeError, match="cannot be used: .*symbolic link"):
         compiling.inductor_cache()
+
+
+@pytest.mark.parametrize("override", ["hydra.output_subdir=.hydra", "hydra/job_logging=default"])
+def test_hydra_never_writes_a_file_itself(tmp_path, override):
+    """Hydra writes its own record and logs by name, through links: a command that turns them on is
+    refused before Hydra writes anything (found by a hostile trial: the record went through a link)."""
+    victim = tmp_path / "victim"
+    victim.write_text("mine\n")
+    folder = tmp_path / "run"
+    (folder / ".hydra").mkdir(parents=True)
+    (folder / ".hydra" / "config.yaml").symlink_to(victim)
+    result = run("train.py", *TINY, override, f"hydra.run.dir={folder}")
+    assert result.returncode == 2 and one_line(result).startswith("Invalid configuration: hydra.")
+    assert victim.read_text() == "mine\n" and sorted(p.name for p in folder.iterdir()) == [".hydra"]

@@ -136,3 +136,31 @@ def test_clean_sweep_knows_exports_of_commits_from_before_the_engine_package(tmp
     assert clean_sweep.exported_commit(tmp_path / "old") == "8ee0bd8d86c8b4544c35463f6cf19c036a9dd50e"
     assert clean_sweep.exported_commit(tmp_path / "new") == "abc"
     assert clean_sweep.exported_commit(tmp_path) is None
+
+
+def test_an_export_edited_by_hand_is_refused_not_run_under_the_commits_name(tmp_path):
+    """A reused export is checked against the commit's archive: an added, changed or missing file is
+    refused (found by a hostile trial: a planted train.py ran and its results carried the commit);
+    compiled bytecode, which Python does not check against the source, is removed before a run."""
+    import clean_sweep
+
+    if not (ROOT / ".git").exists():
+        pytest.skip("clean_sweep.py exports commits: needs a git clone of the project")
+    commit = clean_sweep.resolve_commit("HEAD")
+    code_dir = clean_sweep.export(commit, tmp_path / "code")
+    original = (code_dir / "train.py").read_bytes()
+    for edit, undo, words in (
+            (lambda: (code_dir / "sitecustomize.py").write_text("import os\n"),
+             lambda: (code_dir / "sitecustomize.py").unlink(), "sitecustomize.py was added"),
+            (lambda: (code_dir / "train.py").write_bytes(original + b"\nprint('planted')\n"),
+             lambda: (code_dir / "train.py").write_bytes(original), "train.py was changed"),
+            (lambda: (code_dir / "train.py").unlink(), lambda: (code_dir / "train.py").write_bytes(original),
+             "train.py is missing")):
+        edit()
+        with pytest.raises(clean_sweep.SweepError, match=words):
+            clean_sweep.export(commit, code_dir)
+        undo()
+    (code_dir / "engine" / "__pycache__").mkdir(exist_ok=True)
+    (code_dir / "engine" / "__pycache__" / "runner.cpython-311.pyc").write_bytes(b"planted")
+    assert clean_sweep.export(commit, code_dir) == code_dir
+    assert not (code_dir / "engine" / "__pycache__").exists()
