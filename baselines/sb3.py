@@ -91,7 +91,7 @@ def load_model(path) -> tuple[object, str]:
     except ModelRefused:
         raise
     except (zipfile.BadZipFile, KeyError, json.JSONDecodeError, UnicodeDecodeError, ValueError, OSError,
-            EOFError, RuntimeError, zipfile.LargeZipFile) as err:
+            EOFError, RuntimeError, RecursionError, zipfile.LargeZipFile) as err:
         raise ModelRefused(f"{path} is not a Stable-Baselines3 model.zip ({type(err).__name__}: "
                            f"{str(err)[:120]})") from None
     if not isinstance(settings, dict) or not isinstance(settings.get("policy_class"), dict):
@@ -110,6 +110,9 @@ def load_model(path) -> tuple[object, str]:
     if bad:
         raise ModelRefused(f"{path}: its policy settings {bad} need unpickling (a custom class or function), which "
                            "could run code; only plain settings (net_arch, use_sde, ...) are loaded")
+    problem = _layers_problem(kwargs.get("net_arch"))
+    if problem:
+        raise ModelRefused(f"{path}: its net_arch {json.dumps(kwargs.get('net_arch'))[:120]} {problem}; nothing was built")
     env = RacingEnv()
     for key, space in (("observation_space", env.observation_space), ("action_space", env.action_space)):
         saved = settings.get(key) if isinstance(settings.get(key), dict) else {}
@@ -125,7 +128,7 @@ def load_model(path) -> tuple[object, str]:
         from stable_baselines3.common.policies import ActorCriticPolicy as policy_class
     try:
         policy = policy_class(env.observation_space, env.action_space, lambda _: 0.0, **kwargs)
-    except (TypeError, ValueError, AssertionError) as err:
+    except (TypeError, ValueError, AssertionError, RuntimeError, KeyError) as err:
         raise ModelRefused(f"{path}: its policy settings do not build a {algo} policy ({str(err)[:120]})") from None
     try:
         state = load_tensors_from(io.BytesIO(weights), f"{path}'s policy.pth", "policy's weights")
@@ -135,6 +138,25 @@ def load_model(path) -> tuple[object, str]:
                            ) from None
     policy.set_training_mode(False)
     return policy, algo
+
+
+MAX_LAYERS, MAX_UNITS = 16, 4096  # an SB3 policy's hidden layers and their units (its defaults: 2 of 64 or 256)
+
+
+def _layers_problem(net_arch) -> str | None:
+    """Why an SB3 ``net_arch`` is not a size to build (None: it is): a list of layer widths, or a dict of
+    such lists (``pi``, ``vf``, ``qf``), at most ``MAX_LAYERS`` layers of 1 to ``MAX_UNITS`` units."""
+    if net_arch is None:
+        return None
+    lists = list(net_arch.values()) if isinstance(net_arch, dict) else [net_arch]
+    if isinstance(net_arch, dict) and not set(net_arch) <= {"pi", "vf", "qf"}:
+        return "names networks other than pi, vf and qf"
+    for widths in lists:
+        if not isinstance(widths, list) or len(widths) > MAX_LAYERS:
+            return f"is not a list of at most {MAX_LAYERS} layer widths"
+        if any(isinstance(w, bool) or not isinstance(w, int) or not 1 <= w <= MAX_UNITS for w in widths):
+            return f"has a layer width outside 1..{MAX_UNITS}"
+    return None
 
 
 def _plain(value) -> bool:

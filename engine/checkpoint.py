@@ -111,6 +111,12 @@ def load_tensors(path: Path, what: str = "file", sealed: bool = False):
     checkpoint, whose seal (``unsealed``) is checked first."""
     path = Path(path)
     try:
+        if sealed:  # its first bytes first: a file that is no checkpoint is refused before it is read whole
+            with files.stream(path) as f:
+                head = f.read(len(SEAL) + 65)
+            if head and not head.startswith((SEAL, b"PK\x03\x04")):
+                raise ValueError(f"{path} is not a readable checkpoint (it starts with neither a checkpoint's seal "
+                                 "line nor a torch zip: damaged, or another file)")
         data = files.read(path, _load_limit(), what)
     except files.FileRefused as err:
         raise ValueError(str(err)) from None

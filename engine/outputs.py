@@ -257,7 +257,7 @@ def read_summary(out_dir: Path) -> dict | None:
         raise RunFolderError(str(err)) from None
     try:
         summary = json.loads(text)
-    except json.JSONDecodeError as err:
+    except (ValueError, RecursionError) as err:  # not JSON, nested past Python's limit, an integer of 5,000 digits
         raise RunFolderError(f"{path} is not JSON ({'empty' if not text.strip() else first_line(err)})") from None
     if not isinstance(summary, dict):
         raise RunFolderError(f"{path} holds a JSON {type(summary).__name__}, not a summary (an object)")

@@ -24,6 +24,7 @@ however it ends.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import re
 import socket
@@ -192,19 +193,29 @@ FINAL_MEAN_BOUND = 1e12
 
 
 def _bad_values(folder: Path, summary: dict) -> str | None:
-    """What makes a summary's numbers unusable (None: nothing): a final performance that is not a
-    finite number (or null, for a run without one), an episode count that is not a count."""
+    """What makes a summary's values unusable (None: nothing): a field of another type than train.py
+    writes (a report sorts, groups and averages them), a final performance that is not a finite
+    number within what an episode can total, a completed run without one."""
     import math
 
+    number = (int, float)
+    types = {"algo": str, "er": str, "seed": int, "episodes": int, "status": str, "final_window": (int, type(None)),
+             "code": (dict, type(None)), "population": (dict, type(None)), "evaluation": (dict, type(None)),
+             "numerics": (dict, type(None)), "compile": (dict, type(None)), "wall_time_s": (*number, type(None)),
+             "cpu_time_s": (*number, type(None)), "resumed_at": (int, type(None)), "final_mean": (*number, type(None))}
+    for key, kind in types.items():
+        if key in summary and (isinstance(summary[key], bool) or not isinstance(summary[key], kind)):
+            return f"{folder / SUMMARY_FILE} records {key} {json.dumps(summary[key])[:60]}, not what train.py writes there"
     final = summary.get("final_mean")
-    if final is not None and (isinstance(final, bool) or not isinstance(final, (int, float)) or not math.isfinite(final)):
+    if final is not None and not math.isfinite(final):
         return f"{folder / SUMMARY_FILE} records final_mean {final!r}, not a finite number"
     if final is not None and abs(final) > FINAL_MEAN_BOUND:
         return (f"{folder / SUMMARY_FILE} records final_mean {final:.3g}, beyond what any episode can total "
                 f"(|{FINAL_MEAN_BOUND:.0e}|)")
-    episodes = summary.get("episodes")
-    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 0:
-        return f"{folder / SUMMARY_FILE} records episodes {episodes!r}, not a count of episodes"
+    if final is None and summary.get("status") == "completed":
+        return f"{folder / SUMMARY_FILE} records a completed run without a final performance"
+    if summary["episodes"] < 0 or summary["seed"] < 0:
+        return f"{folder / SUMMARY_FILE} records a negative episode count or seed"
     return None
 
 

@@ -23,7 +23,7 @@ from racing import files as door
 
 ROOT = Path(__file__).resolve().parent.parent
 SOURCE_PATHS = ("racing", "losses", "collectors", "learners", "engine", "analysis", "conf", "train.py")
-SOURCE_SUFFIXES = (".py", ".yaml", ".csv")
+SOURCE_SUFFIXES = (".py", ".yaml", ".csv", ".cpp", ".h")  # the C++ kernels compute every product under fma
 COMMIT_FILE = Path(__file__).resolve().parent / "COMMIT"
 
 

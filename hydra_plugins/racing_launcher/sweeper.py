@@ -101,10 +101,19 @@ class CheckedSweeper(BasicSweeper):
 
         from racing import files
 
-        sweep_dir = files.folder(Path(str(self.config.hydra.sweep.dir)), create=True)
-        files.write_atomic(sweep_dir / "multirun.yaml", OmegaConf.to_yaml(self.config).encode())  # never through a link
-        stop_file = sweep_dir / STOP_FILE
-        files.remove(stop_file)  # an earlier sweep's: this one starts anew
+        try:
+            sweep_dir = files.folder(Path(str(self.config.hydra.sweep.dir)), create=True)
+            stop_file = sweep_dir / STOP_FILE
+            for name in ("multirun.yaml", STOP_FILE):  # the sweep's own files: each a file, or nothing yet
+                if os.path.lexists(sweep_dir / name) and not files.is_file(sweep_dir / name) \
+                        and not (sweep_dir / name).is_symlink():
+                    raise files.FileRefused(f"{sweep_dir / name} is {files.kind(os.lstat(sweep_dir / name).st_mode)} "
+                                            "where the sweep keeps its own file: move it away")
+            files.write_atomic(sweep_dir / "multirun.yaml", OmegaConf.to_yaml(self.config).encode())  # never through a link
+            files.remove(stop_file)  # an earlier sweep's: this one starts anew
+        except (OSError, files.FileRefused) as err:
+            print(f"The sweep was not started: {err}", file=sys.stderr)
+            raise SweepRefused(2) from None
         returns, failed, first = [], [], 0
         with _SweepSignals(stop_file):
             while not self.is_done() and read_stop_file(stop_file) is None:
