@@ -31,6 +31,7 @@ import sys
 from pathlib import Path
 
 from engine import numerics
+from racing import files
 from racing.track_file import add_track_options
 
 
@@ -72,6 +73,11 @@ def main(argv: list[str] | None = None) -> int:
         video_track = None
     else:
         video_track = _track(parser, args.video_track, args.track_scale, args.track_closed)
+    for option, path in (("--table", args.table), ("--video", args.video)):
+        try:  # before any episode: an output that cannot be written is said now, not after the work
+            files.check_target(path) if path is not None and not path.is_dir() else None
+        except files.FileRefused as err:
+            parser.error(f"{option}: {err}")
     if args.table is not None and args.table.is_dir():
         parser.error(f"--table {args.table} is a folder; give a file name (e.g. {args.table / 'scores.csv'})")
     folders = [Path(a) for a in args.agents if Path(a).is_dir()]

@@ -213,6 +213,9 @@ def _run() -> None:
     """``main()``; a configuration Hydra cannot compose (``algo=nope``) or resolve (``seed=${oops}``,
     which its run folder's name interpolates) ends in one line and exit status 2, as other invalid
     configurations do."""
+    from engine.processes import readable_output
+
+    readable_output()  # a folder name that is not UTF-8 is printed escaped
     stderr = sys.stderr
     sys.stderr = errors = _HydraErrors(stderr)
     try:

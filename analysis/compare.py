@@ -23,6 +23,12 @@ from collections import defaultdict
 from pathlib import Path
 
 
+def _refuse(message: str) -> None:
+    """One line on stderr and exit status 2, as the other tools refuse."""
+    print(f"compare: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
 def read_runs(path: Path) -> dict[tuple[str, str, int], float]:
     """{(er, algo, seed): final_mean} of the completed runs of a report's ``runs.csv``."""
     from racing import files
@@ -30,12 +36,12 @@ def read_runs(path: Path) -> dict[tuple[str, str, int], float]:
     try:
         rows = files.read_csv(path, 1 << 28, "runs.csv")
     except OSError as err:
-        raise SystemExit(f"compare: cannot read {path}: {err.strerror}") from None
+        _refuse(f"cannot read {path}: {err.strerror}")
     except ValueError as err:  # the file door's refusal (a FIFO, a folder, a file too large)
-        raise SystemExit(f"compare: {err}") from None
+        _refuse(str(err))
     needed = {"er", "algo", "seed", "status", "final_mean"}
     if not rows or not needed <= set(rows[0]):
-        raise SystemExit(f"compare: {path} is not a report's runs.csv (columns {sorted(needed)} expected)")
+        _refuse(f"{path} is not a report's runs.csv (columns {sorted(needed)} expected)")
     return {(r["er"], r["algo"], int(r["seed"])): float(r["final_mean"]) for r in rows
             if r["status"] == "completed" and r["final_mean"] not in ("", None)}
 
@@ -45,11 +51,11 @@ def select_cell(runs: dict, cell: str, as_cell: str) -> dict:
     try:
         (algo, er), (as_algo, as_er) = cell.split("/"), as_cell.split("/")
     except ValueError:
-        raise SystemExit(f"compare: a cell is algo/er, e.g. bro/prioritised (got {cell!r} and {as_cell!r})") from None
+        _refuse(f"a cell is algo/er, e.g. bro/prioritised (got {cell!r} and {as_cell!r})")
     chosen = {(as_er, as_algo, seed): value for (e, a, seed), value in runs.items() if (e, a) == (er, algo)}
     if not chosen:
         cells = sorted({f"{a}/{e}" for e, a, _ in runs})
-        raise SystemExit(f"compare: no completed run of cell {cell} (the report has {', '.join(cells) or 'none'})")
+        _refuse(f"no completed run of cell {cell} (the report has {', '.join(cells) or 'none'})")
     return chosen
 
 

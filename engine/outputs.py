@@ -200,7 +200,7 @@ def write_table(path: Path, rows: list[dict]) -> None:
     writer.writeheader()
     writer.writerows(rows)
     files.folder(path.parent, path.parent, create=True)  # a folder the user names (it may be a link)
-    write_atomic(path, text.getvalue().encode())
+    files.write_text(path, text.getvalue())
     print(f"wrote {path} ({len(rows)} rows)")
 
 

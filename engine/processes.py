@@ -32,6 +32,8 @@ def run_tool(name: str, main) -> int:
     (1 for a full disk)."""
     from racing.files import DiskFull, FileRefused
 
+    readable_output()
+
     def stop(number, frame):
         raise KeyboardInterrupt(signal.Signals(number).name)
 
@@ -45,6 +47,18 @@ def run_tool(name: str, main) -> int:
         received = str(err) or "SIGINT"
         print(f"{name}: stopped by {received} before it finished", file=sys.stderr)
         return 143 if received == "SIGTERM" else 130
+
+
+def readable_output() -> None:
+    """Standard output and error print what cannot be encoded (a folder name that is not UTF-8)
+    escaped, instead of ending the tool in a ``UnicodeEncodeError``."""
+    for stream in (sys.stdout, sys.stderr):
+        reconfigure = getattr(stream, "reconfigure", None)
+        if reconfigure is not None:
+            try:
+                reconfigure(errors="backslashreplace")
+            except (ValueError, OSError):
+                pass
 
 
 def exit_with_parent(poll_seconds: float = 1.0) -> None:

@@ -85,15 +85,15 @@ def kind(mode: int) -> str:
     return "a special file"
 
 
-def _refusal(path, err: OSError, verb: str) -> Exception:
+def _refusal(path, err: OSError, verb: str, follow: bool = False) -> Exception:
     """The error to raise for ``err`` while doing ``verb`` to ``path``: missing files stay
     ``FileNotFoundError``, a full disk is ``DiskFull``, anything else a ``FileRefused`` sentence."""
     if isinstance(err, FileNotFoundError):
         return err
     if err.errno in (errno.ENOSPC, errno.EDQUOT):
         return DiskFull(path, 0)
-    reason = {errno.ELOOP: "it is a symbolic link (a file here is never read or written through a link): remove the "
-                           "link",
+    reason = {errno.ELOOP: "its symbolic links loop" if follow else "it is a symbolic link (a file here is never read "
+                                                                       "or written through a link): remove the link",
               errno.ENXIO: "it is a FIFO or a device, not a regular file",
               errno.EISDIR: "it is a folder, not a file",
               errno.ENAMETOOLONG: "the path is too long for the file system",
@@ -109,7 +109,7 @@ def _open(path, flags: int, verb: str, follow: bool = False, single_link: bool =
     try:
         fd = os.open(path, flags | _NONBLOCK | _CLOEXEC | (0 if follow else _NOFOLLOW), mode)
     except OSError as err:
-        raise _refusal(path, err, verb) from None
+        raise _refusal(path, err, verb, follow) from None
     try:
         info = os.fstat(fd)
         if not stat.S_ISREG(info.st_mode):
@@ -285,6 +285,26 @@ def private(path) -> Path:
     return path
 
 
+def check_target(path) -> None:
+    """``FileRefused`` if a file could not be written at ``path`` later (a tool's output named on its
+    command line, checked before its work): something there that is not a regular file or a link,
+    or a part of the path that is not a folder."""
+    path = Path(path)
+    try:
+        info = os.lstat(path)
+    except FileNotFoundError:
+        info = None
+    except OSError as err:
+        raise _refusal(path, err, "write") from None
+    if info is not None and not (stat.S_ISREG(info.st_mode) or stat.S_ISLNK(info.st_mode)):
+        raise FileRefused(f"cannot write {path}: it is {kind(info.st_mode)}; give a file name")
+    parent = Path(os.path.abspath(path)).parent
+    while not os.path.lexists(parent) and parent.parent != parent:
+        parent = parent.parent
+    if not os.path.isdir(parent):
+        raise FileRefused(f"cannot write {path}: {parent} is not a folder")
+
+
 def check_chain(path, root) -> None:
     """``folder``'s check of every folder from ``root`` down to ``path`` that exists, making none
     (a check before anything is written: the folders not there yet are made later, checked again)."""
@@ -377,8 +397,8 @@ def _sync_folder(path) -> None:
 
 
 def write_text(path, text: str, root=None) -> None:
-    """``write_atomic`` of UTF-8 text."""
-    write_atomic(path, text.encode(), root)
+    """``write_atomic`` of UTF-8 text (a path that is not UTF-8, shown in it, is written escaped)."""
+    write_atomic(path, text.encode(errors="backslashreplace"), root)
 
 
 def open_in_place(path, create: bool = True) -> int:
