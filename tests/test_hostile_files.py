@@ -340,3 +340,77 @@ def test_hydra_never_writes_a_file_itself(tmp_path, override):
     result = run("train.py", *TINY, override, f"hydra.run.dir={folder}")
     assert result.returncode == 2 and one_line(result).startswith("Invalid configuration: hydra.")
     assert victim.read_text() == "mine\n" and sorted(p.name for p in folder.iterdir()) == [".hydra"]
+
+
+def test_an_sb3_model_whose_sizes_would_exhaust_the_machine_is_refused_before_it_is_built(tmp_path):
+    """net_arch [2**40] ended in an allocator traceback; [15000, 15000] took 4.6 GB and ignored SIGTERM
+    for minutes (found by a hostile trial)."""
+    pytest.importorskip("stable_baselines3")
+    import zipfile
+
+    from baselines.sb3 import ModelRefused, load_model
+
+    path = sb3_zip(tmp_path, None, tmp_path / "marker")
+    with zipfile.ZipFile(path) as archive:
+        entries = {name: archive.read(name) for name in archive.namelist()}
+    for net_arch, words in (([2**40], "outside 1..4096"), ([-3], "outside 1..4096"), ([15000, 15000], "outside"),
+                            ([64] * 40, "at most 16"), ({"pi": [64], "evil": [1]}, "other than pi, vf and qf")):
+        data = json.loads(entries["data"])
+        data["policy_kwargs"] = {"net_arch": net_arch}
+        with zipfile.ZipFile(tmp_path / "bad.zip", "w") as archive:
+            for name, content in {**entries, "data": json.dumps(data).encode()}.items():
+                archive.writestr(name, content)
+        with pytest.raises(ModelRefused, match=words):
+            load_model(tmp_path / "bad.zip")
+
+
+@pytest.mark.parametrize("content", ["[" * 200_000 + "]" * 200_000, '{"episodes": 1' + "0" * 5000 + "}"])
+def test_a_summary_nested_too_deep_or_with_a_number_too_long_is_damage_not_a_traceback(tmp_path, finished, content):
+    folder = tmp_path / "run"
+    shutil.copytree(finished, folder)
+    (folder / "summary.json").write_text(content)
+    found = rundir.state(folder)
+    assert found.kind == "damaged" and "is not JSON" in found.problem
+
+
+@pytest.mark.parametrize("change", [{"algo": {"a": 1}}, {"er": 5}, {"code": [1]}, {"final_mean": None},
+                                    {"seed": True}])
+def test_a_resealed_summary_with_fields_of_other_types_is_damage(tmp_path, finished, change):
+    """report.py crashed on such fields (sorting a dict, reading a list's keys) after writing half its
+    files, or counted a completed run without a final performance (found by a hostile trial)."""
+    folder = tmp_path / "run"
+    shutil.copytree(finished, folder)
+    summary = json.loads((folder / "summary.json").read_text())
+    (folder / "summary.json").write_text(json.dumps(seal({**summary, **change})))
+    assert rundir.state(folder).kind == "damaged"
+
+
+def test_a_sweeps_own_file_that_is_a_folder_is_refused_before_anything_is_written(tmp_path):
+    (tmp_path / "sweep" / ".stop").mkdir(parents=True)
+    result = run("train.py", "-m", *TINY, "hydra/launcher=basic", f"hydra.sweep.dir={tmp_path / 'sweep'}")
+    assert result.returncode == 2 and ".stop is a folder" in result.stderr and "Traceback" not in result.stderr
+    assert sorted(p.name for p in (tmp_path / "sweep").iterdir()) == [".stop"]
+
+
+def test_demo_writes_its_pictures_through_the_door(tmp_path):
+    """demo.py saved pygame's pictures by name: through a link, and blocking on a FIFO (found by a
+    hostile trial)."""
+    pytest.importorskip("pygame")
+    victim = tmp_path / "victim"
+    victim.write_text("mine\n")
+    out = tmp_path / "demo"
+    out.mkdir()
+    (out / "trajectory.png").symlink_to(victim)
+    os.mkfifo(out / "car.png")
+    result = run("demo.py", "--out", str(out), timeout=120)
+    assert result.returncode == 2 and "car.png" in one_line(result) and "FIFO" in one_line(result)
+    assert victim.read_text() == "mine\n"
+
+
+def test_a_folder_name_that_is_not_utf8_is_reported_escaped(tmp_path, finished):
+    sweep = tmp_path / "sweep"
+    shutil.copytree(finished.parent.parent.parent, sweep)
+    os.rename(sweep / "spg" / "recent" / "seed2067791", os.fsencode(sweep / "spg" / "recent") + b"/seed\xff")
+    result = run("report.py", str(sweep), "--no-figures", timeout=120)
+    assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr[-2000:]
+    assert "seed\\udcff" in (sweep / "report" / "runs.csv").read_text()
