@@ -26,6 +26,10 @@ Its rules, each tested once here for every caller (``tests/test_files.py``):
    never its target), never a folder; ``remove_tree`` deletes a folder after ``check_tree``.
 7. **Names are names.** A configuration value that becomes a path component goes through ``name``:
    no separator, not ``.`` or ``..``, no NUL, at most 255 bytes.
+8. **Code is loaded only as recorded.** ``load_library`` loads a shared library through the very
+   descriptor whose bytes matched the SHA-256 recorded when it was built; a folder whose files
+   another program loads as code (TorchInductor's cache) is ``private``: this user's, not a link,
+   mode 0700.
 
 Every refusal is ``FileRefused`` (a ``ValueError``), one sentence naming the path and the reason;
 a full disk is ``DiskFull``; a missing file stays ``FileNotFoundError``; any other error of the
