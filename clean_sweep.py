@@ -160,4 +160,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from engine.processes import run_tool
+
+    raise SystemExit(run_tool("clean_sweep", main))

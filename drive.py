@@ -94,8 +94,8 @@ def play(track, seed: int = 0, ghost=None, max_steps: int = 200, fps: int = 30, 
     if "oracle" in totals:
         lines.append(f"oracle: {totals['oracle']:.1f}")
     renderer.draw(env.unwrapped.sim, extra=["", *lines, "", "(close the window, or press Escape)"])
-    if hold if hold is not None else (script is None and os.environ.get("SDL_VIDEODRIVER") != "dummy"):
-        _wait_for_close(pg)
+    if hold if hold is not None else (script is None and pg.display.get_driver() not in ("dummy", "offscreen")):
+        _wait_for_close(pg)  # a window someone can close (no display: SDL's dummy or offscreen driver, no wait)
     renderer.close()
     print("; ".join(lines))
     return totals

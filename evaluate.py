@@ -35,7 +35,6 @@ from pathlib import Path
 from engine import numerics
 from engine.outputs import RunFolderError
 from engine.rundir import find_runs, runs_numerics  # noqa: F401 (evaluate.find_runs: the tools' own)
-from racing import files
 from racing.track_file import add_track_options
 
 
@@ -71,10 +70,9 @@ def main(argv: list[str] | None = None) -> int:
     for option, path in (("--table", args.table), ("--video", args.video)):
         if path is not None and path.is_dir():
             parser.error(f"{option} {path} is a folder; give a file name (e.g. {path / ('evaluation.csv' if option == '--table' else 'agent.gif')})")
-        try:  # before any episode: an output that cannot be written is said now, not after the work
-            files.check_target(path) if path is not None else None
-        except files.FileRefused as err:
-            parser.error(f"{option}: {err}")
+    from engine.processes import check_outputs  # before any episode: not after the work
+
+    check_outputs(parser, table=args.table, video=args.video)
     if args.track_file is not None:
         from racing.track_file import TrackFileError, parse_track
 

@@ -60,6 +60,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--processes", type=int, default=1)
     parser.add_argument("--table", type=Path, default=None)
     args = parser.parse_args(argv)
+    from engine.processes import check_outputs
+
+    check_outputs(parser, table=args.table)
+
     if any(not 0 <= t < 2**32 for t in args.tracks):
         parser.error(f"--tracks must be track seeds in [0, 2**32), got {args.tracks}")
     if args.processes < 1:

@@ -31,7 +31,6 @@ import sys
 from pathlib import Path
 
 from engine import numerics
-from racing import files
 from racing.track_file import add_track_options
 
 
@@ -73,11 +72,9 @@ def main(argv: list[str] | None = None) -> int:
         video_track = None
     else:
         video_track = _track(parser, args.video_track, args.track_scale, args.track_closed)
-    for option, path in (("--table", args.table), ("--video", args.video)):
-        try:  # before any episode: an output that cannot be written is said now, not after the work
-            files.check_target(path) if path is not None and not path.is_dir() else None
-        except files.FileRefused as err:
-            parser.error(f"{option}: {err}")
+    from engine.processes import check_outputs  # before any episode: not after the work
+
+    check_outputs(parser, table=None if args.table is None or args.table.is_dir() else args.table, video=args.video)
     if args.table is not None and args.table.is_dir():
         parser.error(f"--table {args.table} is a folder; give a file name (e.g. {args.table / 'scores.csv'})")
     folders = [Path(a) for a in args.agents if Path(a).is_dir()]

@@ -100,6 +100,9 @@ def _crashes(n: int) -> str:
     return f"{n} crash" + ("" if n == 1 else "es")
 
 
+FIGURE_SUFFIXES = (".png", ".pdf", ".svg", ".jpg")  # what the figures are written as (matplotlib's formats)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     commands = parser.add_subparsers(dest="command", required=True)
@@ -118,6 +121,15 @@ def main(argv: list[str] | None = None) -> int:
     export.add_argument("--seed", type=int, required=True, help="the track seed")
     export.add_argument("--out", type=Path, default=None, help="default: track_<seed>.csv")
     args = parser.parse_args(argv)
+    from engine.processes import check_outputs
+
+    check_outputs(parser, out=getattr(args, "out", None))
+    if args.command == "show":
+        out = args.out or args.file.with_suffix(".png")
+        if out.suffix.lower() not in FIGURE_SUFFIXES:
+            parser.error(f"--out must name a picture ({', '.join(FIGURE_SUFFIXES)}), got {str(out)!r}")
+        if out.resolve() == args.file.resolve():
+            parser.error(f"--out {out} is the track file itself; give the figure another name")
     if args.command == "export":
         if not 0 <= args.seed < 2**32:
             parser.error(f"--seed must be in [0, 2**32), got {args.seed}")
@@ -153,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             from racing.figures import track_file_figure
 
-            out = track_file_figure(track, args.out or args.file.with_suffix(".png"), describe(track))
+            out = track_file_figure(track, out, describe(track))
         except ImportError as err:
             print(f"tracks: {err}", file=sys.stderr)
             return 2

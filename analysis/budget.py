@@ -58,6 +58,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--window", type=int, default=20, help="episodes averaged (the runs' final_window)")
     parser.add_argument("--table", type=Path, default=None, help="write the rows as CSV")
     args = parser.parse_args(argv)
+    from engine.processes import check_outputs
+
+    check_outputs(parser, table=args.table)
+
     if min(args.budgets) < 1 or args.window < 1:
         parser.error("--budgets and --window must be positive")
     runs = []
@@ -98,4 +102,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from engine.processes import run_tool
+
+    raise SystemExit(run_tool("analysis.budget", main))

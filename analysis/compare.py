@@ -42,8 +42,21 @@ def read_runs(path: Path) -> dict[tuple[str, str, int], float]:
     needed = {"er", "algo", "seed", "status", "final_mean"}
     if not rows or not needed <= set(rows[0]):
         _refuse(f"{path} is not a report's runs.csv (columns {sorted(needed)} expected)")
-    return {(r["er"], r["algo"], int(r["seed"])): float(r["final_mean"]) for r in rows
-            if r["status"] == "completed" and r["final_mean"] not in ("", None)}
+    runs: dict[tuple[str, str, int], float] = {}
+    for line, r in enumerate(rows, start=2):
+        if r["status"] != "completed" or r["final_mean"] in ("", None):
+            continue
+        try:
+            key, value = (r["er"], r["algo"], int(r["seed"])), float(r["final_mean"])
+        except (TypeError, ValueError):
+            _refuse(f"{path} line {line}: seed {r['seed']!r} or final_mean {r['final_mean']!r} is not a number")
+        if not math.isfinite(value):
+            _refuse(f"{path} line {line}: final_mean {r['final_mean']!r} is not a finite number")
+        if key in runs:
+            _refuse(f"{path} line {line}: a second completed run of {key[1]}/{key[0]} on track {key[2]}; a report "
+                    "lists each run once")
+        runs[key] = value
+    return runs
 
 
 def select_cell(runs: dict, cell: str, as_cell: str) -> dict:
@@ -115,6 +128,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cells", nargs=2, metavar=("NEW", "OLD"),
                         help="pair cell NEW of the new report with cell OLD of the old one by track (algo/er each)")
     args = parser.parse_args(argv)
+    from engine.processes import check_outputs
+
+    check_outputs(parser, markdown=args.markdown)
+
     new, old = read_runs(args.new), read_runs(args.old)
     heading = ""
     if args.cells:
@@ -130,4 +147,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from engine.processes import run_tool
+
+    raise SystemExit(run_tool("analysis.compare", main))

@@ -105,6 +105,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--full-throttle-above", type=float, default=None, metavar="T",
                         help="also drive each policy with its throttles >= T made full (a diagnostic)")
     args = parser.parse_args(argv)
+    from engine.processes import check_outputs
+
+    check_outputs(parser, table=args.table)
+
     if args.full_throttle_above is not None and not -1 <= args.full_throttle_above <= 1:
         parser.error(f"--full-throttle-above must be a throttle in [-1, 1], got {args.full_throttle_above}")
     if not 1 <= args.episodes <= 1000:
@@ -137,4 +141,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from engine.processes import run_tool
+
+    raise SystemExit(run_tool("analysis.driving", main))

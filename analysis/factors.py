@@ -136,6 +136,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--table", type=Path, default=None, help="write the rows as CSV")
     parser.add_argument("--running", action="store_true", help="leave out configurations still running")
     args = parser.parse_args(argv)
+    from engine.processes import check_outputs
+
+    check_outputs(parser, markdown=args.markdown, table=args.table)
+
     for path in (args.markdown, args.table):
         if path is not None and not path.parent.is_dir():
             print(f"analysis.factors: {path.parent} is not a folder; give a file in an existing folder", file=sys.stderr)
@@ -159,4 +163,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from engine.processes import run_tool
+
+    raise SystemExit(run_tool("analysis.factors", main))

@@ -143,4 +143,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from engine.processes import run_tool
+
+    raise SystemExit(run_tool("benchmarks.env_speed", main))

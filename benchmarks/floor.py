@@ -234,4 +234,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from engine.processes import run_tool
+
+    raise SystemExit(run_tool("benchmarks.floor", main))

@@ -69,4 +69,6 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from engine.processes import run_tool
+
+    raise SystemExit(run_tool("benchmarks.oracle_convergence", main))

@@ -195,6 +195,9 @@ def make_torchrl_logger(kind: str, out_dir: Path, scalars: list[str] = ()):
 def write_table(path: Path, rows: list[dict]) -> None:
     """Rows (dicts with the same keys) as a CSV file, its header the first row's keys; prints where."""
     path = Path(path)
+    if not rows:
+        print(f"no rows to write: {path} was not written")
+        return
     text = io.StringIO(newline="")
     writer = csv.DictWriter(text, fieldnames=list(rows[0]))
     writer.writeheader()

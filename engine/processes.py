@@ -49,6 +49,20 @@ def run_tool(name: str, main) -> int:
         return 143 if received == "SIGTERM" else 130
 
 
+def check_outputs(parser, **outputs) -> None:
+    """Before a tool's work: each output file its command line names (``table=args.table``, ...) can
+    be written (``racing.files.check_target``), else ``parser.error`` with one line."""
+    from racing import files
+
+    for option, path in outputs.items():
+        if path is None:
+            continue
+        try:
+            files.check_target(path)
+        except files.FileRefused as err:
+            parser.error(f"--{option.replace('_', '-')}: {err}")
+
+
 def readable_output() -> None:
     """Standard output and error print what cannot be encoded (a folder name that is not UTF-8)
     escaped, instead of ending the tool in a ``UnicodeEncodeError``."""

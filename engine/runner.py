@@ -29,6 +29,7 @@ import signal
 import time
 import warnings
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -199,10 +200,19 @@ def _train_parts(cfg: RunConfig, out_dir: Path, parts: list, member_settings: di
     shared = context.Value("i", 0, lock=False)  # the number of the signal that stopped the population (0: none)
     stopped: list[str] = []
     results: dict[int, list[dict]] = {}
-    with ProcessPoolExecutor(min(cfg.processes, len(parts)), mp_context=context, initializer=_part_initializer,
-                             initargs=(shared,)) as pool:
+    ignored = signal.getsignal(signal.SIGINT) is signal.SIG_IGN  # e.g. a background job's: stays so in the parts
+    # The parts start with SIGINT ignored (inherited across their exec) until their initializer sets it as this
+    # process has it: a Ctrl-C to the terminal's process group while they import torch is this process's to pass
+    # on, not a traceback in each of them
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        pool = ProcessPoolExecutor(min(cfg.processes, len(parts)), mp_context=context, initializer=_part_initializer,
+                                   initargs=(shared, ignored))
         futures = {pool.submit(_train_part, cfg, out_dir, seeds, member_settings, settings, path, compiled): i
                    for i, (path, seeds, _) in enumerate(parts)}
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    with pool:
         pending = set(futures)
         try:
             while pending:
@@ -213,6 +223,8 @@ def _train_parts(cfg: RunConfig, out_dir: Path, parts: list, member_settings: di
                         stopped.append(str(error))
                         if not shared.value:  # a part stopped by a signal of its own: the others follow
                             shared.value = _signal_number(str(error))
+                    elif isinstance(error, BrokenProcessPool) and (shared.value or stop.requested):
+                        pass  # a part ended by the stop while it was starting: it had saved nothing
                     elif error is not None:
                         shared.value = shared.value or signal.SIGTERM  # the others stop, the error is raised
                         wait(pending)
@@ -227,7 +239,7 @@ def _train_parts(cfg: RunConfig, out_dir: Path, parts: list, member_settings: di
             for future in pending:
                 if isinstance(future.exception(), RunStopped):
                     stopped.append(str(future.exception()))
-        if stopped or shared.value:
+        if stopped or shared.value or stop.requested or len(results) < len(parts):
             name = signal.Signals(shared.value).name if shared.value else stop.requested or "SIGINT"
             raise RunStopped(_parts_stopped(name, stopped))
     return [summary for i in sorted(results) for summary in results[i]]
@@ -251,9 +263,11 @@ def _parts_stopped(name: str, lines: list[str]) -> str:
             f"{f' ({unsaved} part(s) had saved nothing yet)' if unsaved else ''}: the same command resumes from there")
 
 
-def _part_initializer(shared) -> None:
+def _part_initializer(shared, sigint_ignored: bool = False) -> None:
+    """A part's process, once started: the population's stop, and SIGINT as the parent had it."""
     global _SHARED_STOP
     _SHARED_STOP = shared
+    signal.signal(signal.SIGINT, signal.SIG_IGN if sigint_ignored else signal.default_int_handler)
 
 
 _SHARED_STOP = None  # in a part's process: the population's stop (``_train_parts``)
@@ -317,7 +331,16 @@ def _resumed_parts(out_dir: Path, settings: dict | None,
                               f"({here}{why}); continuing would make one run of two, whose numbers no uninterrupted "
                               "run gives. Remove the cause and run the same command again, or pass "
                               "resume_numerics=any to continue (summary.json then records both)")
-        parts.append((path, tuple(payload["members"]), payload))
+        members = tuple(payload["members"])
+        named = path.name.removeprefix("checkpoint-").removesuffix(".pt")
+        if path.name != checkpoint.CHECKPOINT_FILE and named != str(members[0] if members else None):
+            raise ConfigError(f"{path} holds the members {list(members)}, not a part starting at seed {named} as its "
+                              "name says: renamed or copied; move it away (or pass overwrite=true) to start afresh")
+        taken = [seed for _, earlier, _ in parts for seed in earlier if seed in members]
+        if taken:
+            raise ConfigError(f"{path} holds members {taken} that another checkpoint in {out_dir} holds too: two "
+                              "processes would train them into one folder; move one away (or pass overwrite=true)")
+        parts.append((path, members, payload))
     return parts
 
 

@@ -272,18 +272,26 @@ def folder(path, root=None, create: bool = False) -> Path:
 
 def private(path) -> Path:
     """The folder ``path`` as this user's alone (for a cache whose files are loaded as code): made if
-    missing (its parents too), not a link, owned by this user, and only this user may write it
-    (mode 0700 set where it was wider). ``FileRefused`` if another user owns it."""
+    missing (its parents too; mode 0700), not a link, owned by this user, and only this user may
+    write it (write permission taken from group and others where they had it). ``FileRefused`` if
+    another user owns it."""
     path = Path(path)
     folder(path.parent, path.parent, create=True)
-    folder(path, path.parent, create=True)
+    if not os.path.lexists(path):
+        try:
+            os.mkdir(path, 0o700)
+        except FileExistsError:
+            pass
+        except OSError as err:
+            raise _refusal(path, err, "make the folder") from None
+    folder(path, path.parent)
     info = os.lstat(path)
     if hasattr(os, "getuid") and info.st_uid != os.getuid():
         raise FileRefused(f"{path} belongs to another user (uid {info.st_uid}); a folder whose files are loaded as "
                           "code must be this user's own: remove it or choose another")
-    if stat.S_IMODE(info.st_mode) & 0o077:
+    if stat.S_IMODE(info.st_mode) & 0o022:  # others may write into it: no longer
         try:
-            os.chmod(path, 0o700)
+            os.chmod(path, stat.S_IMODE(info.st_mode) & ~0o022)
         except OSError as err:
             raise _refusal(path, err, "make private") from None
     return path

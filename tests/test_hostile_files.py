@@ -320,7 +320,7 @@ def test_compiled_code_is_cached_in_a_folder_of_this_users_own(tmp_path, monkeyp
     os.mkdir(tmp_path / "cache" / "inductor", 0o777)
     os.chmod(tmp_path / "cache" / "inductor", 0o777)
     assert compiling.inductor_cache() == str(tmp_path / "cache" / "inductor")
-    assert stat.S_IMODE(os.lstat(tmp_path / "cache" / "inductor").st_mode) == 0o700
+    assert stat.S_IMODE(os.lstat(tmp_path / "cache" / "inductor").st_mode) & 0o022 == 0
     shutil.rmtree(tmp_path / "cache" / "inductor")
     (tmp_path / "cache" / "inductor").symlink_to(tmp_path)
     monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
@@ -414,3 +414,95 @@ def test_a_folder_name_that_is_not_utf8_is_reported_escaped(tmp_path, finished):
     result = run("report.py", str(sweep), "--no-figures", timeout=120)
     assert result.returncode == 0 and "Traceback" not in result.stderr, result.stderr[-2000:]
     assert "seed\\udcff" in (sweep / "report" / "runs.csv").read_text()
+
+
+# ------------------------------------------------------------------ the second hostile trial's findings
+
+def test_a_cached_kernel_library_without_the_kernels_falls_back_in_one_line(tmp_path):
+    """A library whose record matches but that is not the kernels (a planted one) ended in an
+    AttributeError traceback; one of another user's is rebuilt, never loaded."""
+    import subprocess
+    import sys
+
+    from learners import kernels
+
+    if kernels._compiler() is None:
+        pytest.skip("no C++ compiler here")
+    cache = tmp_path / "cache"
+    probe = ("from learners import kernels; path, digest = kernels._build(); print(path)")
+    built = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, env={**ENV, "RACING_KERNEL_CACHE": str(cache)},
+                           capture_output=True, text=True, timeout=300)
+    path = Path(built.stdout.strip().splitlines()[-1])
+    source = tmp_path / "other.c"
+    source.write_text("int unrelated(void) { return 1; }\n")
+    subprocess.run(["gcc", "-shared", "-fPIC", str(source), "-o", str(path)], check=True)
+    import hashlib
+
+    path.with_name(path.name + ".sha256").write_text(hashlib.sha256(path.read_bytes()).hexdigest() + "\n")
+    reason = subprocess.run([sys.executable, "-c", "from learners import kernels; print(kernels.unavailable_reason())"],
+                            cwd=ROOT, env={**ENV, "RACING_KERNEL_CACHE": str(cache)}, capture_output=True, text=True,
+                            timeout=300)
+    assert reason.returncode == 0 and "the cached library lacks" in reason.stdout, reason.stderr[-2000:]
+    if os.geteuid() == 0:  # another user's library: rebuilt (root can give it away)
+        os.chown(path, 65534, 65534)
+        rebuilt = subprocess.run([sys.executable, "-c", "from learners import kernels; print(kernels.unavailable_reason())"],
+                                 cwd=ROOT, env={**ENV, "RACING_KERNEL_CACHE": str(cache), "PYTHONWARNINGS": "default"},
+                                 capture_output=True, text=True, timeout=300)
+        assert rebuilt.stdout.strip() == "None" and "belongs to another user" in rebuilt.stderr
+        assert os.lstat(path).st_uid == os.getuid()
+
+
+def test_checkpoints_that_overlap_or_whose_name_lies_are_refused(tmp_path):
+    """Two processes trained one member into one folder, and a finished member's results were
+    destroyed, from a copied or renamed split-population checkpoint (found by a hostile trial)."""
+    from engine.config import ConfigError
+    from tests.fault_injection import stopped_after
+
+    population = [*CHECKPOINTED, "seeds=[1,2]"]
+    folder = tmp_path / "population"
+    with stopped_after(2):
+        train(population, folder)
+    shutil.copy(folder / "checkpoint.pt", folder / "checkpoint-1.pt")
+    with pytest.raises(ConfigError, match="that another checkpoint .* holds too"):
+        train(population, folder)
+    (folder / "checkpoint-1.pt").rename(folder / "checkpoint-7.pt")
+    (folder / "checkpoint.pt").unlink()
+    with pytest.raises(ConfigError, match=r"holds the members \[1, 2\], not a part starting at seed 7"):
+        train(population, folder)
+
+
+def test_the_slurm_launcher_stops_waiting_when_squeue_cannot_answer(monkeypatch):
+    """Without squeue (or with it failing) the launcher waited forever and ignored SIGINT and SIGTERM."""
+    from types import SimpleNamespace
+
+    from hydra_plugins.racing_launcher import slurm
+
+    job = SimpleNamespace(job_id="4242_0", paths=SimpleNamespace(result_pickle=Path("/nonexistent/result.pkl")))
+    monkeypatch.setattr(slurm, "squeue_states", lambda ids: None)
+    with pytest.raises(slurm.SweepJobsFailed):
+        slurm.wait_for([job], poll_s=0.01, grace_s=0.01, patience_s=0.05)
+
+
+def test_drive_without_a_display_ends_with_its_line(tmp_path):
+    """With SDL's offscreen driver (no display, SDL_VIDEODRIVER unset) drive.py waited for a window
+    no one could close (found by a hostile trial)."""
+    pytest.importorskip("pygame")
+    result = run("drive.py", "--max-steps", "5", "--no-oracle", env={**ENV, "SDL_VIDEODRIVER": "offscreen"},
+                 timeout=120)
+    assert result.returncode == 0 and result.stdout.strip().splitlines()[-1].startswith("you: ")
+
+
+def test_analysis_and_track_outputs_are_checked_before_the_work(tmp_path):
+    runs_csv = tmp_path / "runs.csv"
+    runs_csv.write_text("er,algo,seed,status,final_mean\nmemory,sac,1,completed,1.0\n")
+    os.mkfifo(tmp_path / "fifo.md")
+    compare = run("analysis/compare.py", str(runs_csv), str(runs_csv), "--markdown", str(tmp_path / "fifo.md"))
+    assert compare.returncode == 2 and "FIFO" in compare.stderr and "Traceback" not in compare.stderr
+    track = tmp_path / "oval.png"
+    shutil.copy(ROOT / "racing" / "tracks" / "oval.csv", track)
+    show = run("tracks.py", "show", str(track))
+    assert show.returncode == 2 and "is the track file itself" in show.stderr
+    assert track.read_bytes() == (ROOT / "racing" / "tracks" / "oval.csv").read_bytes()
+    runs_csv.write_text("er,algo,seed,status,final_mean\nmemory,sac,1,completed,nan\n")
+    nan = run("analysis/compare.py", str(runs_csv), str(runs_csv))
+    assert nan.returncode == 2 and "not a finite number" in nan.stderr

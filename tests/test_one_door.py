@@ -125,3 +125,17 @@ def test_the_check_finds_each_kind_of_call(tmp_path):
         assert violations(sample) == []
     finally:
         sample.unlink(missing_ok=True)
+
+
+def test_every_command_line_tool_ends_through_run_tool():
+    """Every tool's refusals end in one line (``engine.processes.run_tool`` turns the file door's
+    ``FileRefused`` into one, and a signal into one): a module run as a command hands its ``main`` to
+    it. train.py has Hydra's own path (its ``_run``), tested in tests/test_train.py."""
+    missing = []
+    for path in project_files():
+        text = path.read_text()
+        if 'if __name__ == "__main__":' in text and path.name != "train.py":
+            block = text[text.index('if __name__ == "__main__":'):]
+            if "run_tool(" not in block:
+                missing.append(str(path.relative_to(ROOT)))
+    assert not missing, f"these commands do not end through engine.processes.run_tool: {missing}"

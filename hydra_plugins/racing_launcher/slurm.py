@@ -17,6 +17,7 @@ with status 1: that summary is the last thing the submitting command prints.
 from __future__ import annotations
 
 import logging
+import shutil
 import subprocess
 import sys
 import time
@@ -51,7 +52,12 @@ class SlurmLauncher(_SubmititSlurmLauncher):
         params = dict(self.params)
         folder = params.pop("submitit_folder")
         init = {f"slurm_{key}": params.pop(key) for key in ("max_num_timeout",) if key in params}
-        executor = submitit.AutoExecutor(folder=folder, cluster="slurm", **init)
+        try:
+            executor = submitit.AutoExecutor(folder=folder, cluster="slurm", **init)
+        except RuntimeError as err:  # e.g. submitit's 'Could not detect "srun"': not on a SLURM cluster
+            print(f"The sweep's jobs were not submitted: {_last_line(str(err))} (hydra/launcher=slurm needs a "
+                  "SLURM cluster's commands: srun, sbatch, squeue)", file=sys.stderr)
+            raise SweepJobsFailed(2) from None
         generic = set(OmegaConf.structured(BaseQueueConf).keys())
         executor.update_parameters(**{k if k in generic else f"slurm_{k}": v for k, v in params.items()})
         from racing import files
@@ -66,7 +72,9 @@ class SlurmLauncher(_SubmititSlurmLauncher):
         if jobs:
             log.info(f"Submitted job array {jobs[0].job_id.split('_')[0]} ({len(jobs)} jobs); waiting for all of "
                      f"them (logs in {folder.replace('%j', '<job id>')})")
-        ended = wait_for(jobs, self.poll_s, self.grace_s)
+        from engine.processes import STOP_FILE
+
+        ended = wait_for(jobs, self.poll_s, self.grace_s, stop_file=sweep_dir / STOP_FILE)
         returns, failures = [], []
         for job, overrides in zip(jobs, job_overrides):
             if not ended[job.job_id]:
@@ -85,14 +93,39 @@ class SlurmLauncher(_SubmititSlurmLauncher):
         return returns
 
 
-def wait_for(jobs: list, poll_s: float, grace_s: float) -> dict[str, bool]:
-    """Wait until every job has ended; {job id: whether it left a result file}."""
+SQUEUE_PATIENCE_S = 600.0  # how long squeue may keep failing before the sweep stops waiting for it
+
+
+def wait_for(jobs: list, poll_s: float, grace_s: float, stop_file: Path | None = None,
+             patience_s: float = SQUEUE_PATIENCE_S) -> dict[str, bool]:
+    """Wait until every job has ended; {job id: whether it left a result file}. Gives up on the jobs
+    still pending (False) once the sweep's stop file has been there ``grace_s`` times 6 (its jobs stop
+    at their episode's end), and raises ``SweepJobsFailed`` with one line if ``squeue`` cannot be run
+    at all, or fails for ``patience_s`` on end (nothing could ever say the jobs ended)."""
+    from engine.processes import read_stop_file
+
     pending = {job.job_id: job for job in jobs}
     gone_since: dict[str, float] = {}
     outcome: dict[str, bool] = {}
+    failing_since: float | None = None
+    stopped_since: float | None = None
     while pending:
         states = squeue_states(sorted({j.split("_")[0] for j in pending}))
         now = time.monotonic()
+        if states is None:
+            failing_since = now if failing_since is None else failing_since
+            if shutil.which("squeue") is None or now - failing_since > patience_s:
+                print(f"Stopped waiting for the sweep's jobs: squeue {'is not installed here' if shutil.which('squeue') is None else f'has failed for {patience_s:.0f} s'}, "
+                      "so nothing can tell when they end; they may still be running (the same command, run "
+                      "again, skips the finished ones)", file=sys.stderr)
+                raise SweepJobsFailed(1)
+        else:
+            failing_since = None
+        if stop_file is not None and read_stop_file(stop_file) is not None:
+            stopped_since = now if stopped_since is None else stopped_since
+            if now - stopped_since > 6 * grace_s:
+                outcome.update({job_id: job.paths.result_pickle.exists() for job_id, job in pending.items()})
+                return outcome
         for job_id, job in list(pending.items()):
             if job.paths.result_pickle.exists():
                 outcome[job_id] = True

@@ -73,14 +73,22 @@ def _build() -> tuple[Path, str]:
     key = hashlib.sha256(b"\0".join([source, " ".join(FLAGS).encode(), version.encode(),
                                      platform.machine().encode()])).hexdigest()[:16]
     folder = cache_dir()
+    try:  # a folder whose library is loaded as code: this user's alone (not a link, mode 0700)
+        files.private(folder)
+    except (OSError, files.FileRefused) as err:
+        raise KernelError(f"the kernel cache {folder} cannot be used: {err} (set RACING_KERNEL_CACHE)") from None
     path = folder / f"gemm-{key}.so"
     record = folder / f"gemm-{key}.so.sha256"
     if os.path.lexists(path):
         try:
             recorded = files.read_text(record, 200, "kernel digest").strip()
-            if files.digest(path)["sha256"] == recorded:
+            owners = {os.lstat(path).st_uid, os.lstat(record).st_uid}
+            if hasattr(os, "getuid") and owners != {os.getuid()}:
+                problem = f"or its record belongs to another user (uid {sorted(owners)})"
+            elif files.digest(path)["sha256"] == recorded:
                 return path, recorded
-            problem = "differs from the library that was built (its SHA-256 does not match the one recorded)"
+            else:
+                problem = "differs from the library that was built (its SHA-256 does not match the one recorded)"
         except FileNotFoundError:
             problem = "has no record of its SHA-256 (built by an earlier version, or its record was lost)"
         except (OSError, files.FileRefused) as err:
@@ -88,7 +96,6 @@ def _build() -> tuple[Path, str]:
         warnings.warn(f"the cached kernel library {path} {problem}; it is rebuilt, not loaded", RuntimeWarning,
                       stacklevel=4)
     try:
-        files.folder(folder, folder, create=True)
         with files.build(path) as tmp:
             result = subprocess.run([cxx, *FLAGS, str(SOURCE), "-o", str(tmp)], capture_output=True, text=True,
                                     timeout=300)
@@ -110,15 +117,18 @@ def _load() -> tuple[ctypes.CDLL | None, str | None]:
         return None, str(err)
     except (OSError, files.FileRefused) as err:
         return None, f"the compiled kernels do not load: {err}"
-    i64, ptr = ctypes.c_int64, ctypes.c_void_p
-    lib.racing_gemm_isas.restype, lib.racing_gemm_isas.argtypes = ctypes.c_int, []
-    lib.racing_gemm.restype = ctypes.c_int
-    lib.racing_gemm.argtypes = [ctypes.c_int, i64, i64, i64, i64, ptr, i64, i64, i64, ptr, i64, i64, i64,
-                                ptr, i64, i64, i64, ptr, i64, i64]
-    lib.racing_colsum.restype = None
-    lib.racing_colsum.argtypes = [i64, i64, i64, ptr, i64, i64, i64, ptr, i64]
-    lib.racing_fma_loop.restype, lib.racing_fma_loop.argtypes = ctypes.c_float, [ctypes.c_int, i64]
-    lib.racing_sqrt.restype, lib.racing_sqrt.argtypes = ctypes.c_int, [ctypes.c_int, i64, ptr, ptr]
+    try:
+        i64, ptr = ctypes.c_int64, ctypes.c_void_p
+        lib.racing_gemm_isas.restype, lib.racing_gemm_isas.argtypes = ctypes.c_int, []
+        lib.racing_gemm.restype = ctypes.c_int
+        lib.racing_gemm.argtypes = [ctypes.c_int, i64, i64, i64, i64, ptr, i64, i64, i64, ptr, i64, i64, i64,
+                                    ptr, i64, i64, i64, ptr, i64, i64]
+        lib.racing_colsum.restype = None
+        lib.racing_colsum.argtypes = [i64, i64, i64, ptr, i64, i64, i64, ptr, i64]
+        lib.racing_fma_loop.restype, lib.racing_fma_loop.argtypes = ctypes.c_float, [ctypes.c_int, i64]
+        lib.racing_sqrt.restype, lib.racing_sqrt.argtypes = ctypes.c_int, [ctypes.c_int, i64, ptr, ptr]
+    except AttributeError as err:  # a library without the kernels' functions: not the one built from gemm.cpp
+        return None, f"the compiled kernels do not load: the cached library lacks {err}"
     return lib, None
 
 
