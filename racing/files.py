@@ -302,14 +302,7 @@ def check_target(path) -> None:
     command line, checked before its work): something there that is not a regular file or a link,
     or a part of the path that is not a folder."""
     path = Path(path)
-    try:
-        info = os.lstat(path)
-    except FileNotFoundError:
-        info = None
-    except OSError as err:
-        raise _refusal(path, err, "write") from None
-    if info is not None and not (stat.S_ISREG(info.st_mode) or stat.S_ISLNK(info.st_mode)):
-        raise FileRefused(f"cannot write {path}: it is {kind(info.st_mode)}; give a file name")
+    _replaceable(path)
     parent = Path(os.path.abspath(path)).parent
     while not os.path.lexists(parent) and parent.parent != parent:
         parent = parent.parent
@@ -362,14 +355,7 @@ def write_atomic(path, data, root=None) -> None:
     free = free_bytes(path.parent)
     if free is not None and free < size:
         raise DiskFull(path, size)
-    try:
-        info = os.lstat(path)
-    except FileNotFoundError:
-        info = None
-    except OSError as err:
-        raise _refusal(path, err, "write") from None
-    if info is not None and not (stat.S_ISREG(info.st_mode) or stat.S_ISLNK(info.st_mode)):
-        raise FileRefused(f"cannot write {path}: it is {kind(info.st_mode)}, not a regular file; remove it")
+    _replaceable(path)
     tmp = path.with_name(f"{path.name}.{secrets.token_hex(4)}.tmp")
     if len(tmp.name.encode()) > NAME_BYTES:
         raise FileRefused(f"cannot write {path}: its name is too long for the file system")
@@ -392,6 +378,19 @@ def write_atomic(path, data, root=None) -> None:
             os.unlink(tmp)
         raise
     _sync_folder(path.parent)
+
+
+def _replaceable(path: Path) -> None:
+    """``FileRefused`` unless ``path`` is absent, a regular file or a link (what a write may replace)."""
+    try:
+        info = os.lstat(path)
+    except FileNotFoundError:
+        return
+    except OSError as err:
+        raise _refusal(path, err, "write") from None
+    if not (stat.S_ISREG(info.st_mode) or stat.S_ISLNK(info.st_mode)):
+        raise FileRefused(f"cannot write {path}: it is {kind(info.st_mode)}, not a regular file; move it away or "
+                          "give another name")
 
 
 def _sync_folder(path) -> None:
