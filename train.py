@@ -21,11 +21,15 @@ import signal
 import sys
 from pathlib import Path
 
+from engine.processes import deferred  # light (the standard library): before the handlers need it
+
 
 def _stopped_early(number, frame) -> None:
     """SIGINT or SIGTERM before a run trains (while it loads, checks and prepares): one line, not a
     traceback; nothing of the run was written yet (``engine.processes.StopSignals`` takes over
     while it trains)."""
+    if deferred(number, frame):  # inside torch's Python code, maybe called from its C++: sent again shortly
+        return
     name = signal.Signals(number).name
     if _trained:
         print(f"Stopped by {name} after training ended (its results are written)", file=sys.stderr)

@@ -35,9 +35,12 @@ def run_tool(name: str, main) -> int:
     readable_output()
 
     def stop(number, frame):
-        raise KeyboardInterrupt(signal.Signals(number).name)
+        if not deferred(number, frame):
+            raise KeyboardInterrupt(signal.Signals(number).name)
 
     signal.signal(signal.SIGTERM, stop)
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # an ignored SIGINT stays ignored
+        signal.signal(signal.SIGINT, stop)
     try:
         return main()
     except FileRefused as err:
@@ -47,6 +50,23 @@ def run_tool(name: str, main) -> int:
         received = str(err) or "SIGINT"
         print(f"{name}: stopped by {received} before it finished", file=sys.stderr)
         return 143 if received == "SIGTERM" else 130
+
+
+def deferred(number: int, frame) -> bool:
+    """Whether a signal handler's exception must wait: ``frame`` (the Python code the signal
+    interrupted) is torch's, which its C++ may be running as a callback (while torch imports, say),
+    and an exception raised there aborts the whole process (``terminate called after throwing
+    pybind11::error_already_set``) instead of stopping it in one line. The signal is then sent
+    again 50 ms later, until it lands outside torch's Python code."""
+    torch_dir = os.sep + "torch" + os.sep
+    while frame is not None:
+        if torch_dir in frame.f_code.co_filename:
+            timer = threading.Timer(0.05, os.kill, (os.getpid(), number))
+            timer.daemon = True
+            timer.start()
+            return True
+        frame = frame.f_back
+    return False
 
 
 def check_outputs(parser, **outputs) -> None:

@@ -145,3 +145,30 @@ def test_every_tool_stops_on_a_signal_in_one_line():
         tree = ast.parse((ROOT / f"{tool}.py").read_text())
         (block,) = [node for node in tree.body if isinstance(node, ast.If) and "__main__" in ast.unparse(node.test)]
         assert f'run_tool({tool!r}, main)' in ast.unparse(block).replace('"', "'"), tool
+
+
+def test_a_signal_inside_torchs_python_code_waits_until_it_can_stop_the_tool(tmp_path):
+    """An exception raised in Python code that torch's C++ runs as a callback (while torch imports,
+    say) aborted the process ('terminate called after throwing pybind11::error_already_set', status
+    -6) instead of one line: such a signal is sent again until it lands outside torch's code."""
+    from engine.processes import deferred
+
+    class Code:
+        def __init__(self, filename):
+            self.co_filename = filename
+
+    class Frame:
+        def __init__(self, filename, back=None):
+            self.f_code, self.f_back = Code(filename), back
+
+    ours = Frame("/x/racing/oracle.py", Frame("/x/score.py"))
+    assert not deferred(signal.SIGUSR1, ours)
+    received = []
+    previous = signal.signal(signal.SIGUSR1, lambda number, frame: received.append(number))
+    try:
+        inside = Frame("/venv/lib/python3.11/site-packages/torch/_ops.py", ours)
+        assert deferred(signal.SIGUSR1, inside)
+        time.sleep(0.3)
+        assert received == [signal.SIGUSR1]  # sent again
+    finally:
+        signal.signal(signal.SIGUSR1, previous)
