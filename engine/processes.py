@@ -77,6 +77,8 @@ def check_outputs(parser, **outputs) -> None:
     for option, path in outputs.items():
         if path is None:
             continue
+        if os.path.isdir(path):
+            parser.error(f"--{option.replace('_', '-')} {path} is a folder; give a file name")
         try:
             files.check_target(path)
         except files.FileRefused as err:
