@@ -28,6 +28,7 @@ import json
 import os
 import re
 import socket
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -97,8 +98,6 @@ def linked_file(folder: Path) -> str | None:
     link, a FIFO, a device or a folder at a file's name, a file at a folder's name, or anything
     below ``logs/`` or ``.hydra/`` that is a link, a special file or a hard link (TorchRL's loggers
     open their files themselves: their folder is checked whole, ``racing.files.check_tree``)."""
-    import stat
-
     folder = Path(folder)
     for path in _run_files(folder):
         try:
@@ -231,7 +230,7 @@ def _mismatch(folder: Path, summary: dict) -> str | None:
                 info = os.lstat(path)
             except OSError:
                 return f"{path} is missing (its summary records it)"
-            if not files.is_file(path):
+            if not stat.S_ISREG(info.st_mode):
                 return f"{path} is {files.kind(info.st_mode)}, not the file its summary records"
             size = info.st_size  # sizes first: a file grown to gigabytes is not read
             if size != expected.get("bytes"):
@@ -312,10 +311,9 @@ def _acquire(folder: Path) -> None:
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
-        holder = _holder(fd)
+        busy = _busy(folder, fd)
         os.close(fd)
-        raise RunFolderBusy(f"{folder} is in use by another process ({holder}); wait for it to end, or stop it "
-                            "(its run resumes from its checkpoint)") from None
+        raise RunFolderBusy(busy) from None
     except OSError as err:
         os.close(fd)
         raise RunFolderError(f"cannot lock {path} ({first_line(err)})") from None
@@ -339,11 +337,17 @@ def in_use(folder: Path) -> str | None:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         return None
     except BlockingIOError:
-        return f"{folder} is in use by another process ({_holder(fd)}); wait for it to end, or stop it"
+        return _busy(folder, fd)
     except OSError:
         return None
     finally:
         os.close(fd)  # releases a lock it took
+
+
+def _busy(folder: Path, fd: int) -> str:
+    """Why ``folder`` cannot be used now: another process holds the lock open on ``fd``."""
+    return (f"{folder} is in use by another process ({_holder(fd)}); wait for it to end, or stop it (its run "
+            "resumes from its checkpoint)")
 
 
 def _holder(fd: int) -> str:

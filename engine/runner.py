@@ -402,9 +402,11 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
     segments = [numerics_segment(0)]  # the products each session computed with (a new one where they differ)
     if payload is not None:
         first, timing = _restore(payload, parts, env, generators, phases, members)
-        segments = [dict(seg) for seg in payload.get("numerics") or []] or [{**numerics_segment(0), "recorded": False}]
-        if not _same_numerics(segments[-1], numerics_segment(first)) or segments[-1].get("recorded") is False:
-            segments.append(numerics_segment(first))
+        # a checkpoint from before the record: its products are unknown, so this session's are a segment of their own
+        segments = [dict(seg) for seg in payload.get("numerics") or []] or [{"from_episode": 0, "recorded": False}]
+        now = numerics_segment(first)
+        if not _same_numerics(segments[-1], now):
+            segments.append(now)
         earlier_wall = timing.pop("wall_s", None)
         earlier_cpu = timing.pop("cpu_s", None)
         earlier = payload.get("code") or {"source": None}
