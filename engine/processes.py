@@ -20,6 +20,7 @@ from pathlib import Path
 
 
 _watching: set[int] = set()  # the parents this process already watches
+_deferred_since: dict[int, float] = {}  # signal -> when a library's code first made it wait
 
 
 def run_tool(name: str, main) -> int:
@@ -34,13 +35,9 @@ def run_tool(name: str, main) -> int:
 
     readable_output()
 
-    def stop(number, frame):
-        if not deferred(number, frame):
-            raise KeyboardInterrupt(signal.Signals(number).name)
-
-    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGTERM, interrupt)
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # an ignored SIGINT stays ignored
-        signal.signal(signal.SIGINT, stop)
+        signal.signal(signal.SIGINT, interrupt)
     try:
         return main()
     except FileRefused as err:
@@ -52,21 +49,64 @@ def run_tool(name: str, main) -> int:
         return 143 if received == "SIGTERM" else 130
 
 
+# The project's own packages (pyproject.toml's list; tests/test_signals.py keeps the two equal):
+# code of theirs is where a stop may raise, wherever the project is installed.
+PROJECT_PACKAGES = ("racing", "losses", "collectors", "learners", "engine", "analysis", "benchmark",
+                    "baselines", "imitation", "hydra_plugins")
+
+
+def _library(frame) -> bool | None:
+    """Whose code ``frame`` runs: True for an installed library's, False for the project's or a
+    script's, None for the standard library's (which decides nothing: contextlib's ``__exit__`` runs
+    for whoever called it)."""
+    module = (frame.f_globals.get("__name__") or "").split(".")[0]
+    filename = frame.f_code.co_filename
+    if module in sys.stdlib_module_names or filename.startswith("<frozen"):
+        return None
+    installed = any(f"{os.sep}{place}{os.sep}" in filename for place in ("site-packages", "dist-packages"))
+    return installed and module not in PROJECT_PACKAGES
+
+
 def deferred(number: int, frame) -> bool:
-    """Whether a signal handler's exception must wait: ``frame`` (the Python code the signal
-    interrupted) is torch's, which its C++ may be running as a callback (while torch imports, say),
-    and an exception raised there aborts the whole process (``terminate called after throwing
-    pybind11::error_already_set``) instead of stopping it in one line. The signal is then sent
-    again 50 ms later, until it lands outside torch's Python code."""
+    """Whether a signal handler's exception must wait, the signal being sent again 50 ms later
+    until it lands where raising is safe:
+
+    - whenever torch's Python code is anywhere on the stack, which its C++ may be running as a
+      callback (while torch imports, say), where an exception aborts the whole process
+      (``terminate called after throwing pybind11::error_already_set``);
+    - for at most a second, when the code the signal interrupted is an installed library's (the
+      innermost frame outside the standard library): an exception raised while omegaconf sets a
+      value leaves its objects half changed, and its clean-up then raises an unrelated error, a
+      traceback instead of one line. A library that waits (joblib for its workers) is interrupted
+      after that second."""
     torch_dir = os.sep + "torch" + os.sep
-    while frame is not None:
-        if torch_dir in frame.f_code.co_filename:
-            timer = threading.Timer(0.05, os.kill, (os.getpid(), number))
-            timer.daemon = True
-            timer.start()
-            return True
+    decided, inner = False, frame
+    while inner is not None:
+        if torch_dir in inner.f_code.co_filename:
+            decided = True
+            break
+        inner = inner.f_back
+    while not decided and frame is not None:
+        library = _library(frame)
+        if library is not None:
+            now = time.monotonic()
+            decided = library and now - _deferred_since.setdefault(number, now) < 1.0
+            break
         frame = frame.f_back
-    return False
+    if not decided:
+        _deferred_since.pop(number, None)
+    else:
+        timer = threading.Timer(0.05, os.kill, (os.getpid(), number))
+        timer.daemon = True
+        timer.start()
+    return decided
+
+
+def interrupt(number: int, frame) -> None:
+    """A SIGINT or SIGTERM handler for a tool's work: ``KeyboardInterrupt`` named after the signal,
+    raised where raising is safe (``deferred``)."""
+    if not deferred(number, frame):
+        raise KeyboardInterrupt(signal.Signals(number).name)
 
 
 def check_outputs(parser, **outputs) -> None:

@@ -35,7 +35,7 @@ numerics.apply(numerics.DEFAULT)  # before torch loads, as train.py does
 
 from engine import outputs, runner  # noqa: E402 (after the numerics)
 from engine.config import RunConfig  # noqa: E402
-from engine.processes import RunStopped  # noqa: E402
+from engine.processes import RunStopped, interrupt  # noqa: E402
 
 
 def arm(fault: dict) -> None:
@@ -84,6 +84,8 @@ def child(command: dict) -> int:
     log = os.open(command["log"], os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
     os.dup2(log, 1)
     os.dup2(log, 2)
+    for number in (signal.SIGINT, signal.SIGTERM):  # until the run takes them over, as train.py's
+        signal.signal(number, interrupt)
     try:
         settings = RunConfig.compose_mapping(*command["overrides"])
         cfg = RunConfig.from_mapping(settings)
@@ -93,9 +95,9 @@ def child(command: dict) -> int:
     except RunStopped as stopped:
         print(stopped, file=sys.stderr)
         return 130 if "SIGINT" in str(stopped) else 143
-    except KeyboardInterrupt:  # before the run took over SIGINT (train.py says so in one line too)
-        print("Stopped by SIGINT before training started", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as err:  # before the run took the signals over (train.py says so in one line too)
+        print(f"Stopped by {err} before training started", file=sys.stderr)
+        return 143 if str(err) == "SIGTERM" else 130
     except BaseException:
         traceback.print_exc()
         return 1

@@ -158,10 +158,11 @@ def test_a_signal_inside_torchs_python_code_waits_until_it_can_stop_the_tool(tmp
             self.co_filename = filename
 
     class Frame:
-        def __init__(self, filename, back=None):
+        def __init__(self, filename, back=None, module=None):
             self.f_code, self.f_back = Code(filename), back
+            self.f_globals = {"__name__": module or Path(filename).stem}
 
-    ours = Frame("/x/racing/oracle.py", Frame("/x/score.py"))
+    ours = Frame("/x/racing/oracle.py", Frame("/x/score.py", module="__main__"), module="racing.oracle")
     assert not deferred(signal.SIGUSR1, ours)
     received = []
     previous = signal.signal(signal.SIGUSR1, lambda number, frame: received.append(number))
@@ -172,3 +173,42 @@ def test_a_signal_inside_torchs_python_code_waits_until_it_can_stop_the_tool(tmp
         assert received == [signal.SIGUSR1]  # sent again
     finally:
         signal.signal(signal.SIGUSR1, previous)
+
+
+def test_a_signal_inside_a_librarys_code_waits_a_moment_for_the_projects(monkeypatch):
+    """A SIGINT landing while omegaconf set a value (Hydra composing a run's configuration) ended
+    in an unrelated AttributeError from omegaconf's clean-up, a traceback instead of one line (found
+    by the fault suite): a stop waits while a library's code runs, for at most a second (joblib
+    waiting for its workers must not make Ctrl-C wait forever); the standard library decides nothing,
+    and the project's packages are the project's wherever they are installed."""
+    import tomllib
+
+    from engine import processes
+
+    class Code:
+        def __init__(self, filename):
+            self.co_filename = filename
+
+    class Frame:
+        def __init__(self, filename, module, back=None):
+            self.f_code, self.f_globals, self.f_back = Code(filename), {"__name__": module}, back
+
+    monkeypatch.setattr(processes.threading, "Timer", lambda *args: type("T", (), {"start": lambda self: None})())
+    site = "/venv/lib/python3.11/site-packages"
+    script = Frame("/x/train.py", "__main__")
+    omegaconf = Frame(f"{site}/omegaconf/listconfig.py", "omegaconf.listconfig", script)
+    exiting = Frame("/usr/lib/python3.11/contextlib.py", "contextlib", omegaconf)
+    assert processes.deferred(signal.SIGUSR1, exiting)  # contextlib's __exit__ for omegaconf: omegaconf's
+    assert not processes.deferred(signal.SIGUSR2, Frame("/usr/lib/python3.11/contextlib.py", "contextlib", script))
+    installed = Frame(f"{site}/engine/config.py", "engine.config", omegaconf)
+    assert not processes.deferred(signal.SIGUSR2, installed)  # the project installed beside its libraries
+    clock = [100.0]
+    monkeypatch.setattr(processes.time, "monotonic", lambda: clock[0])
+    assert processes.deferred(signal.SIGHUP, omegaconf)
+    clock[0] += 0.9
+    assert processes.deferred(signal.SIGHUP, omegaconf)
+    clock[0] += 0.2
+    assert not processes.deferred(signal.SIGHUP, omegaconf)  # a second has passed: it stops here
+    assert processes.deferred(signal.SIGHUP, omegaconf)  # a new signal waits again
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]
+    assert {name.rstrip("*").split(".")[0] for name in declared["include"]} == set(processes.PROJECT_PACKAGES)
