@@ -1,13 +1,15 @@
 """Training speed: wall time of paper-length runs, and what each speed-up buys, in one process.
 
-    python -m benchmarks.train_speed [--episodes 201] [--cells spg_p_multi/hybrid ...]
+    python -m benchmarks.train_speed [--episodes 201] [--cells spg_p_multi/hybrid ...] [--pairs 2]
 
 Three tables, each with ratios against a baseline measured here in the same process:
 1. hidden-layer tanh: ``learners.solo.tanh`` against ``torch.tanh`` (minibatch sizes);
-2. one 200-step episode: the direct collector against ``torchrl.collectors.Collector``;
-3. one full run per algorithm (its most expensive replay mode by default), with the time
-   spent collecting and training, against the same runs with the TorchRL Collector for one
-   configuration (``--baseline``).
+2. one car's 200-step episodes: the TorchRL ``Collector`` as a run uses it (the default,
+   ``env.collector=torchrl``) against the direct loop, and with each of its lean pieces put
+   back to TorchRL's default (what each saves);
+3. whole runs per algorithm (its most expensive replay mode by default) with each collector,
+   alternated: the Collector's whole-run cost against the direct loop's, and the same
+   ``metrics.csv`` from both.
 Absolute numbers depend on the machine; compare ratios across machines. One thread, as the
 training runs use.
 """
@@ -31,9 +33,9 @@ if "torch" not in sys.modules:
 
 import torch  # noqa: E402
 
-from collectors import make_collector  # noqa: E402
+from collectors import ActingPolicy, make_collector  # noqa: E402
 from engine.config import RunConfig  # noqa: E402
-from learners.solo import GaussianPolicyNet, make_actor, make_policy, make_sampler, tanh  # noqa: E402
+from learners.solo import GaussianPolicyNet, make_sampler, tanh  # noqa: E402
 from engine.runner import train  # noqa: E402
 from racing.torchrl_env import RacingTorchEnv  # noqa: E402
 
@@ -93,64 +95,93 @@ def tanh_table(repeats: int) -> None:
 
 
 def collector_table(episodes: int) -> None:
-    times = {}
-    for backend in ("torchrl", "direct"):
-        torch.manual_seed(0)
-        net = GaussianPolicyNet(6, 2, [100])
-        env = RacingTorchEnv(1, track_seeds=[2067791])
-        env.set_seed(0)
-        collector = make_collector(backend, env, policy=make_policy(make_actor(net)), sample=make_sampler(net),
-                                   steps=200, episodes=episodes + 1)
-        batches = iter(collector)
-        next(batches)  # warm-up
-        start = time.perf_counter()
-        for _ in range(episodes):
-            next(batches)
-        times[backend] = (time.perf_counter() - start) / episodes
-        collector.shutdown()
-    base = times["torchrl"]
-    rows = [[name, f"{t * 1e3:.1f}", f"{base / t:.2f}x"] for name, t in
-            (("torchrl.collectors.Collector (baseline)", base), ("collectors.DirectCollector", times["direct"]))]
-    table("One 200-step episode, one car (milliseconds)", ["collector", "ms / episode", "speed-up"], rows)
+    """One car's 200-step episodes through each collector, and through the Collector with each of
+    its lean pieces put back to TorchRL's default, alternated: what each piece saves per step."""
+    from tensordict.nn import TensorDictModule
+    from torchrl.collectors import Collector
+    from torchrl.envs import EnvBase
+
+    class TorchRLStep(RacingTorchEnv):  # EnvBase's own step_and_maybe_reset (checks, done completion, step_mdp)
+        _step_and_maybe_reset = EnvBase._step_and_maybe_reset
+
+    def collector(variant: str, env, sample):
+        if variant == "direct":
+            return make_collector("direct", env, sample=sample, steps=200, episodes=episodes + 1)
+        if variant == "torchrl":
+            return make_collector("torchrl", env, sample=sample, steps=200, episodes=episodes + 1)
+        policy = TensorDictModule(sample, in_keys=["observation"], out_keys=["action"]) if variant == "module" \
+            else ActingPolicy(sample)
+        return Collector(env, policy, frames_per_batch=200, total_frames=200 * (episodes + 1), device=env.device,
+                         trust_policy=True, auto_register_policy_transforms=False,
+                         track_traj_ids=variant == "traj_ids")
+
+    names = {"direct": "collectors.DirectCollector (baseline)", "torchrl": "Collector, as a run uses it",
+             "traj_ids": "  with track_traj_ids=True", "module": "  with a TensorDictModule policy",
+             "envbase": "  with EnvBase's step_and_maybe_reset"}
+    times: dict[str, list[float]] = {name: [] for name in names}
+    for repeat in range(3):
+        for variant in (names if repeat % 2 == 0 else reversed(list(names))):
+            torch.manual_seed(0)
+            net = GaussianPolicyNet(6, 2, [100])
+            env = (TorchRLStep if variant == "envbase" else RacingTorchEnv)(1, track_seeds=[2067791])
+            env.set_seed(0)
+            batches = iter(collector(variant, env, make_sampler(net)))
+            next(batches)  # warm-up
+            start = time.perf_counter()
+            for _ in range(episodes):
+                next(batches)
+            times[variant].append((time.perf_counter() - start) / episodes / 200)
+    base = min(times["direct"])
+    rows = [[label, f"{min(times[v]) * 1e6:.0f}", f"{(min(times[v]) - base) * 1e6:+.0f}", f"{min(times[v]) / base:.2f}x"]
+            for v, label in names.items()]
+    table("One car, 200-step episodes (microseconds per step, best of 3 alternated)",
+          ["collector", "us / step", "against the baseline", "cost"], rows)
 
 
-def run(cell: str, episodes: int, *overrides: str) -> dict:
+def run(cell: str, episodes: int, collector: str) -> dict:
     algo, er = cell.split("/")
     cfg = RunConfig.compose(f"algo={algo}", f"er={er}", f"episodes={episodes}", "progress=false", "logger=none",
-                            *overrides)
+                            f"env.collector={collector}")
     with tempfile.TemporaryDirectory() as out:
-        return train(cfg, Path(out))
+        summary = train(cfg, Path(out))
+        summary["metrics_bytes"] = (Path(out) / "metrics.csv").read_bytes()
+        return summary
 
 
-def run_table(cells: list[str], episodes: int, baseline: str | None) -> None:
-    rows = []
-    base = None
-    if baseline:
-        s = run(baseline, episodes, "env.collector=torchrl")
-        base = s["wall_time_s"]
-        rows.append([f"{baseline} (TorchRL Collector, baseline)", f"{s['wall_time_s']:.1f}",
-                     f"{s['time/rollout_s']:.1f}", f"{s['time/train_s']:.1f}", "1.00x", f"{s['final_mean']:.1f}"])
+def run_table(cells: list[str], episodes: int, pairs: int) -> None:
+    """Whole runs of each cell with each collector, alternated (direct, torchrl, torchrl, direct, ...):
+    the Collector's whole-run cost against the direct loop's, and whether the runs are the same."""
+    rows, totals = [], {"direct": 0.0, "torchrl": 0.0}
     for cell in cells:
-        s = run(cell, episodes)
-        ratio = f"{base / s['wall_time_s']:.2f}x" if base and cell == baseline else ""
-        rows.append([cell, f"{s['wall_time_s']:.1f}", f"{s['time/rollout_s']:.1f}", f"{s['time/train_s']:.1f}",
-                     ratio, f"{s['final_mean']:.1f}"])
-    table(f"Full runs, {episodes} episodes, track 2067791, one thread (seconds)",
-          ["algo/er", "wall", "collecting", "training", "speed-up", "final_mean"], rows)
+        walls: dict[str, list[float]] = {"direct": [], "torchrl": []}
+        metrics = set()
+        for k in range(pairs):
+            for collector in (("direct", "torchrl") if k % 2 == 0 else ("torchrl", "direct")):
+                s = run(cell, episodes, collector)
+                walls[collector].append(s["wall_time_s"])
+                metrics.add(s["metrics_bytes"])
+        best = {c: min(w) for c, w in walls.items()}
+        for c in totals:
+            totals[c] += best[c]
+        rows.append([cell, f"{best['direct']:.1f}", f"{best['torchrl']:.1f}", f"{best['torchrl'] / best['direct']:.3f}",
+                     "yes" if len(metrics) == 1 else "NO"])
+    rows.append(["all cells", f"{totals['direct']:.1f}", f"{totals['torchrl']:.1f}",
+                 f"{totals['torchrl'] / totals['direct']:.3f}", ""])
+    table(f"Whole runs, {episodes} episodes, track 2067791, one thread (seconds, best of {pairs} alternated)",
+          ["algo/er", "direct loop", "TorchRL Collector", "Collector / direct", "same metrics.csv"], rows)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--episodes", type=int, default=201, help="episodes per full run (paper: 201)")
     parser.add_argument("--cells", nargs="*", default=DEFAULT_CELLS, help="algo/er pairs to time")
-    parser.add_argument("--baseline", default="spg_p_multi/hybrid",
-                        help="algo/er also run with the TorchRL Collector ('' to skip)")
+    parser.add_argument("--pairs", type=at_most(100), default=2, help="alternated pairs of whole runs per cell")
     parser.add_argument("--repeats", type=int, default=20, help="repeats of the micro-benchmarks")
     args = parser.parse_args()
     torch.set_num_threads(1)
     tanh_table(args.repeats)
     collector_table(max(2, args.repeats // 2))
-    run_table(args.cells, args.episodes, args.baseline or None)
+    run_table(args.cells, args.episodes, args.pairs)
 
 
 if __name__ == "__main__":

@@ -2,11 +2,14 @@
 
 Two interchangeable backends produce the same batches for the same seeds:
 
-- ``"torchrl"``: ``torchrl.collectors.Collector`` over any ``EnvBase`` and a TensorDict policy.
-- ``"direct"``: a plain loop over an environment's ``reset_tensors``/``step_tensors`` and a
-  tensor-in, tensor-out sampler. It makes the same environment and random-number calls without
-  the per-step TensorDict machinery, which dominates the cost of a single car (about 5x faster
-  at N = 1; see ``benchmarks/train_speed.py``).
+- ``"torchrl"`` (the default): ``torchrl.collectors.Collector`` over any ``EnvBase`` and a
+  TensorDict policy. Its per-step cost is kept near the simulator's by pieces of the design
+  itself: the racing env's ``step_and_maybe_reset`` (``RacingTorchEnv``: TorchRL's result without
+  its per-step checks), a lean acting policy (``ActingPolicy``) and no trajectory ids (a batch is
+  one episode per car).
+- ``"direct"``: a plain loop over the environment's ``reset_tensors``/``step_and_reset_tensors``
+  and a tensor-in, tensor-out sampler: the same environment and random-number calls with no
+  TensorDict per step, the baseline ``benchmarks/train_speed.py`` measures the Collector against.
 
 Both reset a car as soon as its episode ends (``done``), so a batch of ``steps`` frames is
 exactly one episode per car when episodes last ``steps`` frames, and between batches the
@@ -20,6 +23,7 @@ from typing import Protocol
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 
 BACKENDS = ("direct", "torchrl")
 DONE_KEYS = ("done", "terminated", "truncated")
@@ -32,7 +36,8 @@ class TensorStepEnv(Protocol):
 
     def reset_tensors(self, cars: torch.Tensor | None = None) -> dict[str, torch.Tensor]: ...
 
-    def step_tensors(self, action: torch.Tensor) -> dict[str, torch.Tensor]: ...
+    def step_and_reset_tensors(self, action: torch.Tensor) -> tuple[dict[str, torch.Tensor],
+                                                                    dict[str, torch.Tensor]]: ...
 
 
 class DirectCollector:
@@ -60,29 +65,31 @@ class DirectCollector:
         rows: list[dict[str, torch.Tensor]] = []
         for _ in range(self.steps):
             action = self.sample(state["observation"])
-            result = self.env.step_tensors(action)
-            rows.append({**{key: state[key] for key in self.carried}, "action": action,
-                         **{key: state[key] for key in DONE_KEYS}, "next": result})
-            state = self._reset_finished(result)
+            row = {key: state[key] for key in (*self.carried, *DONE_KEYS)}
+            # cars whose episode ended are reset at once, as TorchRL's step_and_maybe_reset does, so
+            # that between batches both backends leave the env in the same state (checkpoints are taken there)
+            result, state = self.env.step_and_reset_tensors(action)
+            rows.append({**row, "action": action, "next": result})
         self._state = state
         return _stack(rows, self.env.batch_size)
 
-    def _reset_finished(self, result: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        """The state to act on next: cars whose episode just ended are reset at once.
-
-        As TorchRL's ``step_and_maybe_reset`` does, so that between batches both backends
-        leave the environment in the same state (checkpoints are taken there).
-        """
-        done = result["done"]
-        if not done.any():
-            return {**{key: result[key] for key in self.carried}, **{key: result[key] for key in DONE_KEYS}}
-        fresh = self.env.reset_tensors(done)
-        keep = ~done
-        return {**{key: torch.where(keep, result[key], fresh[key]) for key in self.carried},
-                **{key: result[key] & keep for key in DONE_KEYS}}
-
     def shutdown(self) -> None:
         """Nothing to release (same interface as TorchRL's collectors)."""
+
+
+class ActingPolicy(TensorDictModuleBase):
+    """A tensor sampler (``observation -> action``) as a TensorDict policy for the ``Collector``:
+    it reads ``observation`` and writes ``action`` into the TensorDict it is given, with no
+    key dispatch per step. Both backends act through the same sampler, so they draw the same
+    actions."""
+
+    def __init__(self, sample: Callable[[torch.Tensor], torch.Tensor]):
+        super().__init__()
+        self.sample = sample
+        self.in_keys, self.out_keys = ["observation"], ["action"]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return tensordict.set("action", self.sample(tensordict.get("observation")))
 
 
 def _stack(rows: list[dict[str, torch.Tensor]], batch_size: torch.Size) -> TensorDictBase:
@@ -98,8 +105,9 @@ def _stack(rows: list[dict[str, torch.Tensor]], batch_size: torch.Size) -> Tenso
 def make_collector(backend: str, env, *, policy=None, sample=None, steps: int, episodes: int):
     """A collector yielding ``episodes`` batches of ``steps`` frames per car.
 
-    ``backend="torchrl"`` needs ``policy`` (a TensorDict module), ``"direct"`` needs
-    ``sample`` (tensor -> tensor) and an env with ``reset_tensors``/``step_tensors``.
+    ``backend="torchrl"`` needs ``policy`` (a TensorDict module; ``ActingPolicy(sample)`` when
+    only ``sample`` is given), ``"direct"`` needs ``sample`` (tensor -> tensor) and an env with
+    ``reset_tensors``/``step_and_reset_tensors``.
     """
     n = env.batch_size[0]
     total = steps * n * episodes
@@ -108,13 +116,15 @@ def make_collector(backend: str, env, *, policy=None, sample=None, steps: int, e
             raise ValueError("the direct collector needs sample=observation -> action")
         return DirectCollector(env, sample, steps, total)
     if backend == "torchrl":
-        if policy is None:
-            raise ValueError("the torchrl collector needs policy=a TensorDict module")
+        if policy is None and sample is None:
+            raise ValueError("the torchrl collector needs policy=a TensorDict module or sample=observation -> action")
         from torchrl.collectors import Collector
 
         # device=env.device: policy, env and storage on one device, so the collector casts nothing
         # (without it, it copies the carried TensorDict .to(env.device) at every step); trust_policy: the
-        # policy is the training loop's own module, already there (it may hold no parameter to check)
-        return Collector(env, policy, frames_per_batch=steps * n, total_frames=total, device=env.device,
-                         trust_policy=True, auto_register_policy_transforms=False)
+        # policy is the training loop's own module, already there (it may hold no parameter to check);
+        # track_traj_ids=False: a batch is one episode per car, and the ids cost a third of a step at N = 1
+        return Collector(env, policy if policy is not None else ActingPolicy(sample), frames_per_batch=steps * n,
+                         total_frames=total, device=env.device, trust_policy=True, track_traj_ids=False,
+                         auto_register_policy_transforms=False)
     raise ValueError(f"collector backend must be one of {BACKENDS}, got {backend!r}")

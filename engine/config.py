@@ -481,10 +481,27 @@ class RunConfig:
     # Keys that decide only the evaluation after training: a checkpoint of a run continues under other values.
     EVALUATION_KEYS = ("eval_seeds", "eval_episodes")
 
+    # Keys below the top level that choose how a run computes, not what: both collectors give the same
+    # batches bit for bit (summary.json's "paths" names the one that ran).
+    PATH_KEYS = (("env", "collector"),)
+
     @classmethod
     def run_settings(cls, settings: dict) -> dict:
-        """The part of a config mapping that decides what a run computes (summary.json's ``settings``)."""
-        return {k: v for k, v in settings.items() if k not in cls.PRESENTATION_KEYS and k != "hydra"}
+        """The part of a config mapping that decides what a run computes (summary.json's ``settings``).
+        Applied to a recorded run's settings too, before they are compared with a new run's (a run
+        recorded with ``env.collector`` is the same run as one without it)."""
+        kept = {k: v for k, v in settings.items() if k not in cls.PRESENTATION_KEYS and k != "hydra"}
+        for outer, inner in cls.PATH_KEYS:
+            if isinstance(kept.get(outer), dict) and inner in kept[outer]:
+                kept[outer] = {k: v for k, v in kept[outer].items() if k != inner}
+        return kept
+
+    @classmethod
+    def same_run(cls, recorded, settings: dict | None) -> bool:
+        """Whether a recorded run's settings (summary.json's, a checkpoint's) are those of ``settings``."""
+        if isinstance(recorded, dict) and isinstance(settings, dict):
+            return cls.run_settings(recorded) == cls.run_settings(settings)
+        return recorded == settings
 
     @classmethod
     def training_settings(cls, settings: dict | None) -> dict | None:

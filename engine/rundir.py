@@ -64,9 +64,9 @@ def refusal(found: FolderState, settings: dict | None, solo: bool = True) -> str
     """Why a new run of ``settings`` may not start in ``found``'s folder without ``overwrite=true``
     (None: it may; a finished run of these very settings is skipped, not refused). ``solo=False``:
     the folder is a population member's, where a solo run's checkpoint is another run."""
-    if found.kind == "finished" and found.summary.get("settings") != settings:
-        from engine.config import settings_difference
+    from engine.config import RunConfig, settings_difference
 
+    if found.kind == "finished" and not RunConfig.same_run(found.summary.get("settings"), settings):
         return (f"{found.folder} holds a finished run of a different configuration "
                 f"({settings_difference(found.summary.get('settings'), settings)}); choose another folder "
                 "(hydra.run.dir=..., or hydra.sweep.dir=... for a sweep) or pass overwrite=true to replace it")

@@ -69,7 +69,7 @@ def finished_run(folder: Path, settings: dict | None, overwrite: bool = False, s
     unless ``overwrite``: then the folder is cleared, its summary first. An empty folder is
     started afresh."""
     found = rundir.state(folder)
-    if found.kind == "finished" and found.summary.get("settings") == settings:
+    if found.kind == "finished" and RunConfig.same_run(found.summary.get("settings"), settings):
         return found.summary
     problem = rundir.refusal(found, settings, solo)
     if problem is None:  # empty, or a solo run's own checkpoint (which _resumed_parts continues)
@@ -319,7 +319,7 @@ def _resumed_parts(out_dir: Path, settings: dict | None,
     for path in checkpoint.in_folder(out_dir):
         payload = checkpoint.load(path)
         old, new = RunConfig.training_settings(payload.get("settings")), RunConfig.training_settings(settings)
-        if old != new:
+        if not RunConfig.same_run(old, new):
             raise ConfigError(f"the run folder holds a checkpoint of a different configuration ({path.name}: "
                               f"{settings_difference(old, new)}); choose another folder (hydra.run.dir=...) or pass "
                               "overwrite=true to start afresh")

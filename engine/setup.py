@@ -90,15 +90,12 @@ def make_learner(cfg: RunConfig, env: RacingTorchEnv, generators: list[torch.Gen
 
 # ------------------------------------------------------------------------------ collector
 def make_episode_collector(cfg: RunConfig, env: RacingTorchEnv, sampler, episodes: int):
-    """Both backends act with the same sampler (the TorchRL ``Collector`` through a
-    ``TensorDictModule``), so they draw the same actions. The ``Collector`` calls its policy
+    """Both backends act with the learner's sampler (the TorchRL ``Collector`` through
+    ``collectors.ActingPolicy``), so they draw the same actions. The ``Collector`` calls its policy
     once when it is built, to see what it writes: that call must not draw noise."""
-    from tensordict.nn import TensorDictModule
-
-    policy = TensorDictModule(sampler, in_keys=["observation"], out_keys=["action"])
     with sampler.paused():
-        return make_collector(cfg.env.collector, env, policy=policy, sample=sampler,
-                              steps=cfg.env.episode_steps, episodes=episodes)
+        return make_collector(cfg.env.collector, env, sample=sampler, steps=cfg.env.episode_steps,
+                              episodes=episodes)
 
 
 def make_schedule(cfg: RunConfig) -> ReplaySchedule:

@@ -154,6 +154,36 @@ class RacingTorchEnv(EnvBase):
         return self._entries(reward=_column(reward.astype(np.float32)), done=flags[:, 0:1],
                              terminated=flags[:, 1:2], truncated=flags[:, 2:3], crashed=flags[:, 3:4])
 
+    def step_and_reset_tensors(self, action: torch.Tensor) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        """Step every car, then reset the cars whose episode ended, as TorchRL's
+        ``step_and_maybe_reset`` does: the step's entries, and the entries to act on next (the
+        step's, without the reward, with a fresh start for each finished car)."""
+        result = self.step_tensors(action)
+        following = {key: value for key, value in result.items() if key != "reward"}
+        done = result["done"]
+        if done.any():
+            fresh, keep = self.reset_tensors(done), ~done
+            following = {key: torch.where(keep, value, fresh[key]) for key, value in following.items()}
+        return result, following
+
+    def _step_and_maybe_reset(self, tensordict: TensorDictBase) -> tuple[TensorDictBase, TensorDictBase]:
+        """What ``EnvBase.step_and_maybe_reset`` returns (the step's data with ``"next"``, and the
+        next step's root: the step's entries, finished cars reset, the root's other keys kept), at
+        the cost of the simulator: the entries are the simulator's own, checked once
+        (``step_tensors``), so the per-step TensorDict checks, done completion and ``step_mdp``
+        are skipped. TorchRL's ``Collector`` calls it at every step. A subclass that changes
+        ``_step`` or ``_reset``, or an env with post-step hooks, takes TorchRL's own path."""
+        if (type(self)._step is not RacingTorchEnv._step or type(self)._reset is not RacingTorchEnv._reset
+                or self._post_step_mdp_hooks is not None or self.__dict__.get("_torchrl_native_autoreset")):
+            return super()._step_and_maybe_reset(tensordict)
+        if tensordict.device != self.device:
+            tensordict = tensordict.to(self.device)
+        result, following = self.step_and_reset_tensors(tensordict.get("action"))
+        tensordict.set("next", self._pack(result))
+        root = {key: value for key, value in tensordict.items() if key != "next"}
+        root.update(following)
+        return tensordict, self._pack(root)
+
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         cars = None
         if tensordict is not None and "_reset" in tensordict.keys():
@@ -195,7 +225,10 @@ class RacingTorchEnv(EnvBase):
         return entries
 
     def _pack(self, entries: dict[str, torch.Tensor]) -> TensorDictBase:
-        return TensorDict(entries, batch_size=self.batch_size, device=self.device)
+        """A TensorDict of entries this env made (their shapes and device are its own, so
+        TensorDict's per-entry checks are skipped: ``_new_unsafe``, tensordict's own constructor
+        for that case)."""
+        return TensorDict._new_unsafe(entries, batch_size=self.batch_size, device=self.device)
 
     def _set_seed(self, seed: int | None) -> None:
         if seed is not None:

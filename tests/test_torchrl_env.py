@@ -174,3 +174,45 @@ def test_set_seed_gives_car_i_the_stream_of_seed_plus_i():
 def test_unknown_keyword_names_the_valid_ones():
     with pytest.raises(TypeError, match=r"unknown keyword\(s\) \['num_cars'\]; valid RacingConfig fields"):
         RacingTorchEnv(num_cars=3)
+
+
+@pytest.mark.parametrize("options", [{}, {"history": 3, "privileged": True}, {"memory": 2}, {"track_seeds": None}])
+def test_step_and_maybe_reset_is_torchrls_own(options):
+    """The env's own step_and_maybe_reset (the Collector's step, without TorchRL's per-step checks)
+    returns what EnvBase's does, entry for entry, through crashes and time-limit resets; a subclass
+    that changes _step takes TorchRL's path."""
+    from tensordict import TensorDict
+    from torchrl.envs import EnvBase
+
+    settings = {"num_envs": 4, "track_seeds": [2067791, 5412436, 773203, 5468063], "max_steps": 40, **options}
+    ours, theirs = RacingTorchEnv(**settings), RacingTorchEnv(**settings)
+    ours.set_seed(5), theirs.set_seed(5)
+    carried_ours, carried_theirs = ours.reset(), theirs.reset()
+    generator, crashes, resets = torch.Generator().manual_seed(0), 0, 0
+    for t in range(160):
+        action = torch.rand(4, 2, generator=generator) * 2 - 1
+        action[0] = torch.tensor([1.0, 1.0])  # full throttle, full lock: off the road again and again
+        for carried in (carried_ours, carried_theirs):
+            carried["action"] = action.clone()
+            carried["collector"] = TensorDict({"traj_ids": torch.arange(4)}, [4])  # a key the env does not know
+        step_ours, carried_ours = ours.step_and_maybe_reset(carried_ours)
+        step_theirs, carried_theirs = EnvBase._step_and_maybe_reset(theirs, carried_theirs)
+        for got, expected in ((step_ours, step_theirs), (carried_ours, carried_theirs)):
+            assert set(got.keys(True)) == set(expected.keys(True)), t
+            assert all(torch.equal(got[key], expected[key]) for key in expected.keys(True, True)), t
+        crashes += int(step_ours["next", "crashed"].sum())
+        resets += int(step_ours["next", "done"].sum())
+    assert crashes > 0 and resets >= 12
+
+    class Counting(RacingTorchEnv):
+        steps = 0
+
+        def _step(self, tensordict):
+            Counting.steps += 1
+            return super()._step(tensordict)
+
+    env = Counting(**settings)
+    carried = env.reset()
+    carried["action"] = torch.zeros(4, 2)
+    env.step_and_maybe_reset(carried)
+    assert Counting.steps == 1

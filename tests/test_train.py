@@ -91,11 +91,19 @@ def test_parallel_launcher_reuses_workers_and_stays_deterministic(tmp_path):
 
 
 def test_a_finished_run_is_skipped_and_a_different_one_refused(tmp_path):
+    from engine.outputs import seal
+
     args = ["algo=spg", "er=recent", "episodes=2", "progress=false", f"hydra.run.dir={tmp_path}"]
     assert run_train(*args).returncode == 0
     before = (tmp_path / "metrics.csv").read_bytes()
     again = run_train(*args, "logger=none")  # presentation keys do not make a different run
     assert again.returncode == 0 and "already completed" in again.stderr and "skipped" in again.stderr
+    direct = run_train(*args, "env.collector=direct")  # nor the collector (the same batches), recorded or not
+    assert direct.returncode == 0 and "already completed" in direct.stderr
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    summary["settings"]["env"]["collector"] = "direct"  # as runs recorded it when the setting was part of a run's
+    (tmp_path / "summary.json").write_text(json.dumps(seal(summary)))
+    assert "already completed" in run_train(*args).stderr
     other = run_train(*args[:-1], "episodes=3", f"hydra.run.dir={tmp_path}")
     assert other.returncode == 2
     assert "holds a finished run of a different configuration" in other.stderr
