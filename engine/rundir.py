@@ -200,7 +200,7 @@ def _bad_values(folder: Path, summary: dict) -> str | None:
     number = (int, float)
     types = {"algo": str, "er": str, "seed": int, "episodes": int, "status": str, "final_window": (int, type(None)),
              "code": (dict, type(None)), "population": (dict, type(None)), "evaluation": (dict, type(None)),
-             "numerics": (dict, type(None)), "compile": (dict, type(None)), "wall_time_s": (*number, type(None)),
+             "numerics": (dict, type(None)), "compile": (dict, type(None)), "paths": (list, type(None)), "wall_time_s": (*number, type(None)),
              "cpu_time_s": (*number, type(None)), "resumed_at": (int, type(None)), "final_mean": (*number, type(None))}
     for key, kind in types.items():
         if key in summary and (isinstance(summary[key], bool) or not isinstance(summary[key], kind)):

@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import signal
+import sys
 import time
 import warnings
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -400,8 +401,18 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
     earlier_cpu: float | None = 0.0  # CPU time of the sessions before a resume (None: not recorded)
     code = dict(code_version())
     segments = [numerics_segment(0)]  # the products each session computed with (a new one where they differ)
+    paths = [{"from_episode": 0, "collector": cfg.env.collector, **phases.path}]  # what ran (a new one where it differs)
+    if phases.code_refusal:
+        print(f"Note: the fused update steps are off because {phases.code_refusal}: the loss module computes this "
+              "run's updates, at its own speed (summary.json's paths records it)", file=sys.stderr)
     if payload is not None:
         first, timing = _restore(payload, parts, env, generators, phases, members)
+        earlier_paths = [dict(path) for path in payload.get("paths") or []]
+        if earlier_paths and {k: v for k, v in earlier_paths[-1].items() if k != "from_episode"} == \
+                {k: v for k, v in paths[0].items() if k != "from_episode"}:
+            paths = earlier_paths
+        else:
+            paths = [*earlier_paths, {**paths[0], "from_episode": first}]
         # a checkpoint from before the record: its products are unknown, so this session's are a segment of their own
         segments = [dict(seg) for seg in payload.get("numerics") or []] or [{"from_episode": 0, "recorded": False}]
         now = numerics_segment(first)
@@ -464,7 +475,7 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
                 so_far = {**({} if earlier_wall is None else {"wall_s": earlier_wall + time.perf_counter() - start}),
                           **({} if earlier_cpu is None else {"cpu_s": earlier_cpu + time.process_time() - cpu_start})}
                 checkpoint.save(checkpoint_path, _payload(done, {**timing, **so_far, **compile_time()}, settings,
-                                                          parts, env, code, segments,
+                                                          parts, env, code, segments, paths,
                                                           generators, phases, members, learner.sampler))
                 saved = done
             if stopping:
@@ -512,7 +523,7 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             **({"evaluation": evaluation} if evaluation is not None else {}),
             **({"track_file": env.sim.file_track.reading.record()} if env.sim.file_track is not None else {}),
             "code": code, "software": software_versions(), "numerics": _numerics_record(segments),
-            "compile": compiled, "settings": member.settings,
+            "compile": compiled, "paths": paths, "settings": member.settings,
             "files": file_record(member.folder, rundir.RECORDED_FILES),  # what this summary stands for
         }
         summaries.append(write_summary(member.folder, summary))
@@ -555,11 +566,12 @@ def _freeze(failed: dict[int, str], episode: int, members: list[Member], phases)
 
 
 def _payload(episodes_done: int, timing: dict, settings: dict | None, parts: dict, env, code: dict, segments: list,
-             generators: list[torch.Generator], phases, members: list[Member], sampler) -> dict:
+             paths: list, generators: list[torch.Generator], phases, members: list[Member], sampler) -> dict:
     if not sampler.at_block_boundary:
         raise RuntimeError("a checkpoint must be taken between episodes")
     return {
-        "settings": settings, "code": code, "numerics": segments, "episodes_done": episodes_done, "timing": dict(timing),
+        "settings": settings, "code": code, "numerics": segments, "paths": paths, "episodes_done": episodes_done,
+        "timing": dict(timing),
         "members": [m.seed for m in members], "member_states": [m.state() for m in members],
         **{name: part.state_dict() for name, part in parts.items()},
         "generators": [g.get_state() for g in generators], "active": phases.active.clone(),

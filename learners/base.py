@@ -36,6 +36,10 @@ class UpdatePhase(Protocol):
     active: torch.Tensor  # [R], 0 for a frozen member
     critic_metrics: tuple[str, ...]  # the diagnostics' names (metrics.csv's critic/... columns)
     actor_metrics: tuple[str, ...]
+    # what computes the critic's and the actor's steps ("fused": plain-tensor steps with the loss module's
+    # numbers; "loss module") and, when not fused, why: summary.json's "paths"
+    path: dict
+    code_refusal: str | None  # the loss's own code or settings keep the fused steps off: said in one line
 
     def run(self, data: TensorDictBase, minibatch_size: int, totals: "MetricTotals",
             episode: int = 0) -> dict[int, str]:

@@ -7,6 +7,9 @@ parameter, Adam moment, diagnostic and generator must come out bit for bit the s
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -112,14 +115,49 @@ def test_the_loss_module_takes_every_step_the_fused_one_does_not_compute(overrid
 
 def test_the_fused_steps_mirror_the_loss_modules_as_they_are_written():
     """The fused steps copy the arithmetic of the functions ``mirrored_functions`` lists. An edit to any
-    of them turns the fused steps off (the loss module computes): mirror the change in
-    learners/monte_carlo/fused.py, check it with this file's tests, then set MIRRORED_SOURCE to
-    the new value below."""
-    from learners.monte_carlo.fused import MIRRORED_SOURCE, mirrored_source
+    of them turns the fused steps off (the loss module computes, and the run says so): mirror the
+    change in learners/monte_carlo/fused.py, check it with this file's tests, then set its entry of
+    MIRRORED_SOURCES to the value below."""
+    from learners.monte_carlo.fused import edited_functions, mirrored_sources
 
-    assert mirrored_source() == MIRRORED_SOURCE, (
-        f"a function the fused steps mirror has changed (its source's SHA-256 is now {mirrored_source()}); "
-        "the fused steps are off until the change is mirrored in learners/monte_carlo/fused.py")
+    now = mirrored_sources()
+    assert edited_functions() == [], "changed since the fused steps mirrored them: " + ", ".join(
+        f"{name} (now {now.get(name)})" for name in edited_functions())
+
+
+def test_an_edited_loss_takes_effect_and_the_run_says_why_it_is_slower(tmp_path):
+    """A researcher edits SPGLoss.actor_loss in their copy of the code: the run computes with the
+    edit (the loss module's path), says in one line that the fused steps are off and which function
+    changed, and summary.json's paths records it; the unedited copy runs fused."""
+    import json
+    import shutil
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    copy = tmp_path / "code"
+    shutil.copytree(root, copy, ignore=shutil.ignore_patterns(".git", ".venv", "outputs", "__pycache__", "*.egg-info"))
+    command = [sys.executable, "train.py", "algo=spg", "er=recent", "episodes=3", "progress=false", "logger=none"]
+    environment = {**os.environ, "PYTHONPATH": str(copy)}
+
+    def run(folder: str) -> tuple[subprocess.CompletedProcess, dict]:
+        done = subprocess.run([*command, f"hydra.run.dir={tmp_path / folder}"], cwd=copy, env=environment,
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        return done, json.loads((tmp_path / folder / "summary.json").read_text())
+
+    plain, summary = run("plain")
+    assert "fused update steps are off" not in plain.stderr
+    assert summary["paths"] == [{"from_episode": 0, "collector": "torchrl", "critic": "fused", "actor": "fused"}]
+    spg = copy / "losses" / "spg.py"
+    source = spg.read_text()
+    marker = "    def actor_loss(self, tensordict: TensorDictBase) -> TensorDictBase:\n"
+    assert marker in source
+    spg.write_text(source.replace(marker, marker + "        tensordict = tensordict.clone()  # an edit\n"))
+    edited, summary = run("edited")
+    (note,) = [line for line in edited.stderr.splitlines() if "fused update steps are off" in line]
+    assert "losses.spg.SPGLoss.actor_loss changed since the fused steps mirrored it" in note
+    assert summary["paths"][0]["critic"] == "loss module" and "losses.spg.SPGLoss.actor_loss" in summary["paths"][0]["why"]
 
 
 @pytest.mark.parametrize("change", ["public setting", "private setting", "parameter", "submodule", "subclass",

@@ -67,10 +67,12 @@ def test_sigkill_then_resume_gives_the_uninterrupted_metrics(tmp_path):
 @pytest.mark.parametrize("collector", ["direct", "torchrl"])
 def test_resume_after_an_interruption_in_process(tmp_path, collector):
     """Stopped after episode 5 (checkpoint at 4): the resumed run equals the uninterrupted one,
-    with either collector."""
+    with either collector, and with the other one in the first session (summary.json's paths
+    then records both)."""
     run = [*RUN, f"env.collector={collector}"]
+    other = "torchrl" if collector == "direct" else "direct"
     with interrupted_after(5):
-        train(load(*run), tmp_path / "run")
+        train(load(*RUN, f"env.collector={other}"), tmp_path / "run")
     assert len(read_rows(tmp_path / "run" / "metrics.csv")) == 6
     payload = checkpoint.load(tmp_path / "run" / checkpoint.CHECKPOINT_FILE)
     assert payload["episodes_done"] == 4 and payload["loss"]["temperature"] < 1.0
@@ -79,6 +81,7 @@ def test_resume_after_an_interruption_in_process(tmp_path, collector):
     assert summary["resumed_at"] == 4 and summary["wall_time_s"] > summary["wall_time_session_s"] > 0
     assert summary["cpu_time_s"] > earlier_cpu > 0  # both sessions' CPU time
     assert (tmp_path / "run" / "metrics.csv").read_bytes() == uninterrupted(tmp_path, f"env.collector={collector}")
+    assert [(path["from_episode"], path["collector"]) for path in summary["paths"]] == [(0, other), (4, collector)]
 
 
 def test_a_corrupt_checkpoint_is_refused_clearly(tmp_path):

@@ -20,9 +20,11 @@ whose backward this module calls directly), on the CPU, in float32, with the pap
 activation, on uniform minibatches. Anything else (prioritised replay, other activations,
 ``numerics`` native or portable, a GPU, ``compile=true``) takes the loss module's path, which stays
 the reference (``learners.monte_carlo.learner.FUSED = False`` forces it). So does a loss the fused
-steps do not know (``loss_known``): another setting, parameter or submodule, a subclass, or an edit
-to any function whose arithmetic they mirror (``mirrored_functions``; ``MIRRORED_SOURCE`` is the hash
-of their source as last mirrored), so a change to a loss module is never silently left out.
+steps do not know (``loss_refusal``): another setting, parameter or submodule, a subclass, or an edit
+to any function whose arithmetic they mirror (``mirrored_functions``; ``MIRRORED_SOURCES`` holds the
+hash of each one's source as last mirrored), so a change to a loss module is never silently left out:
+the run says so in one line, naming the function, and summary.json's ``paths`` records which path
+ran and why.
 """
 
 from __future__ import annotations
@@ -53,11 +55,49 @@ KNOWN_INTERNALS = {
     "_non_persistent_buffers_set", "_param_maps", "_parameters", "_state_dict_hooks", "_state_dict_pre_hooks",
     "_tensor_keys", "_value_estimator", "_call_cache", "training", "value_type",
 }
-# The SHA-256 of the source of every function whose arithmetic the fused steps mirror
-# (``mirrored_functions``), as they were when the fused steps were last checked against them. An
-# edit to any of them turns the fused steps off (the loss module computes; tests/test_fused_phases.py
-# fails until the change is mirrored here and this value updated).
-MIRRORED_SOURCE = "8aa7a01989b9446f5392403f1c390544469a9c08401cecdd95907bdb3df6aace"
+# The SHA-256 (first 16 hex digits) of the source of each function whose arithmetic the fused steps
+# mirror (``mirrored_functions``), as it was when the fused steps were last checked against it. An
+# edit to any of them turns the fused steps off, said in one line and recorded in summary.json
+# (the loss module computes; tests/test_fused_phases.py fails until the change is mirrored here).
+MIRRORED_SOURCES = {
+    "losses.spg.SPGLoss.actor_loss": "0711c6dc86b7b3e5",
+    "losses.spg.SPGLoss._score": "509bb7f208577428",
+    "losses.spg.SPGLoss._perturbations": "ed9c70eb57b0bdb3",
+    "losses.spg.SPGLoss._noise": "d274e317b618d16f",
+    "losses.spg.SPGLoss.draw": "c1ff53376e9edc4e",
+    "losses.ppo.LogClipPPOLoss.actor_loss": "24a735cccdbab292",
+    "losses.ppo.LogClipPPOLoss._log_prob": "3d521163b668774a",
+    "losses.common.PhaseLoss.critic_loss": "04aac0138ac643dd",
+    "losses.common.PhaseLoss._entropy": "49d7b7a8a988e799",
+    "losses.common.PhaseLoss._mean": "a0c3cb98117c1e09",
+    "losses.common.PhaseLoss._policy": "4c8f13f48658eebf",
+    "losses.common.PhaseLoss._value": "e51ecc094fbbe734",
+    "losses.functional.squared_error": "ec2cfc94ab983b74",
+    "losses.functional.weighted_log_likelihood": "d8af1ea634736049",
+    "losses.functional.clipped_surrogate": "2756dcca93f92e83",
+    "losses.functional.ppo_ratio": "780c029c4c77e64b",
+    "losses.functional.mean": "a613369b8e123a70",
+    "losses.functional.per_dimension_or_joint": "4ff6be39d5a267ee",
+    "losses.functional.per_member": "41c2110631fee83e",
+    "learners.networks.MemberNormal.log_prob": "9b0bec9729966880",
+    "learners.networks.MemberNormal.entropy": "ae088d4de08b2c3f",
+    "learners.networks.StackedMLP.forward": "6eca69be53b16a8d",
+    "learners.networks.StackedMLP.forward_rows": "f0cc31881f6b393e",
+    "learners.networks.StackedMLP.forward_rows_with": "55a50724fc984e30",
+    "learners.networks.StackedCriticNet.forward": "9b410c9d5c487165",
+    "learners.networks.StackedGaussianPolicyNet.forward": "666b29e2d28b87ab",
+    "learners.networks.fast_tanh": "d9d9d5700cbaaa02",
+    "learners.networks._EagerTanh.forward": "2b74e34bc8c3ce03",
+    "learners.networks._Tanh.backward": "273acec4777ef3ab",
+    "learners.networks.stacked_linear": "a6a18f7a04bff9d3",
+    "learners.networks._pad_rows": "5d12337cf6c1dfa1",
+    "learners.networks._unpad_rows": "e5286df59c0f2cd8",
+    "learners.kernels.ops.linear": "655c80f530b64e5a",
+    "learners.kernels.ops._Linear.forward": "8d1f2858ce8c264d",
+    "learners.kernels.ops._gradients": "28d869a118486cce",
+    "learners.base.objective": "ec324783f80675f4",
+    "collectors.replay.sample_minibatch": "5d86978a8c79c81d",
+}
 
 
 def mirrored_functions() -> list:
@@ -78,63 +118,102 @@ def mirrored_functions() -> list:
             kernel_ops._gradients, objective, sample_minibatch]
 
 
-def mirrored_source() -> str | None:
-    """The SHA-256 of ``mirrored_functions``' source (None where a source cannot be read); read once
-    per set of function objects (a function replaced at run time is read again)."""
+def mirrored_sources() -> dict[str, str | None]:
+    """{module.qualname: the first 16 hex digits of its source's SHA-256 (None where the source
+    cannot be read)} of ``mirrored_functions``; read once per function object (a function replaced
+    at run time is read again)."""
     import hashlib
     import inspect
 
-    functions = mirrored_functions()
-    key = tuple(map(id, functions))
-    if key not in _SOURCE_HASHES:
-        digest = hashlib.sha256()
-        try:
-            for function in functions:
-                digest.update(inspect.getsource(function).replace("\r\n", "\n").encode())
-            _SOURCE_HASHES[key] = digest.hexdigest()
-        except (OSError, TypeError):
-            _SOURCE_HASHES[key] = None
-    return _SOURCE_HASHES[key]
+    found = {}
+    for function in mirrored_functions():
+        if function not in _SOURCE_HASHES:
+            try:
+                source = inspect.getsource(function).replace("\r\n", "\n")
+                _SOURCE_HASHES[function] = hashlib.sha256(source.encode()).hexdigest()[:16]
+            except (OSError, TypeError):
+                _SOURCE_HASHES[function] = None
+        found[f"{function.__module__}.{function.__qualname__}"] = _SOURCE_HASHES[function]
+    return found
 
 
-_SOURCE_HASHES: dict[tuple, str | None] = {}
+_SOURCE_HASHES: dict = {}
+
+
+def edited_functions() -> list[str]:
+    """The mirrored functions whose source is not as the fused steps mirror it (``MIRRORED_SOURCES``)."""
+    now = mirrored_sources()
+    return [name for name, digest in now.items() if digest is None or MIRRORED_SOURCES.get(name) != digest] + \
+        [name for name in MIRRORED_SOURCES if name not in now]
+
+
+def loss_refusal(loss) -> str | None:
+    """Why the fused steps do not compute ``loss``'s steps (None: they do): they compute exactly
+    ``SPGLoss`` or ``LogClipPPOLoss`` of a population with the settings they know (not a subclass,
+    which may compute something else), its code as they mirror it (``MIRRORED_SOURCES``)."""
+    from losses import LogClipPPOLoss, SPGLoss
+
+    if type(loss) not in (SPGLoss, LogClipPPOLoss):
+        return f"the loss is {type(loss).__name__}, not SPGLoss or LogClipPPOLoss themselves"
+    if loss.members is None:
+        return "the loss is not a population's (members=None)"
+    name = type(loss).__name__
+    public = {key for key in vars(loss) if not key.startswith("_")} - {"training", "value_type"}
+    private = {key for key in vars(loss) if key.startswith("_")}
+    unknown = sorted(public - KNOWN_SETTINGS[name]) + sorted(private - KNOWN_INTERNALS) + \
+        [f"parameter {key}" for key in loss._parameters] + \
+        [f"submodule {key}" for key in set(loss._modules) - KNOWN_MODULES[name]] + \
+        [f"buffer {key}" for key in set(loss._buffers) - {"temperature"}]
+    if unknown:
+        return f"the {name} has {', '.join(unknown)}, which the fused steps do not know"
+    edited = edited_functions()
+    if edited:
+        more = f" and {len(edited) - 3} more" if len(edited) > 3 else ""
+        return (f"{', '.join(edited[:3])}{more} changed since the fused steps mirrored {'it' if len(edited) == 1 else 'them'} "
+                "(learners/monte_carlo/fused.py)")
+    return None
 
 
 def loss_known(loss) -> bool:
-    """Whether ``loss`` is exactly ``SPGLoss`` or ``LogClipPPOLoss`` with the settings the fused steps
-    compute (a population's; not a subclass, which may compute something else), its code as the fused
-    steps mirror it (``MIRRORED_SOURCE``)."""
-    from losses import LogClipPPOLoss, SPGLoss
+    """Whether the fused steps compute ``loss``'s steps (``loss_refusal``)."""
+    return loss_refusal(loss) is None
 
-    if type(loss) not in (SPGLoss, LogClipPPOLoss) or loss.members is None:
-        return False
-    name = type(loss).__name__
-    public = {key for key in vars(loss) if not key.startswith("_")}
-    private = {key for key in vars(loss) if key.startswith("_")}
-    return (public - {"training", "value_type"} <= KNOWN_SETTINGS[name] and private <= KNOWN_INTERNALS
-            and not loss._parameters and set(loss._modules) <= KNOWN_MODULES[name]
-            and set(loss._buffers) <= {"temperature"} and mirrored_source() == MIRRORED_SOURCE)
+
+def critic_refusal(critic_net: torch.nn.Module) -> str | None:
+    """Why ``FusedCritic`` does not compute this critic's step (None: it does)."""
+    mlp = getattr(critic_net, "net", None)
+    if type(critic_net) is not StackedCriticNet or type(mlp) is not StackedMLP:
+        return f"the critic is a {type(critic_net).__name__}, not a StackedCriticNet of a StackedMLP"
+    if not mlp.linear_output:
+        return "the critic's output is not linear"
+    return _kernels_refusal(critic_net, mlp, "critic")
+
+
+def actor_refusal(actor_net: torch.nn.Module) -> str | None:
+    """Why ``GaussianPolicyPass`` does not compute this actor's pass (None: it does)."""
+    if type(actor_net) is not StackedGaussianPolicyNet or type(getattr(actor_net, "body", None)) is not StackedMLP:
+        return f"the actor is a {type(actor_net).__name__}, not a StackedGaussianPolicyNet of a StackedMLP"
+    return _kernels_refusal(actor_net, actor_net.body, "actor")
 
 
 def critic_available(critic_net: torch.nn.Module) -> bool:
-    """Whether ``FusedCritic`` computes this critic's step (else the loss module's path)."""
-    mlp = getattr(critic_net, "net", None)
-    if type(critic_net) is not StackedCriticNet or type(mlp) is not StackedMLP:
-        return False
-    return mlp.linear_output and _on_kernels(critic_net, mlp)
+    return critic_refusal(critic_net) is None
 
 
 def actor_available(actor_net: torch.nn.Module) -> bool:
-    """Whether ``GaussianPolicyPass`` computes this actor's pass (else the loss module's path)."""
-    if type(actor_net) is not StackedGaussianPolicyNet or type(actor_net.body) is not StackedMLP:
-        return False
-    return _on_kernels(actor_net, actor_net.body)
+    return actor_refusal(actor_net) is None
 
 
-def _on_kernels(net: torch.nn.Module, mlp: StackedMLP) -> bool:
-    """The project's products in use, ``net`` in float32 on the CPU, ``mlp``'s activation the paper's tanh."""
-    return (kernels.active() and mlp.activation is fast_tanh
-            and all(p.device.type == "cpu" and p.dtype == torch.float32 for p in net.parameters()))
+def _kernels_refusal(net: torch.nn.Module, mlp: StackedMLP, name: str) -> str | None:
+    """The fused steps need the project's products (numerics=fma), ``net`` in float32 on the CPU and
+    ``mlp``'s activation the paper's tanh."""
+    if not kernels.active():
+        return "the products are not the project's kernels (numerics other than fma, or no kernel library)"
+    if mlp.activation is not fast_tanh:
+        return f"the {name}'s activation is not tanh"
+    if not all(p.device.type == "cpu" and p.dtype == torch.float32 for p in net.parameters()):
+        return f"the {name} is not float32 on the CPU"
+    return None
 
 
 def _check_optimiser(optimiser, params: list[torch.Tensor], network: str) -> None:

@@ -21,8 +21,8 @@ from collectors.returns import TRANSITION_KEYS
 from learners.base import (Learner, MetricTotals, Optimisers, diverged_members, freeze_member, objective,
                            prioritised_minibatch)
 from learners.compiling import compile_step
-from learners.monte_carlo.fused import (FusedCritic, FusedPPOActor, FusedSPGActor, GaussianPolicyPass, actor_available,
-                                        critic_available, loss_known)
+from learners.monte_carlo.fused import (FusedCritic, FusedPPOActor, FusedSPGActor, GaussianPolicyPass,
+                                        actor_refusal, critic_refusal, loss_refusal)
 from learners.networks import MemberNormal, MemberSampler, StackedCriticNet, StackedGaussianPolicyNet, reset_parameters
 from learners.optim import MemberAdam
 from learners.solo import make_actor, make_critic
@@ -111,11 +111,19 @@ class PhaseRunner:
         self._critic_objective = compile_step(self._critic_step_objective, compiled)
         self.fused_critic = None
         self.fused_actor = None
-        if (FUSED and critic_net is not None and sampler is None and not compiled and loss_known(loss)
-                and critic_available(critic_net)):
+        # the loss's own code or settings (a subclass, an unknown setting, an edited function): said in one line
+        self.code_refusal = loss_refusal(loss)
+        why = (("learners.monte_carlo.learner.FUSED is off" if not FUSED else None)
+               or ("the networks were not given" if critic_net is None else None)
+               or ("prioritised replay draws its minibatches by priority" if sampler is not None else None)
+               or ("compile=true compiles the loss module's step" if compiled else None)
+               or self.code_refusal or critic_refusal(critic_net))
+        actor_why = why
+        if why is None:
             self.fused_critic = FusedCritic(critic_net, optimisers.critic, self.active)
             self._critic_in_keys = list(getattr(loss, loss.critic_attr).in_keys)
-            if actor_net is not None and actor_available(actor_net):
+            actor_why = "the actor network was not given" if actor_net is None else actor_refusal(actor_net)
+            if actor_why is None:
                 keys = [*loss.actor_network.in_keys, loss.tensor_keys.action]
                 if isinstance(loss, SPGLoss) and loss.entropy_coeff == 0:
                     self.fused_actor = FusedSPGActor(loss, GaussianPolicyPass(actor_net, optimisers.actor),
@@ -125,7 +133,15 @@ class PhaseRunner:
                     self.fused_actor = FusedPPOActor(loss, GaussianPolicyPass(actor_net, optimisers.actor),
                                                      self.active)
                     keys += [loss.tensor_keys.sample_log_prob, loss.tensor_keys.advantage]
+                else:
+                    actor_why = "SPG's entropy bonus (algo.entropy_coeff) is computed by the loss module only"
                 self._actor_in_keys = list(dict.fromkeys(keys))
+        if why is None or why != self.code_refusal:
+            self.code_refusal = None  # said only where it is what keeps the fused steps off
+        # summary.json's record of the update path (engine.runner): which computes each phase's steps and why
+        self.path = {"critic": "fused" if self.fused_critic is not None else "loss module",
+                     "actor": "fused" if self.fused_actor is not None else "loss module",
+                     **({"why": why} if why else {}), **({"actor_why": actor_why} if actor_why and actor_why != why else {})}
         self._actor_objective = compile_step(self._actor_step_objective, compiled)
 
     @property

@@ -374,8 +374,18 @@ class TDPhaseRunner:
         if self.td.reset_every and (actor_net is None or not self.qvalue_nets):
             raise ValueError("td.reset_every needs the actor network and the Q-networks as built")
         available = {"sac": fused_sac_available, "td3": fused_td3_available, "tqc": fused_tqc_available,
-                     "crossq": fused_crossq_available}.get(self.kind, lambda *_: False)  # others: no fused step
-        self.fused = FUSED and actor_net is not None and not cfg.compile and available(loss, actor_net)
+                     "crossq": fused_crossq_available}.get(self.kind)  # others: no fused step
+        why = ((f"{self.kind} has no fused step" if available is None else None)
+               or ("learners.td.learner.FUSED is off" if not FUSED else None)
+               or ("compile=true compiles the loss module's step" if cfg.compile else None)
+               or ("the actor network was not given" if actor_net is None else None)
+               or (None if available(loss, actor_net) else
+                   f"the loss or its networks are not those losses.td's fused {self.kind} step computes"))
+        self.fused = why is None
+        # summary.json's record of the update path (engine.runner); REDQ computes by its own plain-tensor function
+        path = "fused" if self.fused else "losses.td.redq_losses" if self.kind == "redq" else "loss module"
+        self.path = {"critic": path, "actor": path, **({"why": why} if why and self.kind != "redq" else {})}
+        self.code_refusal = None  # TorchRL's loss modules: the fused steps check their types (losses.td.fused_*_available)
         if self.kind == "redq" and (cfg.compile or actor_net is None or not redq_available(loss, actor_net)):
             raise ValueError("loss redq runs eagerly (compile=false) on the learner's own actor network and plain or "
                              "residual Q-networks (losses.td.redq_losses)")
