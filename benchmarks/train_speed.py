@@ -37,6 +37,7 @@ from collectors import ActingPolicy, make_collector  # noqa: E402
 from engine.config import RunConfig  # noqa: E402
 from learners.solo import GaussianPolicyNet, make_sampler, tanh  # noqa: E402
 from engine.runner import train  # noqa: E402
+from racing import files  # noqa: E402
 from racing.torchrl_env import RacingTorchEnv  # noqa: E402
 
 DEFAULT_CELLS = ["ppo/recent", "ppo_log/memory", "spg/hybrid", "spg_multi/hybrid", "spg_p/hybrid",
@@ -144,7 +145,7 @@ def run(cell: str, episodes: int, collector: str) -> dict:
                             f"env.collector={collector}")
     with tempfile.TemporaryDirectory() as out:
         summary = train(cfg, Path(out))
-        summary["metrics_bytes"] = (Path(out) / "metrics.csv").read_bytes()
+        summary["metrics_bytes"] = files.read(Path(out) / "metrics.csv", 1 << 30, "metrics.csv")
         return summary
 
 
