@@ -9,7 +9,7 @@ settings are skipped, a finished run of other settings or a damaged folder is re
 rules of ``engine/rundir.py``). ``--random-tracks`` trains on a new random track every episode (the
 benchmark's protocol, docs/benchmark.md; the seeds then seed the runs). ``--jobs`` runs that many at once, one process each (one torch thread
 per run). Needs the ``baselines`` extra (``pip install -c constraints/cpu.txt -e '.[baselines]'``).
-What a run is, exactly: ``baselines/sb3.py``.
+What a run is, exactly: ``external/sb3.py``.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from pathlib import Path
 from engine import numerics
 from engine.outputs import RunFolderError
 from engine.processes import exit_with_parent, spawn_context
-from baselines.sb3 import ALGOS, BaselineError, run_folder, settings_of, train
+from external.sb3 import ALGOS, BaselineError, run_folder, settings_of, train
 
 
 def _train(args: tuple, worker: bool = True) -> dict:

@@ -1,5 +1,5 @@
 """The reactive ceiling (docs/beyond.md): an actor network that sees only the observation, taught
-by the oracle itself with DAgger (imitation/dagger.py), scored with the usual protocol:
+by the oracle itself with DAgger (pupil/dagger.py), scored with the usual protocol:
 
     python imitate.py --tracks 1001 1002 1003 [--hidden 100] [--rounds 4] [--episodes 5]
                       [--labels best|mean] [--features observation|state] [--noise-states 200]
@@ -37,7 +37,7 @@ def _one(args: tuple):
     numerics.apply(numerics.DEFAULT)
     import torch
 
-    from imitation.dagger import dagger
+    from pupil.dagger import dagger
 
     torch.set_num_threads(1)
     return dagger(track, settings)
@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--processes must be at least 1, got {args.processes}")
     numerics.apply(numerics.DEFAULT)
     from analysis.report import read_oracles
-    from imitation.dagger import DaggerSettings, mean
+    from pupil.dagger import DaggerSettings, mean
     from engine.processes import spawn_context
 
     try:

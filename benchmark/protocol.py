@@ -97,13 +97,13 @@ def _builtin(name: str) -> Agent:
 
 
 def _sb3(path: Path) -> Agent:
-    """A Stable-Baselines3 model.zip as weights only (``baselines.sb3.load_model``: nothing in it runs)."""
+    """A Stable-Baselines3 model.zip as weights only (``external.sb3.load_model``: nothing in it runs)."""
     try:
         import stable_baselines3  # noqa: F401
     except ImportError:
         raise AgentError("scoring a model.zip needs Stable-Baselines3: pip install -c constraints/cpu.txt "
                          "-e '.[baselines]'") from None
-    from baselines.sb3 import ModelRefused, load_model
+    from external.sb3 import ModelRefused, load_model
 
     try:
         policy, algo = load_model(path)

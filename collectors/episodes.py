@@ -9,7 +9,7 @@ Two interchangeable backends produce the same batches for the same seeds:
   one episode per car).
 - ``"direct"``: a plain loop over the environment's ``reset_tensors``/``step_and_reset_tensors``
   and a tensor-in, tensor-out sampler: the same environment and random-number calls with no
-  TensorDict per step, the baseline ``benchmarks/train_speed.py`` measures the Collector against.
+  TensorDict per step, the baseline ``speed/train_speed.py`` measures the Collector against.
 
 Both reset a car as soon as its episode ends (``done``), so a batch of ``steps`` frames is
 exactly one episode per car when episodes last ``steps`` frames, and between batches the

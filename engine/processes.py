@@ -52,7 +52,7 @@ def run_tool(name: str, main) -> int:
 # The project's own packages (pyproject.toml's list; tests/test_signals.py keeps the two equal):
 # code of theirs is where a stop may raise, wherever the project is installed.
 PROJECT_PACKAGES = ("racing", "losses", "collectors", "learners", "engine", "analysis", "benchmark",
-                    "baselines", "imitation", "hydra_plugins")
+                    "external", "pupil", "hydra_plugins")
 
 
 def _library(frame) -> bool | None:

@@ -131,7 +131,7 @@ class _EagerTanh(torch.autograd.Function):
 
 def fast_tanh(x: torch.Tensor) -> torch.Tensor:
     """tanh(x) to within 2.4e-7 (absolute), about 1.6x faster than ``torch.tanh`` forward and
-    backward on minibatch-sized float32 inputs here (``benchmarks/population_speed.py``)."""
+    backward on minibatch-sized float32 inputs here (``speed/population_speed.py``)."""
     if torch.compiler.is_compiling() or torch._C._are_functorch_transforms_active():
         return _Tanh.apply(x)
     if not (torch.is_grad_enabled() and x.requires_grad):  # no graph to record: the values alone, without

@@ -24,7 +24,7 @@ def tanh(x: torch.Tensor, members: int = 1) -> torch.Tensor:
 
     The same function to within 2.4e-7 (absolute), and about 2.4x faster than ``torch.tanh``
     on minibatch-sized float32 inputs on CPU builds whose tanh is not vectorised (this one's;
-    ``benchmarks/train_speed.py`` measures it). Small inputs (acting, one state at a time) take
+    ``speed/train_speed.py`` measures it). Small inputs (acting, one state at a time) take
     ``torch.tanh``: one call is cheaper than three there. For the stacked networks of a
     population (``members`` on the first dimension) the size that decides is one member's,
     so that a member computes exactly what it computes alone.

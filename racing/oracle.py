@@ -13,7 +13,7 @@ episode's total reward over its horizon.
 A policy never sees the true state (only rays and speed) and cannot plan, so the oracle's score
 bounds what any policy on this task can be expected to reach; how close the bound is to the
 true optimum is measured by how the score grows with ``candidates``, ``horizon`` and
-``iterations`` (``python -m benchmarks.oracle_convergence``). Everything random comes from
+``iterations`` (``python -m speed.oracle_convergence``). Everything random comes from
 the oracle's own ``numpy`` generator (``seed``), so a score is reproducible.
 """
 
@@ -32,7 +32,7 @@ from racing.sim import RacingSim, check_seed
 
 @dataclass(frozen=True)
 class OracleSettings:
-    # Chosen by benchmarks/oracle_convergence.py on the tuning tracks 1001-1003 (docs/beyond.md):
+    # Chosen by speed/oracle_convergence.py on the tuning tracks 1001-1003 (docs/beyond.md):
     # 4x the candidates or a horizon of 15 change the score by < 1%, longer horizons lower it (the
     # search, not the model, is then the limit), and doubling the rounds from 8 adds 0.9%.
     candidates: int = 256  # action sequences rolled out per round

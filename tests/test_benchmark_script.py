@@ -13,7 +13,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_env_speed_benchmark_prints_its_table():
-    result = zygote.run(["-m", "benchmarks.env_speed", "--seconds", "0.01", "--max-cars", "64"],
+    result = zygote.run(["-m", "speed.env_speed", "--seconds", "0.01", "--max-cars", "64"],
                         cwd=ROOT, env=dict(os.environ), timeout=300)
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
@@ -24,7 +24,7 @@ def test_env_speed_benchmark_prints_its_table():
 
 
 def test_train_speed_benchmark_prints_its_tables():
-    result = zygote.run(["-m", "benchmarks.train_speed", "--episodes", "2", "--repeats", "2",
+    result = zygote.run(["-m", "speed.train_speed", "--episodes", "2", "--repeats", "2",
                          "--cells", "ppo/recent", "spg_p/hybrid", "--pairs", "1"],
                         cwd=ROOT, env=dict(os.environ), timeout=600)
     assert result.returncode == 0, result.stderr
@@ -40,7 +40,7 @@ def test_population_speed_benchmark_prints_its_tables():
 
     # Both modes where a C++ compiler is present (a solo run, to keep the test short), else eager populations.
     sizes = ["--sizes", "1", "--modes", "eager", "compiled"] if unavailable_reason() is None else ["--sizes", "1", "2"]
-    result = zygote.run(["-m", "benchmarks.population_speed", "--episodes", "2",
+    result = zygote.run(["-m", "speed.population_speed", "--episodes", "2",
                          "--cells", "ppo/recent", "--collectors", "2", "--processes", "2", *sizes],
                         cwd=ROOT, env=dict(os.environ), timeout=600)
     assert result.returncode == 0, result.stderr
@@ -52,12 +52,12 @@ def test_population_speed_benchmark_prints_its_tables():
 
 
 def test_numerics_speed_benchmark_prints_its_table():
-    result = zygote.run(["-m", "benchmarks.numerics_speed", "--episodes", "1",
+    result = zygote.run(["-m", "speed.numerics_speed", "--episodes", "1",
                          "--members", "2", "--cells", "ppo/recent", "--repeats", "1"],
                         cwd=ROOT, env=dict(os.environ), timeout=600)
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
-    from benchmarks.numerics_speed import SHAPES
+    from speed.numerics_speed import SHAPES
 
     assert len(rows) == (1 + 3 * len(SHAPES)) + (1 + 1) and "| ppo/recent | 2 |" in result.stdout
     assert "| fma | portable | native | fma / native | portable / fma |" in result.stdout
@@ -67,7 +67,7 @@ def test_numerics_speed_benchmark_prints_its_table():
 
 
 def test_oracle_convergence_benchmark_prints_its_table():
-    result = zygote.run(["-m", "benchmarks.oracle_convergence", "--tracks", "1001", "--episodes",
+    result = zygote.run(["-m", "speed.oracle_convergence", "--tracks", "1001", "--episodes",
                          "1", "--horizon", "5", "--iterations", "1", "--candidates", "16", "--ladder", "1"],
                         cwd=ROOT, env=dict(os.environ), timeout=300)
     assert result.returncode == 0, result.stderr
@@ -76,7 +76,7 @@ def test_oracle_convergence_benchmark_prints_its_table():
 
 
 def test_oracle_circuit_benchmark_prints_its_table():
-    result = zygote.run(["-m", "benchmarks.oracle_circuit", "--points", "100", "--steps", "2"],
+    result = zygote.run(["-m", "speed.oracle_circuit", "--points", "100", "--steps", "2"],
                         cwd=ROOT, env=dict(os.environ), timeout=300)
     assert result.returncode == 0, result.stderr
     rows = result.stdout.splitlines()[2:]
@@ -85,7 +85,7 @@ def test_oracle_circuit_benchmark_prints_its_table():
 
 
 def test_recipe_cost_benchmark_prints_its_table():
-    result = zygote.run(["-m", "benchmarks.recipe_cost", "--sizes", "1", "--steps", "2",
+    result = zygote.run(["-m", "speed.recipe_cost", "--sizes", "1", "--steps", "2",
                          "--recipes", "sac", "sac-module", "droq", "droq-module"], cwd=ROOT, env=dict(os.environ), timeout=300)
     assert result.returncode == 0, result.stderr
     rows = [line for line in result.stdout.splitlines() if line.startswith("| ")]
@@ -97,7 +97,7 @@ def test_recipe_cost_benchmark_prints_its_table():
 
 def test_recipe_cost_says_n_a_where_noise_hid_the_step(monkeypatch, capsys):
     """A measurement that came out empty (the longer run no slower) is printed as n/a, not 0.0 ms."""
-    from benchmarks import recipe_cost
+    from speed import recipe_cost
     from engine.config import RunConfig
 
     td = RunConfig.compose("algo=sac").algo.td
@@ -109,7 +109,7 @@ def test_recipe_cost_says_n_a_where_noise_hid_the_step(monkeypatch, capsys):
 
 
 def test_floor_benchmark_prints_its_table():
-    result = zygote.run(["-m", "benchmarks.floor", "--sizes", "1", "2", "--steps", "2",
+    result = zygote.run(["-m", "speed.floor", "--sizes", "1", "2", "--steps", "2",
                          "--learners", "sac", "ppo"], cwd=ROOT, env=dict(os.environ), timeout=300)
     assert result.returncode == 0, result.stderr
     rows = [line.split(" | ") for line in result.stdout.splitlines() if line.startswith("| ")][1:]
@@ -124,7 +124,7 @@ def test_floor_benchmark_prints_its_table():
 def test_floor_records_a_layers_products_and_replays_them():
     import torch
 
-    from benchmarks.floor import Recorder, replay
+    from speed.floor import Recorder, replay
     from learners import kernels
     from learners.networks import StackedMLP
 
@@ -152,7 +152,7 @@ def test_floor_records_a_layers_products_and_replays_them():
 def test_floor_times_the_paper_phases_fused_and_through_the_loss_module():
     """``--module``'s second row for SPG and PPO is the loss module's phase: the same products (the
     fused steps make the products the module makes), taken without the fused steps."""
-    from benchmarks.floor import measure
+    from speed.floor import measure
     from learners import kernels
 
     if not kernels.active():
@@ -163,7 +163,7 @@ def test_floor_times_the_paper_phases_fused_and_through_the_loss_module():
 
 
 def test_floor_says_why_without_the_kernels(monkeypatch, capsys):
-    from benchmarks import floor
+    from speed import floor
     from learners import kernels
 
     monkeypatch.setattr(kernels, "active", lambda: False)
@@ -176,7 +176,7 @@ def test_floor_says_why_without_the_kernels(monkeypatch, capsys):
 def test_the_step_benchmarks_refuse_sizes_they_cannot_measure_in_one_line(args, capsys):
     """A population of 0 or beyond the ceiling, or a step count that would record without end, is
     refused before anything runs (it ended in a traceback, or in gigabytes of recorded products)."""
-    from benchmarks import floor, recipe_cost
+    from speed import floor, recipe_cost
 
     for tool in (floor, recipe_cost):
         with pytest.raises(SystemExit) as stop:

@@ -147,7 +147,7 @@ def test_a_run_on_a_circuit_records_how_its_file_was_read(tmp_path, circuit):
 def test_the_oracle_holds_only_the_driven_track(tmp_path):
     """A 1,200-checkpoint circuit: the planning cars share that track's tables, nothing else (they
     once started on random tracks of as many checkpoints each: 3.5 GB and a minute before the
-    first step; benchmarks/oracle_circuit.py prints the figures)."""
+    first step; speed/oracle_circuit.py prints the figures)."""
     from racing.oracle import Oracle, OracleSettings
 
     path = write_rows(tmp_path / "long.csv", make_circuit(1200))

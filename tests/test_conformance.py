@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks.scalar_racing import ScalarRacing
+from speed.scalar_racing import ScalarRacing
 from racing import PAPER_TRACK_SEEDS, RacingEnv, RacingSim, RacingTorchEnv, track_from_seed
 
 STATE_TOL, OBS_TOL = 1e-9, 1e-6

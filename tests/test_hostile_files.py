@@ -348,7 +348,7 @@ def test_an_sb3_model_whose_sizes_would_exhaust_the_machine_is_refused_before_it
     pytest.importorskip("stable_baselines3")
     import zipfile
 
-    from baselines.sb3 import ModelRefused, load_model
+    from external.sb3 import ModelRefused, load_model
 
     path = sb3_zip(tmp_path, None, tmp_path / "marker")
     with zipfile.ZipFile(path) as archive:

@@ -1,10 +1,10 @@
-"""The reactive ceiling by DAgger (imitation/dagger.py, imitate.py) at a tiny size."""
+"""The reactive ceiling by DAgger (pupil/dagger.py, imitate.py) at a tiny size."""
 
 from __future__ import annotations
 
 import pytest
 
-from imitation.dagger import DATA_SEED, DaggerSettings
+from pupil.dagger import DATA_SEED, DaggerSettings
 
 
 def test_imitate_py_teaches_a_network_from_the_oracle_and_scores_it(tmp_path, capsys):
@@ -26,7 +26,7 @@ def test_imitate_py_teaches_a_network_from_the_oracle_and_scores_it(tmp_path, ca
 
 
 def test_a_privileged_pupil_sees_the_observation_and_the_car_s_true_state():
-    from imitation.dagger import dagger, pupil_input
+    from pupil.dagger import dagger, pupil_input
     from racing.gym_env import RacingEnv
 
     env = RacingEnv(track_seed=2067791)

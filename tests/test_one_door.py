@@ -130,7 +130,7 @@ def test_the_check_finds_each_kind_of_call(tmp_path):
 def test_every_command_line_tool_ends_through_run_tool():
     """Every tool's refusals end in one line (``engine.processes.run_tool`` turns the file door's
     ``FileRefused`` into one, and a signal into one): a module run as a command hands its ``main`` to
-    it. train.py has Hydra's own path (its ``_run``), tested in tests/test_train.py."""
+    it. train.py has Hydra's own path (``engine.command.run``), tested in tests/test_train.py."""
     missing = []
     for path in project_files():
         text = path.read_text()

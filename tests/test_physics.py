@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmarks.scalar_racing import _inside
+from speed.scalar_racing import _inside
 from racing import RacingConfig, RacingSim, track_from_seed
 from racing.physics import build_tables, crosses_segment, inside_parity, ray_distances
 

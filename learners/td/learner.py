@@ -51,8 +51,8 @@ from losses.td import (ACTION_NOISE_KEY, CRITIC_EXTRAS, PRIORITY_KEY, SMOOTHING_
                        redq_losses)
 
 FUSED = True  # the eager steps of SAC (DroQ, BRO), TQC, CrossQ and TD3 on plain tensors (losses.td.fused_*: the
-#               same bits as TorchRL's loss modules, faster); False: through the loss modules (benchmarks.floor
-#               --module, benchmarks/recipe_cost.py's *-module recipes)
+#               same bits as TorchRL's loss modules, faster); False: through the loss modules (speed.floor
+#               --module, speed/recipe_cost.py's *-module recipes)
 
 TD_TRANSITION_KEYS = ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done"),
                       ("next", "terminated"))

@@ -1,6 +1,6 @@
 """A plain-Python, one-car transcription of the racing rules (floats and ``math`` only).
 
-This is the speed baseline of ``benchmarks/env_speed.py`` and an independent oracle in the
+This is the speed baseline of ``speed/env_speed.py`` and an independent oracle in the
 tests; the environments never use it (their physics lives in ``racing.physics``). It is
 written the straightforward way on purpose: scalar loops, a polygon test per checkpoint,
 and a ray scan that stops at the first crossing, as the reference simulator did.

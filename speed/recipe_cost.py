@@ -1,6 +1,6 @@
 """What a run of each off-policy recipe costs, measured before its sweeps are planned.
 
-    python -m benchmarks.recipe_cost [--sizes 3 25] [--steps 40] [--recipes sac droq ...]
+    python -m speed.recipe_cost [--sizes 3 25] [--steps 40] [--recipes sac droq ...]
 
 For each recipe (an algorithm with its settings; ``RECIPES``) and population size R, one short
 population run on the wide grid's fixed tracks (one warm-up episode, then one block of ``--steps``
@@ -31,8 +31,8 @@ from engine import numerics  # noqa: E402
 
 numerics.apply(numerics.DEFAULT)
 
-from benchmarks.population_speed import member_seeds  # noqa: E402
-from benchmarks.train_speed import at_most, table  # noqa: E402
+from speed.population_speed import member_seeds  # noqa: E402
+from speed.train_speed import at_most, table  # noqa: E402
 from engine.config import RunConfig  # noqa: E402
 from engine.runner import train_population  # noqa: E402
 
@@ -121,4 +121,4 @@ def main(argv: list[str] | None = None) -> int:
 if __name__ == "__main__":
     from engine.processes import run_tool
 
-    raise SystemExit(run_tool("benchmarks.recipe_cost", main))
+    raise SystemExit(run_tool("speed.recipe_cost", main))

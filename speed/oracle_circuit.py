@@ -1,6 +1,6 @@
 """The oracle's memory and time on a long circuit beside a generated track.
 
-    python -m benchmarks.oracle_circuit [--points 1200] [--steps 100] [FILE ...]
+    python -m speed.oracle_circuit [--points 1200] [--steps 100] [FILE ...]
 
 For each track (a generated track, seed 1001; a circuit of ``--points`` checkpoints in a
 downloaded TUM file's layout, made by ``racing.track_file.make_circuit`` and read by the same
@@ -78,4 +78,4 @@ def main(argv: list[str] | None = None) -> int:
 if __name__ == "__main__":
     from engine.processes import run_tool
 
-    raise SystemExit(run_tool("benchmarks.oracle_circuit", main))
+    raise SystemExit(run_tool("speed.oracle_circuit", main))

@@ -1,6 +1,6 @@
 """How the oracle's score grows with its planning budget: is the ceiling near converged?
 
-    python -m benchmarks.oracle_convergence [--tracks ...] [--episodes 2]
+    python -m speed.oracle_convergence [--tracks ...] [--episodes 2]
 
 Runs ``racing.oracle.Oracle`` (cross-entropy MPC on the true simulator) with a ladder of
 settings, one planning dimension varied at a time around a base (``OracleSettings()`` unless
@@ -71,4 +71,4 @@ def main(argv: list[str] | None = None) -> None:
 if __name__ == "__main__":
     from engine.processes import run_tool
 
-    raise SystemExit(run_tool("benchmarks.oracle_convergence", main))
+    raise SystemExit(run_tool("speed.oracle_convergence", main))

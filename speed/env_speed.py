@@ -1,6 +1,6 @@
 """Environment speed: steps per second of every implementation, in one process.
 
-    python benchmarks/env_speed.py [--seconds 2]
+    python speed/env_speed.py [--seconds 2]
 
 Workload: uniformly random actions in [-1, 1] on paper track 2067791, episodes of 200
 steps (the reset is timed too). One car takes the simulator's scalar path (plain Python
@@ -28,7 +28,7 @@ import gymnasium as gym  # noqa: E402
 import torch  # noqa: E402
 
 import racing  # noqa: E402
-from benchmarks.scalar_racing import ScalarRacing  # noqa: E402
+from speed.scalar_racing import ScalarRacing  # noqa: E402
 
 TRACK = racing.PAPER_TRACK_SEEDS[0]
 EPISODE = 200
@@ -145,4 +145,4 @@ def main() -> None:
 if __name__ == "__main__":
     from engine.processes import run_tool
 
-    raise SystemExit(run_tool("benchmarks.env_speed", main))
+    raise SystemExit(run_tool("speed.env_speed", main))

@@ -1,6 +1,6 @@
 """Training speed: wall time of paper-length runs, and what each speed-up buys, in one process.
 
-    python -m benchmarks.train_speed [--episodes 201] [--cells spg_p_multi/hybrid ...] [--pairs 2]
+    python -m speed.train_speed [--episodes 201] [--cells spg_p_multi/hybrid ...] [--pairs 2]
 
 Three tables, each with ratios against a baseline measured here in the same process:
 1. hidden-layer tanh: ``learners.solo.tanh`` against ``torch.tanh`` (minibatch sizes);
@@ -188,4 +188,4 @@ def main() -> None:
 if __name__ == "__main__":
     from engine.processes import run_tool
 
-    raise SystemExit(run_tool("benchmarks.train_speed", main))
+    raise SystemExit(run_tool("speed.train_speed", main))

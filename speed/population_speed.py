@@ -1,6 +1,6 @@
 """Population training speed: solo runs against populations, and training against the matmul peak.
 
-    python -m benchmarks.population_speed [--episodes 20] [--sizes 1 5 25 100]
+    python -m speed.population_speed [--episodes 20] [--sizes 1 5 25 100]
                                           [--cells ppo/recent spg_p_multi/hybrid spg/memory]
                                           [--modes eager compiled] [--numerics portable|native]
                                           [--before COMMIT] [--collectors 25] [--processes 2]
@@ -48,7 +48,7 @@ from torch.utils._python_dispatch import TorchDispatchMode  # noqa: E402
 from torch.utils.flop_counter import flop_registry  # noqa: E402
 
 from engine.config import RunConfig  # noqa: E402
-from benchmarks.train_speed import best_of, table  # noqa: E402
+from speed.train_speed import best_of, table  # noqa: E402
 from engine.outputs import read_summary  # noqa: E402
 from engine.runner import train_population  # noqa: E402
 
@@ -226,4 +226,4 @@ def main(argv: list[str] | None = None) -> int:
 if __name__ == "__main__":
     from engine.processes import run_tool
 
-    raise SystemExit(run_tool("benchmarks.population_speed", main))
+    raise SystemExit(run_tool("speed.population_speed", main))

@@ -1,7 +1,7 @@
 """What each numerics mode costs (``engine/numerics.py``), measured in this run: training time
 per cell, and the matrix products alone per shape against the core's FMA peak.
 
-    python -m benchmarks.numerics_speed [--episodes 20] [--members 1 5 25] [--repeats 3]
+    python -m speed.numerics_speed [--episodes 20] [--members 1 5 25] [--repeats 3]
                                         [--cells spg_p_multi/hybrid ppo/recent sac/memory]
                                         [--modes fma portable native] [--no-cells] [--no-shapes]
 
@@ -70,7 +70,7 @@ def child_shapes(mode: str, members: list[int]) -> None:
     from learners import kernels
     from learners.kernels import ops
 
-    from benchmarks.train_speed import best_of
+    from speed.train_speed import best_of
 
     torch.set_num_threads(1)
     paths = [p for p in ("avx2", "avx512") if p in kernels.isas()] if mode == "fma" else ["mkl"]
@@ -101,7 +101,7 @@ def child_shapes(mode: str, members: list[int]) -> None:
 
 def _run_child(args: list[str]) -> dict:
     env = {**os.environ, "RL_LOGGING_LEVEL": "WARNING", "PYTHONWARNINGS": "ignore"}
-    result = subprocess.run([sys.executable, "-m", "benchmarks.numerics_speed", *args], cwd=ROOT, env=env,
+    result = subprocess.run([sys.executable, "-m", "speed.numerics_speed", *args], cwd=ROOT, env=env,
                             capture_output=True, text=True)
     if result.returncode != 0:
         raise RuntimeError(f"{' '.join(args)} failed:\n{result.stderr[-2000:]}")
@@ -109,7 +109,7 @@ def _run_child(args: list[str]) -> dict:
 
 
 def cell_table(args) -> None:
-    from benchmarks.train_speed import table
+    from speed.train_speed import table
 
     rows, kernels = [], {}
     for cell in args.cells:
@@ -139,7 +139,7 @@ def cell_table(args) -> None:
 
 
 def shape_table(args) -> None:
-    from benchmarks.train_speed import table
+    from speed.train_speed import table
 
     modes = [m for m in ("native", "portable", "fma") if m in args.modes]
     best: dict[str, float] = {}
@@ -201,4 +201,4 @@ def main(argv: list[str] | None = None) -> int:
 if __name__ == "__main__":
     from engine.processes import run_tool
 
-    raise SystemExit(run_tool("benchmarks.numerics_speed", main))
+    raise SystemExit(run_tool("speed.numerics_speed", main))

@@ -1,6 +1,6 @@
 """Each learner's gradient step beside its floor: the time its matrix products alone take.
 
-    python -m benchmarks.floor [--sizes 1 5 25] [--steps 30] [--learners sac td3 ...] [--module]
+    python -m speed.floor [--sizes 1 5 25] [--steps 30] [--learners sac td3 ...] [--module]
 
 For each learner (``LEARNERS``: its recipe's overrides) and population size R, one short
 population run on one thread with the default numerics (``fma``: every product of the networks
@@ -36,8 +36,8 @@ from engine import numerics  # noqa: E402
 
 numerics.apply(numerics.DEFAULT)
 
-from benchmarks.population_speed import member_seeds  # noqa: E402
-from benchmarks.train_speed import at_most, table  # noqa: E402
+from speed.population_speed import member_seeds  # noqa: E402
+from speed.train_speed import at_most, table  # noqa: E402
 
 # name: (overrides, off-policy). The off-policy learners with the settings of their results; the
 # paper's learners as the paper grid's best cells and PPO.
@@ -236,4 +236,4 @@ def main(argv: list[str] | None = None) -> int:
 if __name__ == "__main__":
     from engine.processes import run_tool
 
-    raise SystemExit(run_tool("benchmarks.floor", main))
+    raise SystemExit(run_tool("speed.floor", main))
