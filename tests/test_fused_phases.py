@@ -128,7 +128,8 @@ def test_the_fused_steps_mirror_the_loss_modules_as_they_are_written():
 def test_an_edited_loss_takes_effect_and_the_run_says_why_it_is_slower(tmp_path):
     """A researcher edits SPGLoss.actor_loss in their copy of the code: the run computes with the
     edit (the loss module's path), says in one line that the fused steps are off and which function
-    changed, and summary.json's paths records it; the unedited copy runs fused."""
+    changed, and summary.json's paths records it; a copy whose only edit is a docstring's runs fused
+    (a renamed folder in a docstring once turned the fused steps off)."""
     import json
     import shutil
     import subprocess
@@ -146,6 +147,10 @@ def test_an_edited_loss_takes_effect_and_the_run_says_why_it_is_slower(tmp_path)
         assert done.returncode == 0, done.stderr
         return done, json.loads((tmp_path / folder / "summary.json").read_text())
 
+    networks = copy / "learners" / "networks.py"  # a docstring's edit changes nothing it computes
+    text = networks.read_text()
+    assert '    """tanh(x) to within 2.4e-7 (absolute)' in text
+    networks.write_text(text.replace('    """tanh(x) to within 2.4e-7 (absolute)', '    """The tanh of x, to within 2.4e-7 (absolute)'))
     plain, summary = run("plain")
     assert "fused update steps are off" not in plain.stderr
     assert summary["paths"] == [{"from_episode": 0, "collector": "torchrl", "critic": "fused", "actor": "fused"}]

@@ -55,48 +55,49 @@ KNOWN_INTERNALS = {
     "_non_persistent_buffers_set", "_param_maps", "_parameters", "_state_dict_hooks", "_state_dict_pre_hooks",
     "_tensor_keys", "_value_estimator", "_call_cache", "training", "value_type",
 }
-# The SHA-256 (first 16 hex digits) of the source of each function whose arithmetic the fused steps
-# mirror (``mirrored_functions``), as it was when the fused steps were last checked against it. An
-# edit to any of them turns the fused steps off, said in one line and recorded in summary.json
-# (the loss module computes; tests/test_fused_phases.py fails until the change is mirrored here).
+# The SHA-256 (first 16 hex digits) of the code of each function whose arithmetic the fused steps
+# mirror (``mirrored_functions``; its syntax tree without the docstring), as it was when the fused
+# steps were last checked against it. An edit to what any of them computes turns the fused steps
+# off, said in one line and recorded in summary.json (the loss module computes;
+# tests/test_fused_phases.py fails until the change is mirrored here).
 MIRRORED_SOURCES = {
-    "losses.spg.SPGLoss.actor_loss": "0711c6dc86b7b3e5",
-    "losses.spg.SPGLoss._score": "509bb7f208577428",
-    "losses.spg.SPGLoss._perturbations": "ed9c70eb57b0bdb3",
-    "losses.spg.SPGLoss._noise": "d274e317b618d16f",
-    "losses.spg.SPGLoss.draw": "c1ff53376e9edc4e",
-    "losses.ppo.LogClipPPOLoss.actor_loss": "24a735cccdbab292",
-    "losses.ppo.LogClipPPOLoss._log_prob": "3d521163b668774a",
-    "losses.common.PhaseLoss.critic_loss": "04aac0138ac643dd",
-    "losses.common.PhaseLoss._entropy": "49d7b7a8a988e799",
-    "losses.common.PhaseLoss._mean": "a0c3cb98117c1e09",
-    "losses.common.PhaseLoss._policy": "4c8f13f48658eebf",
-    "losses.common.PhaseLoss._value": "e51ecc094fbbe734",
-    "losses.functional.squared_error": "ec2cfc94ab983b74",
-    "losses.functional.weighted_log_likelihood": "d8af1ea634736049",
-    "losses.functional.clipped_surrogate": "2756dcca93f92e83",
-    "losses.functional.ppo_ratio": "780c029c4c77e64b",
-    "losses.functional.mean": "a613369b8e123a70",
-    "losses.functional.per_dimension_or_joint": "4ff6be39d5a267ee",
-    "losses.functional.per_member": "41c2110631fee83e",
-    "learners.networks.MemberNormal.log_prob": "9b0bec9729966880",
-    "learners.networks.MemberNormal.entropy": "ae088d4de08b2c3f",
-    "learners.networks.StackedMLP.forward": "6eca69be53b16a8d",
-    "learners.networks.StackedMLP.forward_rows": "f0cc31881f6b393e",
-    "learners.networks.StackedMLP.forward_rows_with": "55a50724fc984e30",
-    "learners.networks.StackedCriticNet.forward": "9b410c9d5c487165",
-    "learners.networks.StackedGaussianPolicyNet.forward": "666b29e2d28b87ab",
-    "learners.networks.fast_tanh": "d9d9d5700cbaaa02",
-    "learners.networks._EagerTanh.forward": "2b74e34bc8c3ce03",
-    "learners.networks._Tanh.backward": "273acec4777ef3ab",
-    "learners.networks.stacked_linear": "a6a18f7a04bff9d3",
-    "learners.networks._pad_rows": "5d12337cf6c1dfa1",
-    "learners.networks._unpad_rows": "e5286df59c0f2cd8",
-    "learners.kernels.ops.linear": "655c80f530b64e5a",
-    "learners.kernels.ops._Linear.forward": "8d1f2858ce8c264d",
-    "learners.kernels.ops._gradients": "28d869a118486cce",
-    "learners.base.objective": "ec324783f80675f4",
-    "collectors.replay.sample_minibatch": "5d86978a8c79c81d",
+    "losses.spg.SPGLoss.actor_loss": "23003025b7f99b7a",
+    "losses.spg.SPGLoss._score": "cc3b1ff3dc053ece",
+    "losses.spg.SPGLoss._perturbations": "18a0971fbad60ec6",
+    "losses.spg.SPGLoss._noise": "91d58dbe97d4835a",
+    "losses.spg.SPGLoss.draw": "649fe1897b8c3729",
+    "losses.ppo.LogClipPPOLoss.actor_loss": "95c1065470eadaad",
+    "losses.ppo.LogClipPPOLoss._log_prob": "5f3dcb4000722793",
+    "losses.common.PhaseLoss.critic_loss": "a2df25a252eabe62",
+    "losses.common.PhaseLoss._entropy": "5ceab1876419054a",
+    "losses.common.PhaseLoss._mean": "a2f650b5725cdc28",
+    "losses.common.PhaseLoss._policy": "54452c1fddffb593",
+    "losses.common.PhaseLoss._value": "1e33586d91d9e07c",
+    "losses.functional.squared_error": "1c5ae6d650c6e725",
+    "losses.functional.weighted_log_likelihood": "e29c2bc403e836fa",
+    "losses.functional.clipped_surrogate": "5ae6ee7c065ea9aa",
+    "losses.functional.ppo_ratio": "fcd35b765f01d86c",
+    "losses.functional.mean": "ed82ad3d8c555d5e",
+    "losses.functional.per_dimension_or_joint": "13971fd4da4c99b0",
+    "losses.functional.per_member": "932af75486e90eeb",
+    "learners.networks.MemberNormal.log_prob": "836cf18ca99ab6a8",
+    "learners.networks.MemberNormal.entropy": "97a045dcd0884e50",
+    "learners.networks.StackedMLP.forward": "1d9fab463d5ae324",
+    "learners.networks.StackedMLP.forward_rows": "d5ded6b3d79ddf05",
+    "learners.networks.StackedMLP.forward_rows_with": "93c827804f91726b",
+    "learners.networks.StackedCriticNet.forward": "9c0fe6b623389420",
+    "learners.networks.StackedGaussianPolicyNet.forward": "20769865e4ee0fba",
+    "learners.networks.fast_tanh": "2b24391dd6ee60af",
+    "learners.networks._EagerTanh.forward": "3b8b15f177957225",
+    "learners.networks._Tanh.backward": "9f9428610b4f5b33",
+    "learners.networks.stacked_linear": "a275bce5adf856a2",
+    "learners.networks._pad_rows": "382fb8d791bedc13",
+    "learners.networks._unpad_rows": "07d844022c385714",
+    "learners.kernels.ops.linear": "4660ec4b12d2c44f",
+    "learners.kernels.ops._Linear.forward": "fd92921f1db344db",
+    "learners.kernels.ops._gradients": "d0cabdecab823279",
+    "learners.base.objective": "b2cd4d471fdc0c26",
+    "collectors.replay.sample_minibatch": "44572d12e990fae3",
 }
 
 
@@ -119,19 +120,26 @@ def mirrored_functions() -> list:
 
 
 def mirrored_sources() -> dict[str, str | None]:
-    """{module.qualname: the first 16 hex digits of its source's SHA-256 (None where the source
+    """{module.qualname: the first 16 hex digits of the SHA-256 of its code (None where the source
     cannot be read)} of ``mirrored_functions``; read once per function object (a function replaced
-    at run time is read again)."""
+    at run time is read again). The code is the function's syntax tree without its docstring, so an
+    edit to a docstring or a comment changes nothing, and any edit to what it computes does."""
+    import ast
     import hashlib
     import inspect
+    import textwrap
 
     found = {}
     for function in mirrored_functions():
         if function not in _SOURCE_HASHES:
             try:
-                source = inspect.getsource(function).replace("\r\n", "\n")
-                _SOURCE_HASHES[function] = hashlib.sha256(source.encode()).hexdigest()[:16]
-            except (OSError, TypeError):
+                (tree,) = ast.parse(textwrap.dedent(inspect.getsource(function))).body
+                body = tree.body
+                if body and isinstance(body[0], ast.Expr) and isinstance(getattr(body[0], "value", None), ast.Constant) \
+                        and isinstance(body[0].value.value, str):
+                    tree.body = body[1:] or [ast.Pass()]
+                _SOURCE_HASHES[function] = hashlib.sha256(ast.dump(tree).encode()).hexdigest()[:16]
+            except (OSError, TypeError, SyntaxError, ValueError):
                 _SOURCE_HASHES[function] = None
         found[f"{function.__module__}.{function.__qualname__}"] = _SOURCE_HASHES[function]
     return found
