@@ -5,8 +5,9 @@ Writes into ``SWEEP_DIR/report/``:
   where the oracle scored the track (``analysis/data/oracle.csv``) its score and the run's
   oracle-normalised score);
 - ``table.md``, ``table.csv``: Table 1's layout, mean ± standard error over seeds of each run's
-  final performance, the paper's value, and the difference in units of the combined standard
-  error; diverged runs counted;
+  final performance with the cell's budget (episodes), the paper's value, and the difference in
+  units of the combined standard error, for cells whose runs are of the paper's 201 episodes only
+  (other budgets are shown, not compared; a cell mixing budgets says so); diverged runs counted;
 - ``conclusions.md``: the paper's three conclusions as effects paired by track with 95%
   bootstrap intervals over tracks and a verdict, on the paper's five tracks and on all tracks;
 - ``collapse.md``: per cell, the runs whose final performance is below 20 (collapsed);
@@ -135,7 +136,8 @@ def write_figures(runs, out: Path) -> None:
     rows = figures.iqm_rows(runs)
     lines = ["IQM of the runs' final performances per cell; 95% interval from resampling runs (tracks).", "",
              "| cell | IQM | 95% CI | runs |", "|---|---:|---|---:|"]
-    lines += [f"| {label} | {point:.1f} | [{low:.1f}, {high:.1f}] | {n} |" for label, point, low, high, n in rows]
+    lines += [f"| {label} | {point:.1f} | " + (f"[{low:.1f}, {high:.1f}]" if n > 1 else "n/a (one run)") + f" | {n} |"
+              for label, point, low, high, n in rows]
     files.write_text(out / "iqm.md", "\n".join(lines) + "\n")
     written = figures.learning_curve_figures(runs, out)
     frontier = figures.frontier_figure(runs, read_oracle(), out / "curves_beyond.png")

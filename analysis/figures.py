@@ -134,12 +134,14 @@ def iqm_rows(runs: list[Run], reps: int = 2000) -> list[tuple[str, float, float,
     rows = []
     for er in ER_ROWS:
         for algo in ALGO_COLUMNS:
-            finals = [r.final_mean for r in runs
-                      if (r.er, r.algo) == (er, algo) and r.status == "completed" and r.final_mean is not None]
-            if not finals:
+            done = [r for r in runs
+                    if (r.er, r.algo) == (er, algo) and r.status == "completed" and r.final_mean is not None]
+            if not done:
                 continue
-            point, low, high = stratified_bootstrap_ci(np.array(finals)[:, None], reps=reps)
-            rows.append((f"{er} / {COLUMN_TITLES[algo]}", point, low, high, len(finals)))
+            point, low, high = stratified_bootstrap_ci(np.array([r.final_mean for r in done])[:, None], reps=reps)
+            budgets = sorted({r.budget for r in done if r.budget is not None})
+            mixed = f" (mixed budgets: {', '.join(map(str, budgets))} episodes)" if len(budgets) > 1 else ""
+            rows.append((f"{er} / {COLUMN_TITLES[algo]}{mixed}", point, low, high, len(done)))
     return rows
 
 

@@ -21,6 +21,7 @@ from racing import files
 
 PAPER_TABLE = Path(__file__).resolve().parent / "data" / "paper_table1.csv"
 EPISODE_STEPS = 200  # racing.RacingConfig.max_steps (not imported: the report reads folders only)
+PAPER_EPISODES = 201  # the budget of the paper's Table 1 (episodes 0..200): its values compare with runs of it only
 ORACLE_TABLE = Path(__file__).resolve().parent / "data" / "oracle.csv"  # evaluate.py --oracle --table
 TUNING_ORACLE_TABLE = ORACLE_TABLE.with_name("oracle_tuning.csv")  # the same for the tuning tracks 1001-1003
 ER_ROWS = ("recent", "memory", "hybrid")
@@ -51,6 +52,7 @@ class Run:
     cpu_time: float | None = None  # seconds per run: the CPU time of the process that trained it over its size
     problem: str | None = None  # a damaged run's: which file, and what is wrong with it
     sealed: bool = True  # its summary carries its own digest (False: written before summaries were sealed)
+    budget: int | None = None  # the episodes it was planned for (summary.json's episodes_planned): its training budget
 
     @property
     def version(self) -> str:
@@ -69,10 +71,16 @@ class Cell:
     diverged: int
     paper_mean: float | None
     paper_sem: float | None
+    budgets: tuple[int, ...] = ()  # the episode budgets of its completed runs (one, unless mixed)
 
     @property
     def n(self) -> int:
         return len(self.finals)
+
+    @property
+    def comparable(self) -> bool:
+        """Whether its runs are of the paper's budget (all of them), so that the paper's value compares."""
+        return self.budgets == (PAPER_EPISODES,)
 
     @property
     def mean(self) -> float | None:
@@ -87,8 +95,9 @@ class Cell:
 
     @property
     def z(self) -> float | None:
-        """(ours - paper) in units of the combined standard error."""
-        if self.mean is None or self.sem is None or self.paper_mean is None:
+        """(ours - paper) in units of the combined standard error; None unless the runs are of the
+        paper's budget (``comparable``)."""
+        if self.mean is None or self.sem is None or self.paper_mean is None or not self.comparable:
             return None
         combined = math.hypot(self.sem, self.paper_sem or 0.0)
         return (self.mean - self.paper_mean) / combined if combined > 0 else None
@@ -160,7 +169,7 @@ def read_run(folder: Path) -> Run:
                    wall / size if wall is not None else None, numerics_label(summary),
                    int(((settings.get("env") or {}).get("options") or {}).get("max_steps") or EPISODE_STEPS),
                    summary["cpu_time_s"] / size if summary.get("cpu_time_s") is not None else None,
-                   sealed=DIGEST_KEY in summary)
+                   sealed=DIGEST_KEY in summary, budget=int(summary.get("episodes_planned") or summary["episodes"]))
     except (KeyError, TypeError, ValueError, AttributeError) as err:
         return Run(folder, "damaged", rewards=rewards, problem=f"{folder / SUMMARY_FILE}: a field is malformed ({err!r})")
 
@@ -227,11 +236,12 @@ def cells(runs: list[Run], paper: dict[tuple[str, str], tuple[float, float]]) ->
     for er in ER_ROWS:
         for algo in ALGO_COLUMNS:
             mine = [r for r in runs if (r.er, r.algo) == (er, algo)]
-            finals = [r.final_mean for r in mine if r.status == "completed" and r.final_mean is not None]
+            done = [r for r in mine if r.status == "completed" and r.final_mean is not None]
             diverged = sum(r.status == "diverged" for r in mine)
             paper_mean, paper_sem = paper.get((er, algo), (None, None))
+            budgets = tuple(sorted({r.budget for r in done if r.budget is not None}))
             if mine or paper_mean is not None:
-                out.append(Cell(er, algo, finals, diverged, paper_mean, paper_sem))
+                out.append(Cell(er, algo, [r.final_mean for r in done], diverged, paper_mean, paper_sem, budgets))
     return out
 
 
@@ -240,12 +250,16 @@ def _fmt(cell: Cell | None) -> str:
         return ""
     parts = []
     if cell.n:
-        ours = f"{cell.mean:.1f}" + (f" ± {cell.sem:.1f}" if cell.sem is not None else "") + f" (n={cell.n})"
-        parts.append(ours)
+        spread = f" ± {cell.sem:.1f}" if cell.sem is not None else " ± n/a (one run)"
+        budget = (f"{cell.budgets[0]} episodes" if len(cell.budgets) == 1
+                  else f"mixed budgets: {', '.join(map(str, cell.budgets))} episodes" if cell.budgets
+                  else "budget not recorded")
+        parts.append(f"{cell.mean:.1f}{spread} (n={cell.n}; {budget})")
     if cell.diverged:
         parts.append(f"{cell.diverged} diverged")
     if cell.paper_mean is not None:
-        parts.append(f"paper {cell.paper_mean:.1f} ± {cell.paper_sem:.1f}")
+        compared = "" if not cell.n or cell.comparable else f" at {PAPER_EPISODES} episodes: not compared"
+        parts.append(f"paper {cell.paper_mean:.1f} ± {cell.paper_sem:.1f}{compared}")
     if cell.z is not None:
         parts.append(f"Δ = {cell.z:+.1f} SE")
     return "<br>".join(parts) if parts else "not run"
@@ -257,13 +271,27 @@ def table_markdown(table: list[Cell]) -> str:
              "|---|" + "---|" * len(ALGO_COLUMNS)]
     for er in ER_ROWS:
         lines.append(f"| {er} | " + " | ".join(_fmt(by_key.get((er, a))) for a in ALGO_COLUMNS) + " |")
-    return "\n".join(lines) + "\n"
+    notes = budget_notes(table)
+    return "\n".join(lines) + "\n" + ("\n" + "\n".join(notes) + "\n" if notes else "")
+
+
+def budget_notes(table: list[Cell]) -> list[str]:
+    """What the table's budgets mean for its comparisons (empty when every run is of the paper's budget)."""
+    notes = []
+    other = sorted({b for c in table if c.n for b in c.budgets} - {PAPER_EPISODES})
+    if other:
+        notes.append(f"Runs of {', '.join(map(str, other))} episodes are not compared with the paper's values, which "
+                     f"are final performances after {PAPER_EPISODES} episodes.")
+    mixed = [f"{c.er} / {COLUMN_TITLES[c.algo]}" for c in table if len(c.budgets) > 1]
+    if mixed:
+        notes.append(f"Cells averaging runs of different budgets (their mean is of unlike runs): {', '.join(mixed)}.")
+    return notes
 
 
 def write_table_csv(table: list[Cell], path: Path) -> None:
-    _write_csv(path, ["er", "algo", "n", "mean", "sem", "diverged", "paper_mean", "paper_sem", "z"],
+    _write_csv(path, ["er", "algo", "n", "mean", "sem", "diverged", "paper_mean", "paper_sem", "z", "episodes"],
                [[c.er, c.algo, c.n, _num(c.mean), _num(c.sem), c.diverged, _num(c.paper_mean), _num(c.paper_sem),
-                 _num(c.z)] for c in table])
+                 _num(c.z), ";".join(map(str, c.budgets))] for c in table])
 
 
 def read_oracles() -> dict[int, float]:
@@ -365,8 +393,12 @@ def paired_bootstrap(a: dict[int, float], b: dict[int, float], statistic, reps: 
     tracks = sorted(set(a) & set(b))
     x = np.array([a[t] for t in tracks])
     y = np.array([b[t] for t in tracks])
-    if len(tracks) < 2:
-        value = float(statistic(x, y)) if tracks else float("nan")
+    if len(tracks) < 2:  # no interval; an SD of one track is not a number either (nan, said as n/a)
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            value = float(statistic(x, y)) if tracks else float("nan")
         return value, float("nan"), float("nan"), len(tracks)
     rng = np.random.default_rng(seed)
     picks = rng.integers(0, len(tracks), size=(reps, len(tracks)))
@@ -429,6 +461,15 @@ def conclusions(runs: list[Run], seeds: set[int] | None = None) -> list[Effect]:
 
 def conclusions_markdown(runs: list[Run]) -> str:
     """The conclusions on the paper's five tracks and on every track of the sweep, side by side."""
+    budgets = {r.budget for r in runs if r.status in ("completed", "diverged") and r.budget is not None}
+    note = []
+    if len(budgets) > 1:  # an effect pairs runs of one budget: the paper's if there are such runs, else the most common
+        counts = {b: sum(r.budget == b for r in runs) for b in budgets}
+        chosen = PAPER_EPISODES if PAPER_EPISODES in budgets else max(budgets, key=lambda b: (counts[b], b))
+        left = sum(r.budget != chosen for r in runs if r.status in ("completed", "diverged"))
+        runs = [r for r in runs if r.budget == chosen]
+        note = [f"The effects pair runs of {chosen} episodes only: {left} finished run(s) of other budgets "
+                f"({', '.join(str(b) for b in sorted(budgets - {chosen}))} episodes) are left out.", ""]
     all_seeds = {r.seed for r in runs if r.seed is not None}
     paper = set(PAPER_SEEDS) & all_seeds
     sets = [("paper tracks", paper)] if paper else []
@@ -437,7 +478,7 @@ def conclusions_markdown(runs: list[Run]) -> str:
     results = [(name, conclusions(runs, seeds)) for name, seeds in sets]
     if not results:
         return ""
-    lines = ["Each effect is a mean (or SD) difference between two cells paired by track; the 95% "
+    lines = note + ["Each effect is a mean (or SD) difference between two cells paired by track; the 95% "
              "interval is a percentile bootstrap over tracks (10,000 resamples). Verdict: holds if "
              "the interval lies above 0, reversed if below, undecided otherwise; no verdict on fewer than "
              f"{MIN_VERDICT_TRACKS} tracks (there the interval's ends are the extreme tracks). Tracks where a "
@@ -448,7 +489,11 @@ def conclusions_markdown(runs: list[Run]) -> str:
         cells_text = []
         for _, effects in results:
             e = effects[i]
-            ci = "" if math.isnan(e.low) else f" [{e.low:+.1f}, {e.high:+.1f}]"
+            if e.tracks == 0 or math.isnan(e.value):
+                why = "no track where both cells finished" if e.tracks == 0 else "a spread needs two tracks"
+                cells_text += [f"n/a: {why} ({e.tracks})", e.verdict]
+                continue
+            ci = f" [{e.low:+.1f}, {e.high:+.1f}]" if not math.isnan(e.low) else " [n/a: one track]"
             cells_text += [f"{e.value:+.1f}{ci} ({e.tracks})", e.verdict]
         lines.append(f"| {effect.claim} | {effect.label} | " + " | ".join(cells_text) + " |")
     return "\n".join(lines) + "\n"

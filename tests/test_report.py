@@ -52,11 +52,41 @@ def test_paper_table_is_in_the_project():
 
 def test_cell_statistics_by_hand(tmp_path):
     for seed, final in zip(range(5), [100.0, 110.0, 120.0, 130.0, 140.0]):
-        fake_run(tmp_path, "spg_p_multi", "memory", seed, final)
+        fake_run(tmp_path, "spg_p_multi", "memory", seed, final, episodes=201)
     (cell,) = [c for c in cells(find_runs(tmp_path), read_paper_table()) if c.n]
     sem = math.sqrt(250.0) / math.sqrt(5)  # sample sd of 100..140 is sqrt(250)
     assert (cell.mean, cell.sem) == (120.0, pytest.approx(sem))
     assert cell.z == pytest.approx((120.0 - 141.1) / math.hypot(sem, 5.7))
+
+
+def test_the_table_states_each_budget_and_compares_only_the_paper_s(tmp_path, capsys):
+    """Runs of 20 episodes are not set against the paper's 201-episode values; a cell mixing budgets
+    says so instead of averaging silently; one run has no spread (n/a, not nan); the conclusions
+    pair runs of one budget; table.csv names each cell's budgets."""
+    from analysis.report import conclusions_markdown
+
+    for seed, final in zip((1, 2, 3), (30.0, 32.0, 34.0)):
+        fake_run(tmp_path, "spg", "recent", seed, final, episodes=20)
+    fake_run(tmp_path, "ppo", "recent", 1, 40.0, episodes=20)
+    fake_run(tmp_path, "ppo", "recent", 2, 60.0, episodes=100)
+    fake_run(tmp_path, "ppo", "recent", 3, 62.0, episodes=100)
+    fake_run(tmp_path, "spg_p", "recent", 1, 20.0, episodes=20)
+    table = {(c.er, c.algo): c for c in cells(find_runs(tmp_path), read_paper_table()) if c.n}
+    spg, ppo, spg_p = table[("recent", "spg")], table[("recent", "ppo")], table[("recent", "spg_p")]
+    assert spg.budgets == (20,) and spg.z is None and not spg.comparable
+    assert ppo.budgets == (20, 100) and ppo.z is None
+    assert report.main([str(tmp_path), "--no-figures"]) == 0
+    out = capsys.readouterr().out
+    assert "32.0 ± 1.2 (n=3; 20 episodes)<br>paper " in out and "at 201 episodes: not compared" in out
+    assert "(n=3; mixed budgets: 20, 100 episodes)" in out
+    assert "20.0 ± n/a (one run) (n=1; 20 episodes)" in out
+    assert "Δ =" not in out and "nan" not in out
+    assert "Runs of 20, 100 episodes are not compared with the paper's values" in out
+    assert "Cells averaging runs of different budgets (their mean is of unlike runs): recent / PPO linear." in out
+    assert (tmp_path / "report" / "table.csv").read_text().splitlines()[0].endswith(",z,episodes")
+    conclusions = conclusions_markdown(find_runs(tmp_path))
+    assert "The effects pair runs of 20 episodes only: 2 finished run(s) of other budgets (100 episodes)" in conclusions
+    assert "nan" not in conclusions
 
 
 def test_report_lists_partial_damaged_and_diverged_runs(tmp_path, capsys):
@@ -74,7 +104,7 @@ def test_report_lists_partial_damaged_and_diverged_runs(tmp_path, capsys):
     assert "actor.pt is not the file its summary records (0 bytes where 7 were written)" in out
     assert "no completed run with a loadable policy" in out or "matplotlib" in out
     table = (tmp_path / "report" / "table.md").read_text()
-    assert "95.0 ± 5.0 (n=2)" in table and "paper 94.4 ± 3.8" in table
+    assert "95.0 ± 5.0 (n=2; 3 episodes)" in table and "paper 94.4 ± 3.8" in table
     assert "1 diverged" in table
     runs_csv = (tmp_path / "report" / "runs.csv").read_text().splitlines()
     assert runs_csv[0] == ("er,algo,seed,status,final_mean,episodes,code,folder,train_tracks,eval_own_track,"
@@ -83,7 +113,7 @@ def test_report_lists_partial_damaged_and_diverged_runs(tmp_path, capsys):
     assert "recent,spg,1,completed,90.0,3,0123456789abcdef,spg/recent/seed1,fixed,,,portable (AVX2 kernels),," in runs_csv
     assert ",,,partial,,3,not recorded,spg/recent/seed3,fixed,,,not recorded,," in runs_csv
     csv_rows = (tmp_path / "report" / "table.csv").read_text().splitlines()
-    assert csv_rows[0] == "er,algo,n,mean,sem,diverged,paper_mean,paper_sem,z"
+    assert csv_rows[0] == "er,algo,n,mean,sem,diverged,paper_mean,paper_sem,z,episodes"
     assert any(r.startswith("hybrid,ppo_log,0,,,1,,,") for r in csv_rows)
 
 
@@ -189,7 +219,7 @@ def test_tiny_sweep_then_report_and_evaluate(tmp_path, capsys):
                  "curves_er-recent.png", "paper_tracks.png", "agent.png"):
         assert (out / name).stat().st_size > 0, name
     table = (out / "table.md").read_text()
-    assert "(n=2)" in table and "paper 121.5 ± 5.8" in table
+    assert "(n=2; 3 episodes)" in table and "paper 121.5 ± 5.8" in table
     assert table.startswith("Code: commit ") and "(4 runs)" in table
     assert "| recent / SPG-p single |" in (out / "iqm.md").read_text()
     capsys.readouterr()
@@ -305,7 +335,7 @@ def test_beyond_the_paper_and_generalisation_tables_by_hand(tmp_path, capsys):
     assert "| SAC, memory | fixed | 6 | 140.0 ± 0.0 | 103.0 ± 1.2 (2 tracks x 2 episodes) | 37.0 ± 1.2 |" in everything
     assert "| fixed | 6 |" not in paper and "| random |" not in everything  # random runs: paper tracks only
     table = (tmp_path / "report" / "table.md").read_text()
-    assert "122.0 ± 0.7 (n=5)" in table  # only the fixed-track runs of the paper's cell
+    assert "122.0 ± 0.7 (n=5; 3 episodes)" in table  # only the fixed-track runs of the paper's cell
     capsys.readouterr()
 
 
