@@ -89,7 +89,10 @@ class ActingPolicy(TensorDictModuleBase):
         self.in_keys, self.out_keys = ["observation"], ["action"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        return tensordict.set("action", self.sample(tensordict.get("observation")))
+        # TensorDict's unchecked accessors (tensordict 0.14.3, pinned): the sampler's action has the
+        # observation's batch size and device by construction
+        action = self.sample(tensordict._get_str("observation", None))
+        return tensordict._set_str("action", action, inplace=False, validated=True)
 
 
 def _stack(rows: list[dict[str, torch.Tensor]], batch_size: torch.Size) -> TensorDictBase:

@@ -178,9 +178,12 @@ class RacingTorchEnv(EnvBase):
             return super()._step_and_maybe_reset(tensordict)
         if tensordict.device != self.device:
             tensordict = tensordict.to(self.device)
-        result, following = self.step_and_reset_tensors(tensordict.get("action"))
-        tensordict.set("next", self._pack(result))
-        root = {key: value for key, value in tensordict.items() if key != "next"}
+        # TensorDict's own unchecked accessors (tensordict 0.14.3, pinned): the entries are the simulator's,
+        # of this env's batch size and device, so TensorDict's per-entry checks would only repeat ours
+        result, following = self.step_and_reset_tensors(tensordict._get_str("action", None))
+        tensordict._set_str("next", self._pack(result), inplace=False, validated=True)
+        root = dict(tensordict._tensordict)  # the root's other keys (the policy's, a collector's) carry over
+        del root["next"]
         root.update(following)
         return tensordict, self._pack(root)
 
