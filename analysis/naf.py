@@ -41,8 +41,10 @@ def curvature(run: Path) -> dict[str, float]:
     from racing.gym_env import RacingEnv
 
     policy, settings = load_policy(run)
-    if settings["algo"]["loss"] != "naf":
-        raise RunFolderError(f"{run} is a run of loss {settings['algo']['loss']!r}, not naf")
+    from learners.td.naf import SPEC
+
+    if settings["algo"]["loss"] != SPEC.name:  # NAF's networks: V, mu and the advantage's L
+        raise RunFolderError(f"{run} is a run of loss {settings['algo']['loss']!r}, not {SPEC.name}")
     if settings["env"].get("memory"):
         raise RunFolderError(f"{run} trained with env.memory (its networks read past steps); this analysis reads "
                              "runs without memory only")

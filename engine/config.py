@@ -8,7 +8,7 @@ design does not allow, each in one sentence naming what was expected.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -148,10 +148,10 @@ def _check_device(device: str) -> None:
 
 @dataclass(frozen=True)
 class AlgoConfig:
-    """One algorithm (``conf/algo/*.yaml``) of one learner family (``learners``): the paper's
-    (``loss: ppo|spg``, a critic phase then an actor phase per episode on Monte-Carlo returns) or
-    the off-policy losses (``loss: sac|tqc|crossq|redq|td3|naf|trust_pcl``, bootstrapped targets, options in ``td:``).
-    The family decides which of the optional keys and blocks are required (``KEYS``, ``BLOCKS``)."""
+    """One algorithm (``conf/algo/*.yaml``): its learner (``loss``, ``learners.registry``), the optimisers'
+    settings, the keys its family requires (``KEYS``: the paper's protocol's epochs and entropy) and its
+    option blocks (``algo.<block>``: its family's and its own, each built into the dataclass that
+    declares and checks it; read as ``algo.sac``, ``algo.td``..., None for a block it does not read)."""
 
     name: str
     loss: str
@@ -163,16 +163,27 @@ class AlgoConfig:
     policy_epochs: int | None = None
     entropy_coeff: float | None = None
     joint_log_prob: bool | None = None
-    ppo: dict | None = None  # options of the PPO losses (loss: ppo only)
-    spg: dict | None = None  # options of the SPG losses (loss: spg only)
-    td: dict | None = None  # the off-policy schedule and targets (loss: sac, tqc, crossq, redq, td3, naf, trust_pcl)
-    sac: dict | None = None  # options of TorchRL's SACLoss (loss: sac, and tqc, crossq, redq: built like it)
-    tqc: dict | None = None  # options of TorchRL's TQCLoss (loss: tqc only)
-    crossq: dict | None = None  # options of TorchRL's CrossQLoss (loss: crossq only)
-    redq: dict | None = None  # options of TorchRL's REDQLoss (loss: redq only)
-    td3: dict | None = None  # options of TorchRL's TD3Loss (loss: td3 only)
-    naf: dict | None = None  # options of NAF (loss: naf only; losses.naf.NAFLoss)
-    trust_pcl: dict | None = None  # options of Trust-PCL (loss: trust_pcl only; losses.trust_pcl.TrustPCLLoss)
+    blocks: dict = field(default_factory=dict)  # {block: its options}, as given, then built
+
+    def __getattr__(self, name: str):
+        if name in block_names():  # an option block: built if this learner reads it, else None
+            return self.__dict__.get("blocks", {}).get(name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    @classmethod
+    def from_mapping(cls, where: str, values: Mapping[str, Any]) -> "AlgoConfig":
+        """From ``conf/algo``'s mapping: the keys of the option blocks the learners declare go to ``blocks``
+        (any other unknown key is refused, naming the valid ones)."""
+        names = block_names()
+        given = {k: v for k, v in values.items() if k not in names}
+        blocks = {k: v for k, v in values.items() if k in names}
+        if "blocks" in given:
+            raise ConfigError(f"{where}: unknown key(s) ['blocks']; give each option block by its name "
+                              f"({', '.join(sorted(names))})")
+        for key, block in blocks.items():
+            if block is not None and not isinstance(block, Mapping):
+                raise ConfigError(f"{where}.{key} must be a mapping, got {block!r}")
+        return _build(cls, where, {**given, "blocks": {k: dict(v) for k, v in blocks.items() if v is not None}})
 
     def __post_init__(self) -> None:
         w = f"algo {self.name}"
@@ -180,30 +191,45 @@ class AlgoConfig:
         for key in ("critic_lr", "actor_lr", "adam_eps"):
             _positive(f"{w}: {key}", getattr(self, key))
         _at_least(f"{w}: minibatch_size", self.minibatch_size, 1)
+        learner = learners.spec(self.loss)
         family = learners.family(self.loss)
         missing = [key for key in family.KEYS if getattr(self, key) is None]
         if missing:
             raise ConfigError(f"{w}: loss {self.loss} needs {missing}")
-        for other in learners.FAMILIES:
+        for other in learners.FAMILIES.values():
             given = [key for key in other.KEYS if other is not family and getattr(self, key) is not None]
             if given:
                 raise ConfigError(f"{w}: {given} belong to {other.DESCRIPTION}, not to loss {self.loss}; "
                                   "remove them")
-        family.check(self)
-        for other in learners.FAMILIES:
-            for kind, (losses, options) in other.BLOCKS.items():
-                block = getattr(self, kind)
-                if self.loss in losses:
-                    if block is None:
-                        raise ConfigError(f"{w}: loss {self.loss} needs a '{kind}:' block of options")
-                    object.__setattr__(self, kind, _build(options, f"{w}: {kind}", block))
-                elif block is not None:
-                    raise ConfigError(f"{w}: a '{kind}:' block does not apply to loss {self.loss}; remove it")
+        family.check(self, learner)
+        learner.check(self)
+        reads = {**family.BLOCKS, **learner.blocks}  # what this learner reads: its family's and its own
+        built = {}
+        for kind in sorted(block_names()):
+            block = self.blocks.get(kind)
+            if kind in reads:
+                if block is None:
+                    raise ConfigError(f"{w}: loss {self.loss} needs a '{kind}:' block of options")
+                built[kind] = _build(reads[kind], f"{w}: {kind}", block)
+            elif block is not None:
+                raise ConfigError(f"{w}: a '{kind}:' block does not apply to loss {self.loss}; remove it")
+        object.__setattr__(self, "blocks", built)
 
     @property
     def bootstrapped(self) -> bool:
-        """Trained off-policy from a replay memory only, on bootstrapped targets (every loss of ``learners.td``)."""
+        """Trained off-policy from a replay memory only, on bootstrapped targets (every learner of ``learners.td``)."""
         return learners.family(self.loss).OFF_POLICY
+
+    @property
+    def learner(self):
+        """Its learner's declaration (``learners.registry``)."""
+        return learners.spec(self.loss)
+
+
+def block_names() -> frozenset[str]:
+    """Every option block (``algo.<block>``) a family or a learner declares (``learners.registry``)."""
+    return frozenset({*(b for f in learners.FAMILIES.values() for b in f.BLOCKS),
+                      *(b for spec in learners.registry.LEARNERS.values() for b in spec.blocks)})
 
 
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
@@ -416,37 +442,15 @@ class RunConfig:
             if importlib.util.find_spec("tensorboard") is None:
                 raise ConfigError("logger=tensorboard needs the tensorboard package: "
                                   "pip install -c constraints/cpu.txt -e '.[tensorboard]' (or use logger=csv)")
+        learner = self.algo.learner
         if self.algo.bootstrapped and (self.er.train_on_recent or not self.er.train_on_memory):
-            modes = "er=memory" if self.algo.loss == "trust_pcl" else "er=memory or er=prioritised"
+            modes = "er=memory or er=prioritised" if learner.prioritised else "er=memory"
             raise ConfigError(f"algo {self.algo.name} trains off-policy on a replay memory; use {modes}, "
                               f"not er={self.er.name}")
-        if self.algo.loss == "trust_pcl" and self.er.priority is not None:
-            raise ConfigError(f"algo {self.algo.name}: loss trust_pcl draws whole sub-episodes, not prioritised "
-                              "transitions; use er=memory")
-        if self.algo.loss == "trust_pcl" and self.er.buffer_size % self.env.episode_steps:
-            raise ConfigError(f"algo {self.algo.name}: loss trust_pcl keeps whole episodes in its memory; "
-                              f"er.buffer_size ({self.er.buffer_size}) must be a multiple of the episode's "
-                              f"{self.env.episode_steps} steps")
-        if self.algo.loss == "trust_pcl" and self.er.buffer_size // self.env.episode_steps < self.algo.trust_pcl.divergence_episodes:
-            raise ConfigError(f"algo {self.algo.name}: the trust region is estimated from the newest "
-                              f"{self.algo.trust_pcl.divergence_episodes} episodes of the memory "
-                              f"(algo.trust_pcl.divergence_episodes), but er.buffer_size ({self.er.buffer_size}) holds "
-                              f"{self.er.buffer_size // self.env.episode_steps}; give a larger memory or fewer episodes")
         if self.algo.td is not None and self.algo.td.n_step > self.env.episode_steps:
             raise ConfigError(f"algo {self.algo.name}: algo.td.n_step ({self.algo.td.n_step}) is longer than an episode "
                               f"({self.env.episode_steps} steps); at most {self.env.episode_steps}")
-        if self.algo.loss == "trust_pcl" and self.algo.trust_pcl.rollout > self.env.episode_steps:
-            raise ConfigError(f"algo {self.algo.name}: algo.trust_pcl.rollout ({self.algo.trust_pcl.rollout}) is longer "
-                              f"than an episode ({self.env.episode_steps} steps); a sub-episode lies inside one")
-        if self.algo.loss == "crossq" and self.er.priority is not None:
-            raise ConfigError(f"algo {self.algo.name}: TorchRL's CrossQLoss does not weight by priority; "
-                              "use er=memory")
-        if self.algo.loss == "crossq" and self.compile:
-            raise ConfigError(f"algo {self.algo.name}: compile=true is not supported for crossq (its batch "
-                              "normalisation updates running statistics in place); use compile=false")
-        if self.algo.loss == "redq" and self.compile:
-            raise ConfigError(f"algo {self.algo.name}: compile=true is not supported for redq (each member draws its "
-                              "own subset of target networks; its step runs eagerly); use compile=false")
+        learner.check_run(self)  # its own rules on the run (replay, episode length, compile)
         if self.compile and self.algo.td is not None and self.algo.td.critic_dropout:
             raise ConfigError(f"algo {self.algo.name}: compile=true is not supported with algo.td.critic_dropout "
                               "(each member draws its dropout masks from its own generator); use compile=false")
@@ -531,9 +535,9 @@ class RunConfig:
     def from_mapping(cls, cfg: Mapping[str, Any]) -> "RunConfig":
         """Validate a plain mapping (e.g. ``OmegaConf.to_container(cfg, resolve=True)``)."""
         values = {k: v for k, v in cfg.items() if k != "hydra"}
-        nodes = {"algo": AlgoConfig, "er": ERConfig, "env": EnvConfig, "network": NetworkConfig}
+        nodes = {"algo": AlgoConfig.from_mapping, "er": ERConfig, "env": EnvConfig, "network": NetworkConfig}
         for key, node in nodes.items():
             if not isinstance(values.get(key), Mapping):
                 raise ConfigError(f"{key} must be a config node (a mapping), got {values.get(key)!r}")
-            values[key] = _build(node, key, values[key])
+            values[key] = node(key, values[key]) if key == "algo" else _build(node, key, values[key])
         return _build(cls, "config", values)

@@ -27,8 +27,10 @@ class Policy:
     call ``reset()`` at each episode's start (``drive_episode`` does), then the policy once per step;
     it reads the observation with its last k observations and actions, as the run's networks did."""
 
-    def __init__(self, net: torch.nn.Module, kind: str, memory: int = 0, obs_size: int | None = None):
-        self.net, self.kind, self.memory = net, kind, memory
+    def __init__(self, net: torch.nn.Module, stacked: bool, memory: int = 0, obs_size: int | None = None):
+        """``stacked``: ``net`` is a population of one (the off-policy learners' layout), else the paper's
+        ``GaussianPolicyNet``."""
+        self.net, self.stacked, self.memory = net, stacked, memory
         self.history = History(1, memory, obs_size) if memory else None
         self._start = True
 
@@ -43,7 +45,7 @@ class Policy:
             self._start = False
             observation = self.history.memory_observation(self.memory)[0]
         x = torch.as_tensor(observation, dtype=torch.float32).unsqueeze(0)
-        if self.kind == "paper":
+        if not self.stacked:  # the paper's learners: the Gaussian's mean, clipped
             loc, _ = self.net(x)
             action = loc.clamp(-1.0, 1.0).squeeze(0).numpy()
         else:
@@ -105,23 +107,23 @@ def make_policy(loss: str, network: dict, obs_size: int, state: dict, memory: in
     """The deterministic policy of an actor's saved weights (``actor.pt``) for ``algo.loss``, with the
     run's ``env.memory`` (its networks read ``racing.memory.memory_size(obs_size, memory)`` inputs)."""
     width = memory_size(obs_size, memory)
-    if loss in learners.td.LOSSES:  # the off-policy family's actors
+    learner = learners.spec(loss)
+    stacked = learners.FAMILIES[learner.family].OFF_POLICY  # the off-policy learners' actors: populations of one
+    if stacked:
         from learners.td.learner import make_actor_net
         from learners.networks import NormalisedActor, ObservationNorm, load_member_state_dict
 
-        net = make_actor_net(loss, 1, width, 2, network["actor_hidden"], network["activation"])
+        net = make_actor_net(learner.gaussian_actor, 1, width, 2, network["actor_hidden"], network["activation"])
         if all(k.startswith("module.") for k in state):  # the layout of TorchRL's parameters (until da21af2)
             state = {k.removeprefix("module."): v for k, v in state.items()}
         if any(k.startswith("norm.") for k in state):  # algo.td.observation_norm: the statistics it acted with
             net = NormalisedActor(ObservationNorm(1, width), net)
         load_member_state_dict(net, 0, state)
-        kind = loss
     else:
         net = GaussianPolicyNet(width, 2, network["actor_hidden"], network["activation"])
         net.load_state_dict(state)
-        kind = "paper"
     net.eval()
-    return Policy(net, kind, memory, obs_size)
+    return Policy(net, stacked, memory, obs_size)
 
 
 def deterministic_action(policy: Policy, observation: np.ndarray) -> np.ndarray:

@@ -102,17 +102,8 @@ def estimate(cfg) -> dict[str, int]:
 
         checkpoints = len(read_rows(cfg.env.track_file)[0])
     algo, net = cfg.algo, cfg.network
-    critics, outputs, critic_inputs = 1, 1, obs + 2  # the paper's: one critic network of one value
-    if algo.loss == "naf":  # one value network of the observation: V and the advantage's three entries of L
-        outputs, critic_inputs = 4, obs
-    elif algo.loss == "trust_pcl":  # one value network of the observation; an actor and value pair lagging behind
-        critics, critic_inputs = 2, obs
-    elif algo.loss in ("sac", "td3", "crossq"):
-        critics = 2
-    elif algo.loss == "tqc":
-        critics, outputs = algo.tqc.critics, algo.tqc.quantiles
-    elif algo.loss == "redq":
-        critics = algo.redq.critics
+    critics, outputs, reads_action = algo.learner.critic(algo)  # its critic networks' number and shape
+    critic_inputs = obs + 2 * reads_action
     critic_layers = list(net.critic_hidden)
     if algo.td is not None and algo.td.critic_blocks:
         width = algo.td.critic_width or net.critic_hidden[0]
@@ -122,9 +113,7 @@ def estimate(cfg) -> dict[str, int]:
     stored = cfg.er.buffer_size if cfg.er.train_on_memory else 0  # allocated whole, saved whole by checkpoints
     transition = TRANSITION_BYTES + OBSERVATION_BYTES * obs
     minibatch = max(1, round(algo.minibatch_size * cfg.er.minibatch_fraction))
-    rows = minibatch * max(1, algo.spg.num_samples if algo.spg is not None else 1)  # SPG scores sampled actions
-    if algo.trust_pcl is not None:  # Trust-PCL's minibatch counts sub-episodes
-        rows = minibatch * algo.trust_pcl.rollout
+    rows = algo.learner.rows(algo, minibatch)  # SPG scores sampled actions; Trust-PCL's minibatch counts sub-episodes
     widest = max((*net.actor_hidden, *critic_layers))
     layers = max(len(net.actor_hidden), len(critic_layers))
     return {

@@ -155,7 +155,7 @@ def dagger(track: int, settings: DaggerSettings = DaggerSettings(), oracle_setti
         data = np.array(observations), np.array(actions)
         net = fit(*data, settings, len(observations[0]))
         result.fit_error.append(fit_error(net, *data))
-        policy = Policy(net, "paper")
+        policy = Policy(net, stacked=False)
         agent = Agent(f"dagger round {round_}",
                       lambda driven, o, p=policy: p(pupil_input(driven, o, settings.features)))
         result.scores.append(score(agent, (track,))[track])

@@ -49,10 +49,11 @@ def child(mode: str, cell: str, members: int, episodes: int) -> None:
 
     algo, er = cell.split("/")
     seeds = [*TRACKS, *range(1000, 1000 + max(0, members - len(TRACKS)))][:members]
-    extra = ["algo.td.warmup_episodes=1"] if algo in ("sac", "td3") else []
-    cfg = RunConfig.compose(f"algo={algo}", f"er={er}", f"seeds=[{','.join(map(str, seeds))}]",
-                            f"episodes={episodes}", "progress=false", "logger=none", "checkpoint_every=0",
-                            f"numerics={mode}", *extra)
+    settings = [f"algo={algo}", f"er={er}", f"seeds=[{','.join(map(str, seeds))}]", f"episodes={episodes}",
+                "progress=false", "logger=none", "checkpoint_every=0", f"numerics={mode}"]
+    cfg = RunConfig.compose(*settings)
+    if cfg.algo.td is not None:  # an off-policy learner: one warm-up episode, then gradient steps
+        cfg = RunConfig.compose(*settings, "algo.td.warmup_episodes=1")
     with tempfile.TemporaryDirectory() as out:
         summary = train_population(cfg, Path(out))[0]
     print(json.dumps({"seconds": summary["time/rollout_s"] + summary["time/train_s"],

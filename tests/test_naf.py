@@ -13,6 +13,7 @@ from torchrl.objectives import SoftUpdate
 
 from engine.evaluation import make_policy
 from engine.runner import train_population
+from learners.td import naf
 from learners.base import MetricTotals
 from losses.naf import NAFLoss, lower_entries, naf_advantage, naf_lower, naf_precision
 from tests.test_config import load
@@ -215,7 +216,7 @@ def test_bad_naf_settings_are_refused_with_a_reason(override, message):
 def test_the_pre_tanh_penalty_adds_its_mean_square_to_mus_objective_only():
     cfg, t = training("naf", "algo.naf.preact_penalty=0.5")
     data = transitions(2, 32)
-    losses, _, penalty = t.phases._naf_losses(data.clone())
+    losses, _, penalty = naf.losses(t.phases, data.clone())
     body = t.networks.actor_net[0]
     expected = 0.5 * body(data["observation"]).square().reshape(2, -1).mean(-1)
     torch.testing.assert_close(penalty, expected, rtol=0, atol=0)
@@ -224,7 +225,7 @@ def test_the_pre_tanh_penalty_adds_its_mean_square_to_mus_objective_only():
         p.grad = None
     penalty.sum().backward()
     assert all(p.grad is None or not p.grad.any() for p in critic)
-    _, _, none = training("naf", "algo.naf.preact_penalty=0")[1].phases._naf_losses(data.clone())
+    _, _, none = naf.losses(training("naf", "algo.naf.preact_penalty=0")[1].phases, data.clone())
     assert not none.any()
 
 

@@ -22,6 +22,7 @@ from collectors.prioritised import WEIGHT_KEY, ProportionalSampler
 from engine.config import ConfigError
 from engine.evaluation import load_policy, make_policy
 from engine.setup import make_env, make_generators, make_learner
+from learners.td import td3
 from learners.base import MetricTotals
 from losses.td import ACTION_NOISE_KEY, SMOOTHING_KEY, DrawnTanhNormal, quantile_huber_loss
 from engine.runner import train_population
@@ -243,7 +244,7 @@ def test_td3_preact_penalty_adds_the_mean_square_of_the_pre_tanh_action():
     _, penalised = training("td3", "algo.td3.preact_penalty=0.5")
     data = transitions(2, 64)
     plain.loss.draw(data)
-    base, extra = plain.phases._td3_actor_losses(data), penalised.phases._td3_actor_losses(data)
+    base, extra = td3.actor_losses(plain.phases, data), td3.actor_losses(penalised.phases, data)
     with torch.no_grad():
         u = torch.atanh(penalised.networks.actor_net(data["observation"]).double())
     torch.testing.assert_close((extra - base).double(), 0.5 * u.square().mean((1, 2)), rtol=1e-5, atol=1e-6)
@@ -300,7 +301,7 @@ def test_fused_sac_step_is_the_torchrl_loss_bit_for_bit(mode, extra):
             p.grad = None
         for g, state in zip(generators, drawn_from):
             g.set_state(state)
-        losses, priority = t.phases._sac_losses(data.clone())
+        losses, priority = t.phases.steps_of.losses(t.phases, data.clone())
         (sum(losses.values()) * torch.tensor([1.0, 2.0, 3.0])).sum().backward()
         return losses, priority, [p.grad.clone() for p in params]
 
@@ -338,9 +339,9 @@ def test_fused_td3_steps_are_the_torchrl_loss_bit_for_bit(mode, extra):
             p.grad = None
         for g, state in zip(t.loss.generators, states):
             g.set_state(state)
-        loss_qvalue, priority = t.phases._td3_critic_losses(data.clone())
+        loss_qvalue, priority = td3.critic_losses(t.phases, data.clone())
         (loss_qvalue * torch.tensor([1.0, 2.0, 3.0])).sum().backward()
-        loss_actor = t.phases._td3_actor_losses(data.clone())
+        loss_actor = td3.actor_losses(t.phases, data.clone())
         (loss_actor * torch.tensor([3.0, 1.0, 2.0])).sum().backward()
         drawn = [g.get_state() for g in t.loss.generators]  # the next step's masks start there
         return [loss_qvalue, priority, loss_actor] + [p.grad.clone() for p in critic + actor] + drawn
@@ -713,15 +714,14 @@ def test_the_critic_loss_is_importance_weighted_and_reports_errors():
     torch.testing.assert_close(plain["loss_critic"], (error ** 2).mean(-1))
 
 
-def test_every_off_policy_loss_has_a_step_and_an_unbuilt_one_fails_loudly():
-    """A loss added to learners.td.LOSSES without its branches raises, naming where, instead of
-    running as another loss (each part of learners.td.learner names every loss it serves)."""
-    import learners.td
-    from learners.td.learner import STEPS, make_loss
+def test_every_off_policy_learner_declares_its_step():
+    """Each learner the td family trains declares what the machinery asks of it (learners.registry)."""
+    from learners.registry import LEARNERS
 
-    assert set(STEPS) == set(learners.td.LOSSES)
-    cfg = load("algo=td3")
-    object.__setattr__(cfg.algo, "loss", "ddpg")
-    networks = type("Networks", (), {"sampler": type("Sampler", (), {"action_dim": 2})()})()
-    with pytest.raises(NotImplementedError, match="make_loss has no branch for loss 'ddpg'"):
-        make_loss(cfg, networks, [torch.Generator()])
+    for name, spec in LEARNERS.items():
+        if spec.family != "td":
+            continue
+        steps = spec.torch_half()
+        for part in ("METRICS", "actor", "critics", "exploration_noise", "loss", "prepare"):
+            assert hasattr(steps, part), (name, part)
+        assert hasattr(steps, "step") or hasattr(steps, "phase"), name

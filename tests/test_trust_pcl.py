@@ -17,6 +17,7 @@ from collectors.replay import sample_sub_episodes
 from engine.config import ConfigError
 from engine.evaluation import make_policy
 from engine.runner import train_population
+from learners.td.trust_pcl import recent_returns
 from losses.trust_pcl import (TrustPCLLoss, discounted_sums, path_consistency, relative_entropy_coefficient,
                               trajectory_divergence)
 from tests.test_config import load
@@ -212,12 +213,12 @@ def test_the_divergence_reads_the_newest_episodes_of_the_ring_in_the_order_they_
         reward[:, block * 200:(block + 1) * 200] = episode * 0.25  # exact in float32: totals 50 x episode
     reward[1] *= 10
     data = TensorDict({"next": TensorDict({"reward": reward}, batch_size=[2, 2000])}, batch_size=[2, 2000])
-    returns = phases.recent_returns(data, 23)
+    returns = recent_returns(phases, data, 23)
     assert returns == [[50.0 * e for e in range(14, 23)], [500.0 * e for e in range(14, 23)]]
-    early = phases.recent_returns(data[:, :800], 4)  # four episodes so far: blocks 0-3, oldest first
+    early = recent_returns(phases, data[:, :800], 4)  # four episodes so far: blocks 0-3, oldest first
     assert early == [[1000.0, 1050.0, 1100.0, 650.0], [10000.0, 10500.0, 11000.0, 6500.0]]
     with pytest.raises(ValueError, match="expects every episode so far"):
-        phases.recent_returns(data[:, :400], 7)
+        recent_returns(phases, data[:, :400], 7)
 
 
 # ------------------------------------------------------------------------- the learner

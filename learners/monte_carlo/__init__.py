@@ -1,8 +1,9 @@
-"""The paper's learners (``loss: ppo|spg``): a Monte-Carlo critic, then per phase a critic
-phase and an actor phase on the member's transitions (ALGO_SPEC's protocol).
+"""The paper's learners (``ppo``, ``spg``: their modules here, ``learners.registry``): a Monte-Carlo
+critic, then per phase a critic phase and an actor phase on the member's transitions (the paper's
+protocol).
 
-This module is the family's torch-free half: which losses it serves, the ``algo.*`` keys and
-option blocks it reads (validated before torch loads) and ``build``, which imports the torch
+This module is the family's torch-free half: the ``algo.*`` keys it requires, the option
+dataclasses of its learners (validated before torch loads) and ``build``, which imports the torch
 half (``learners.monte_carlo.learner``) on first use.
 """
 
@@ -12,8 +13,7 @@ from dataclasses import dataclass
 
 from learners.options import ConfigError, at_least, choice
 
-LOSSES = ("ppo", "spg")
-DESCRIPTION = "the paper's protocol (loss ppo or spg)"
+DESCRIPTION = "the paper's protocol (its learners: ppo, spg)"
 OFF_POLICY = False  # trains on its own Monte-Carlo returns: any er mode
 KEYS = ("value_epochs", "policy_epochs", "entropy_coeff", "joint_log_prob")  # algo.<key>, required
 RATIO_SPACES = ("linear", "log")
@@ -53,10 +53,10 @@ class SPGOptions:
             raise ConfigError(f"algo.spg.temperature_decay must be in [0, 1), got {self.temperature_decay}")
 
 
-BLOCKS = {"ppo": (("ppo",), PPOOptions), "spg": (("spg",), SPGOptions)}  # algo.<block>: (its losses, options)
+BLOCKS = {}  # the family's own blocks (each learner declares its own: learners.registry)
 
 
-def check(algo) -> None:
+def check(algo, learner) -> None:
     """Rules on the family's ``algo.*`` keys beyond their types."""
     for key in ("value_epochs", "policy_epochs", "entropy_coeff"):
         at_least(f"algo {algo.name}: {key}", getattr(algo, key), 0)

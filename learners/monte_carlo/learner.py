@@ -25,6 +25,7 @@ from learners.monte_carlo.fused import (FusedCritic, FusedPPOActor, FusedSPGActo
                                         actor_refusal, critic_refusal, loss_refusal)
 from learners.networks import MemberNormal, MemberSampler, StackedCriticNet, StackedGaussianPolicyNet, reset_parameters
 from learners.optim import MemberAdam
+from learners.registry import spec as learner_spec
 from learners.solo import make_actor, make_critic
 from losses import LogClipPPOLoss, SPGLoss
 from losses.common import PRIORITY_KEY
@@ -44,7 +45,8 @@ def make_networks(cfg, env, generators: list[torch.Generator]) -> Networks:
     first, then critic), Glorot-uniform kernels and zero biases."""
     obs_dim = env.observation_spec["observation"].shape[-1]
     action_dim = env.action_spec.shape[-1]
-    state_action = cfg.algo.loss == "spg"
+    learner = learner_spec(cfg.algo.loss)
+    state_action = learner.critic(cfg.algo)[2]  # Q(s, a) (SPG's) or V(s) (PPO's)
     net, members = cfg.network, len(generators)
     device = generators[0].device
     actor_net = StackedGaussianPolicyNet(members, obs_dim, action_dim, net.actor_hidden, net.activation).to(device)
@@ -58,18 +60,11 @@ def make_networks(cfg, env, generators: list[torch.Generator]) -> Networks:
 
 
 def make_loss(cfg, networks: Networks, generators: list[torch.Generator]) -> LogClipPPOLoss | SPGLoss:
+    """The learner's loss module (its module's ``loss``) with the family's settings, on the members' device."""
     algo = cfg.algo
     common = {"entropy_coeff": algo.entropy_coeff, "joint_log_prob": algo.joint_log_prob,
               "members": len(generators)}
-    if algo.loss == "ppo":
-        return LogClipPPOLoss(networks.actor, networks.critic, clip_epsilon=algo.ppo.clip_epsilon,
-                              ratio_space=algo.ppo.ratio_space, **common).to(generators[0].device)
-    spg = algo.spg
-    loss = SPGLoss(networks.actor, networks.critic, num_samples=spg.num_samples, temperature=spg.temperature,
-                   temperature_decay=spg.temperature_decay, prioritised=spg.prioritised,
-                   sample_around=spg.sample_around, baseline=spg.baseline, **common)
-    loss.set_generators(generators)
-    return loss.to(generators[0].device)
+    return learner_spec(algo.loss).torch_half().loss(cfg, networks, generators, common).to(generators[0].device)
 
 
 def make_optimisers(cfg, networks: Networks) -> Optimisers:

@@ -1,9 +1,11 @@
-"""The off-policy learners (``loss: sac|tqc|crossq|redq|td3|naf|trust_pcl``): bootstrapped targets, gradient
-steps paid per environment step, target (or lagged) networks, a replay memory. TorchRL's losses, and
-NAF's and Trust-PCL's (``losses.naf.NAFLoss``, ``losses.trust_pcl.TrustPCLLoss``), which TorchRL does not ship.
+"""The off-policy learners: bootstrapped targets, gradient steps paid per environment step, target (or
+lagged) networks, a replay memory. TorchRL's losses, and NAF's and Trust-PCL's (``losses.naf.NAFLoss``,
+``losses.trust_pcl.TrustPCLLoss``), which TorchRL does not ship. Each learner is a module here
+(``sac``, ``tqc``, ``crossq``, ``redq``, ``td3``, ``naf``, ``trust_pcl``; ``learners.registry``); the
+machinery they share (networks, acting policy, the steps' schedule) is ``learners.td.learner``.
 
-The family's torch-free half: its losses, option blocks (validated before torch loads) and
-``build``, which imports the torch half (``learners.td.learner``) on first use.
+The family's torch-free half: the option blocks its learners read (validated before torch loads), its
+rules, and ``build``, which imports the torch half on first use.
 """
 
 from __future__ import annotations
@@ -14,19 +16,15 @@ from dataclasses import dataclass
 from learners.options import ACTIVATIONS, ConfigError, at_least, choice, positive
 from racing.memory import MAX_HISTORY
 
-LOSSES = ("sac", "tqc", "crossq", "redq", "td3", "naf", "trust_pcl")
-ENTROPY_LOSSES = ("sac", "tqc", "crossq", "redq")  # a tanh-Gaussian actor and a learned entropy temperature (the sac: block)
-GAUSSIAN_ACTORS = (*ENTROPY_LOSSES, "trust_pcl")  # a tanh-Gaussian actor (the others: a deterministic tanh action)
-DESCRIPTION = "the off-policy losses (loss sac, tqc, crossq, redq, td3, naf or trust_pcl)"
+DESCRIPTION = "the off-policy learners"
 OFF_POLICY = True  # trains on a replay memory only: er=memory or er=prioritised
 KEYS = ()  # its schedule is in the td: block
 LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
-PRIVILEGED_LOSSES = ("sac", "redq")  # algo.td.privileged_critic, critic_history: losses.td.fused_sac_losses, redq_losses
 
 
 @dataclass(frozen=True)
 class TDOptions:
-    """The off-policy schedule of ``loss: sac|tqc|crossq|redq|td3|naf|trust_pcl`` (``conf/algo/sac.yaml`` explains each key)."""
+    """The off-policy schedule every learner of the family reads (``algo.td``; ``conf/algo/sac.yaml`` explains each key)."""
 
     updates_per_step: float
     warmup_episodes: int
@@ -235,48 +233,26 @@ class TrustPCLOptions:
                               f"{self.divergence_episodes}")
 
 
-BLOCKS = {"td": (LOSSES, TDOptions), "sac": (ENTROPY_LOSSES, SACOptions), "tqc": (("tqc",), TQCOptions),
-          "crossq": (("crossq",), CrossQOptions), "redq": (("redq",), REDQOptions), "td3": (("td3",), TD3Options),
-          "naf": (("naf",), NAFOptions), "trust_pcl": (("trust_pcl",), TrustPCLOptions)}
+BLOCKS = {"td": TDOptions}  # the family's own block (each learner declares its others: learners.registry)
 
 
-def check(algo) -> None:
-    """TQC's critic loss is TorchRL's quantile Huber loss (threshold 1): ``td.loss_function`` says
-    so; CrossQ has no target networks (``td.tau: null``), the others need their ``tau``."""
-    tau = (algo.td or {}).get("tau", 0.005)
-    if algo.loss == "crossq" and tau is not None:
-        raise ConfigError(f"algo {algo.name}: loss crossq has no target networks; set algo.td.tau: null (got {tau})")
-    if algo.loss != "crossq" and tau is None:
+def check(algo, learner) -> None:
+    """The family's rules, for ``learner`` (its ``learners.registry`` spec): target networks follow
+    ``algo.td.tau`` where the learner keeps them (CrossQ keeps none: its own check); the critic's view
+    of the car's true state and past only where the learner's step feeds it; weight decay below 1/lr."""
+    td = algo.td or {}
+    if learner.target_networks and td.get("tau", 0.005) is None:
         raise ConfigError(f"algo {algo.name}: loss {algo.loss} updates target networks by algo.td.tau; "
                           "give a value in (0, 1]")
-    td = algo.td or {}
-    if algo.loss == "crossq" and (td.get("critic_dropout") or td.get("critic_layer_norm") or td.get("critic_blocks")):
-        raise ConfigError(f"algo {algo.name}: loss crossq's Q-networks are batch-normalised; set "
-                          "algo.td.critic_dropout: 0.0, algo.td.critic_layer_norm: false and algo.td.critic_blocks: 0")
-    if algo.loss == "redq" and (td.get("critic_dropout") or td.get("critic_layer_norm")):
-        raise ConfigError(f"algo {algo.name}: loss redq's step computes plain or residual Q-networks (algo.td.critic_blocks); "
-                          "set algo.td.critic_dropout: 0.0 and algo.td.critic_layer_norm: false")
-    if algo.loss == "naf" and (td.get("critic_dropout") or td.get("critic_layer_norm") or td.get("critic_blocks")):
-        raise ConfigError(f"algo {algo.name}: loss naf's value network (V and the advantage's L) is a plain MLP of "
-                          "network.critic_hidden; set algo.td.critic_dropout: 0.0, algo.td.critic_layer_norm: false "
-                          "and algo.td.critic_blocks: 0")
-    if algo.loss == "trust_pcl":
-        if td.get("critic_dropout") or td.get("critic_layer_norm") or td.get("critic_blocks"):
-            raise ConfigError(f"algo {algo.name}: loss trust_pcl's value network is a plain MLP of network.critic_hidden; "
-                              "set algo.td.critic_dropout: 0.0, algo.td.critic_layer_norm: false and "
-                              "algo.td.critic_blocks: 0")
-        if td.get("n_step", 1) != 1:
-            raise ConfigError(f"algo {algo.name}: loss trust_pcl draws sub-episodes of algo.trust_pcl.rollout steps from "
-                              f"one-step transitions; set algo.td.n_step: 1 (got {td.get('n_step')})")
-        if td.get("loss_function", "l2") != "l2":
-            raise ConfigError(f"algo {algo.name}: loss trust_pcl minimises the square of its path consistency; set "
-                              f"algo.td.loss_function: l2 (got {td.get('loss_function')})")
     for key, given in (("privileged_critic", td.get("privileged_critic") is True),
                        ("critic_history", isinstance(td.get("critic_history"), int) and td.get("critic_history") > 0)):
         if not given:
             continue
-        if algo.loss not in PRIVILEGED_LOSSES:
-            raise ConfigError(f"algo {algo.name}: algo.td.{key} is built for the losses {', '.join(PRIVILEGED_LOSSES)} "
+        if not learner.past_critic:
+            from learners.registry import LEARNERS
+
+            able = [name for name, spec in LEARNERS.items() if spec.past_critic]
+            raise ConfigError(f"algo {algo.name}: algo.td.{key} is built for the losses {', '.join(able)} "
                               f"(their steps feed what the Q-networks see besides (s, a)); loss {algo.loss} has none")
         if td.get("n_step", 1) != 1:
             raise ConfigError(f"algo {algo.name}: algo.td.{key} takes one-step transitions; set algo.td.n_step: 1 "
@@ -285,10 +261,6 @@ def check(algo) -> None:
     if isinstance(decay, (int, float)) and isinstance(algo.critic_lr, (int, float)) and decay * algo.critic_lr >= 1:
         raise ConfigError(f"algo {algo.name}: algo.td.critic_weight_decay x critic_lr must be below 1 (each step scales "
                           f"the Q-networks by 1 - lr x decay), got {decay} x {algo.critic_lr}")
-    given = td.get("loss_function")
-    if algo.loss == "tqc" and given is not None and given != "smooth_l1":
-        raise ConfigError(f"algo {algo.name}: loss tqc trains its critics with the quantile Huber loss; set "
-                          f"algo.td.loss_function: smooth_l1 (got {given})")
 
 
 def build(cfg, env, generators, memory):

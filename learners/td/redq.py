@@ -1,0 +1,82 @@
+"""REDQ: TorchRL's ``REDQLoss`` (``losses.td.MemberREDQLoss``): an ensemble of Q-networks whose target is
+the minimum over a random subset per member, with SAC's learned temperature; its step is its own
+plain-tensor function (``losses.td.redq_losses``, TorchRL's numbers for one member)."""
+
+from __future__ import annotations
+
+import math
+
+from learners.options import ConfigError
+from learners.registry import LearnerSpec
+from learners.td import REDQOptions, SACOptions
+from learners.td import sac
+
+
+def _check(algo) -> None:
+    td = algo.td or {}
+    if td.get("critic_dropout") or td.get("critic_layer_norm"):
+        raise ConfigError(f"algo {algo.name}: loss redq's step computes plain or residual Q-networks (algo.td.critic_blocks); "
+                          "set algo.td.critic_dropout: 0.0 and algo.td.critic_layer_norm: false")
+
+
+def _check_run(cfg) -> None:
+    if cfg.compile:
+        raise ConfigError(f"algo {cfg.algo.name}: compile=true is not supported for redq (each member draws its "
+                          "own subset of target networks; its step runs eagerly); use compile=false")
+
+
+SPEC = LearnerSpec(name="redq", title="REDQ", family="td", module=__name__,
+                   blocks={"sac": SACOptions, "redq": REDQOptions}, check=_check, check_run=_check_run,
+                   critic=lambda algo: (algo.redq.critics, 1, True), gaussian_actor=True, past_critic=True)
+METRICS = sac.METRICS
+PATH = "losses.td.redq_losses"  # summary.json's paths: its own plain-tensor step
+actor, exploration_noise = sac.actor, sac.exploration_noise
+
+
+def policy_delay(cfg) -> int:
+    return cfg.algo.redq.actor_every(cfg.algo.td.updates_per_step)
+
+
+def critics(cfg, inputs, generators):
+    from learners.td.learner import q_networks
+
+    return q_networks(cfg, inputs, generators, count=cfg.algo.redq.critics)
+
+
+def loss(cfg, networks, generators):
+    from learners.td.learner import entropy_loss_options
+    from losses.td import MemberREDQLoss
+
+    redq = cfg.algo.redq
+    options = entropy_loss_options(cfg, networks, generators)
+    options["deactivate_vmap"] = True
+    return MemberREDQLoss(networks.actor, networks.qvalues, loss_function=cfg.algo.td.loss_function, subset=redq.subset,
+                          min_alpha=redq.min_alpha if redq.min_alpha is not None else 0.0,
+                          max_alpha=redq.max_alpha if redq.max_alpha is not None else math.inf, **options)
+
+
+def prepare(runner) -> None:
+    from losses.td import redq_available
+
+    if runner.cfg.compile or runner.actor_net is None or not redq_available(runner.loss, runner.actor_net):
+        raise ValueError("loss redq runs eagerly (compile=false) on the learner's own actor network and plain or "
+                         "residual Q-networks (losses.td.redq_losses)")
+
+
+def step(runner, batch, step, totals):
+    """A critic step of the ensemble; every ``policy_delay`` steps the same pass also gives the actor's and
+    the temperature's losses (REDQ's one actor step per environment step at ``policy_delay =
+    updates_per_step``)."""
+    from losses.td import redq_losses
+
+    actor_step = (step + 1) % runner.policy_delay == 0
+    values, priority = redq_losses(runner.loss, runner.actor_net, batch, actor=actor_step)
+    if actor_step:
+        runner.minimise(sum(values.values()), runner.optimisers.critic, runner.optimisers.actor)
+        totals.add("actor", {"loss_actor": values["loss_actor"], "loss_alpha": values["loss_alpha"],
+                             "alpha": runner.loss.alpha})
+    else:
+        runner.minimise(values["loss_qvalue"], runner.optimisers.critic)
+    runner.updater.step()
+    totals.add("critic", {"loss_qvalue": values["loss_qvalue"]})
+    return priority

@@ -1,0 +1,80 @@
+"""SAC: TorchRL's ``SACLoss`` with one learned temperature per member (``losses.td.MemberSACLoss``);
+DroQ and BRO are its configurations (``conf/algo/droq.yaml``, ``bro.yaml``: their Q-networks).
+
+The declaration (``SPEC``) is torch-free; the torch half (the functions below) imports torch when a
+run builds the learner (``learners.td.learner``).
+"""
+
+from __future__ import annotations
+
+from learners.registry import LearnerSpec
+from learners.td import SACOptions
+
+SPEC = LearnerSpec(name="sac", title="SAC", family="td", module=__name__, blocks={"sac": SACOptions},
+                   critic=lambda algo: (2, 1, True), gaussian_actor=True, past_critic=True)
+METRICS = (("loss_qvalue",), ("loss_actor", "loss_alpha", "alpha"))  # metrics.csv's critic/ and actor/ columns
+
+
+def actor(actor_net):
+    from learners.td.learner import tanh_normal_actor
+
+    return tanh_normal_actor(actor_net)
+
+
+def critics(cfg, inputs, generators):
+    from learners.td.learner import q_networks
+
+    return q_networks(cfg, inputs, generators, count=2)
+
+
+def exploration_noise(cfg) -> None:
+    return None  # it samples its policy
+
+
+def loss(cfg, networks, generators):
+    from learners.td.learner import entropy_loss_options
+    from losses.td import MemberSACLoss
+
+    return MemberSACLoss(networks.actor, networks.qvalues, loss_function=cfg.algo.td.loss_function,
+                         **entropy_loss_options(cfg, networks, generators))
+
+
+def fused_available(loss, actor_net) -> bool:
+    from losses.td import fused_sac_available
+
+    return fused_sac_available(loss, actor_net)
+
+
+def fused_losses(loss, actor_net, batch):
+    from losses.td import fused_sac_losses
+
+    return fused_sac_losses(loss, actor_net, batch)
+
+
+def prepare(runner) -> None:
+    from learners.compiling import compile_step
+
+    runner.objective = compile_step(lambda batch: losses(runner, batch), runner.cfg.compile)
+
+
+def losses(runner, batch):
+    """Its three losses per member and the minibatch's priorities (TorchRL's loss writes them); the
+    fused step where it computes them (``runner.fused``)."""
+    from losses.td import PRIORITY_KEY, member_means
+
+    if runner.fused:
+        return runner.steps_of.fused_losses(runner.loss, runner.actor_net, batch)
+    out = runner.loss(batch)
+    values = {key: member_means(out[key]) for key in ("loss_qvalue", "loss_actor", "loss_alpha")}
+    return values, batch.get(PRIORITY_KEY)
+
+
+def step(runner, batch, step, totals):
+    """One step of all three losses together, then the target networks' soft update."""
+    values, priority = runner.objective(batch)
+    runner.minimise(sum(values.values()), runner.optimisers.critic, runner.optimisers.actor)
+    runner.updater.step()
+    totals.add("critic", {"loss_qvalue": values["loss_qvalue"]})
+    totals.add("actor", {"loss_actor": values["loss_actor"], "loss_alpha": values["loss_alpha"],
+                         "alpha": runner.loss.alpha})
+    return priority
