@@ -22,7 +22,7 @@ from collectors.prioritised import WEIGHT_KEY, ProportionalSampler
 from engine.config import ConfigError
 from engine.evaluation import load_policy, make_policy
 from engine.setup import make_env, make_generators, make_learner
-from learners.td import td3
+from learners.td import crossq, td3
 from learners.base import MetricTotals
 from losses.td import ACTION_NOISE_KEY, SMOOTHING_KEY, DrawnTanhNormal, quantile_huber_loss
 from engine.runner import train_population
@@ -377,7 +377,7 @@ def test_fused_crossq_steps_are_the_torchrl_loss_bit_for_bit(mode, extra):
             p.grad = None
         totals = MetricTotals()
         t.phases.optimisers.critic.step = t.phases.optimisers.actor.step = lambda: None  # gradients only
-        priority = t.phases._crossq_step(data.clone(), t.phases.policy_delay - 1, totals)  # with an actor step
+        priority = crossq.step(t.phases, data.clone(), t.phases.policy_delay - 1, totals)  # with an actor step
         running = [p.clone() for p in statistics]
         return [priority, *running, *[p.grad.clone() for p in critic + actor],
                 *[torch.stack(v) for v in totals.values.values()]]

@@ -77,8 +77,8 @@ def test_an_unknown_learner_is_refused_naming_every_one():
     from learners.registry import spec
 
     try:
-        spec("ddpg")
+        spec("no_such_learner")
     except ConfigError as err:
-        assert str(err) == f"algo.loss must be one of {', '.join(LEARNERS)}; got 'ddpg'"
+        assert str(err) == f"algo.loss must be one of {', '.join(LEARNERS)}; got 'no_such_learner'"
     else:
-        raise AssertionError("ddpg was found")
+        raise AssertionError("no_such_learner was found")
