@@ -85,9 +85,9 @@ class RacingConfig:
     def from_keywords(cls, owner: str, **keywords) -> "RacingConfig":
         """Build from keyword arguments, naming the valid ones if a keyword is unknown."""
         unknown = sorted(set(keywords) - set(cls.__dataclass_fields__))
-        if unknown:
-            raise TypeError(f"{owner} got unknown keyword(s) {unknown}; valid RacingConfig "
-                            f"fields: {', '.join(cls.__dataclass_fields__)}")
+        if unknown:  # Python's own words first: wrappers (TorchRL's GymEnv: frameskip) recognise and drop such keywords
+            raise TypeError(f"{owner} got an unexpected keyword argument {unknown[0]!r}: unknown keyword(s) {unknown}; "
+                            f"valid RacingConfig fields: {', '.join(cls.__dataclass_fields__)}")
         return cls(**keywords)
 
     @property

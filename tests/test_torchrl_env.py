@@ -216,3 +216,23 @@ def test_step_and_maybe_reset_is_torchrls_own(options):
     carried["action"] = torch.zeros(4, 2)
     env.step_and_maybe_reset(carried)
     assert Counting.steps == 1
+
+
+def test_torchrl_s_own_gym_wrappers_run_the_registered_env():
+    """TorchRL's standard wrappers of a registered Gymnasium env work on it: ``GymEnv('racing/Racing-v0')``
+    (which passes ``frameskip`` and drops it when the env refuses it in Python's own words) and
+    ``GymWrapper(gym.make(...))``; both pass ``check_env_specs`` and feed TorchRL's Collector."""
+    import gymnasium as gym
+    from torchrl.collectors import Collector
+    from torchrl.envs import GymEnv, GymWrapper
+
+    import racing  # noqa: F401 (registers racing/Racing-v0)
+
+    for env in (GymEnv("racing/Racing-v0"), GymWrapper(gym.make("racing/Racing-v0"))):
+        env.set_seed(0)
+        check_env_specs(env)
+        collector = Collector(env, None, frames_per_batch=50, total_frames=100, auto_register_policy_transforms=False)
+        batches = list(collector)
+        collector.shutdown()
+        assert [b.batch_size for b in batches] == [torch.Size([50])] * 2
+        assert batches[0]["next", "observation"].shape == (50, 6)
