@@ -7,6 +7,7 @@ design does not allow, each in one sentence naming what was expected.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -226,8 +227,10 @@ class AlgoConfig:
         return learners.spec(self.loss)
 
 
+@functools.cache
 def block_names() -> frozenset[str]:
-    """Every option block (``algo.<block>``) a family or a learner declares (``learners.registry``)."""
+    """Every option block (``algo.<block>``) a family or a learner declares (``learners.registry``: fixed once
+    imported, so computed once; ``AlgoConfig.__getattr__`` asks at every read of a block)."""
     return frozenset({*(b for f in learners.FAMILIES.values() for b in f.BLOCKS),
                       *(b for spec in learners.registry.LEARNERS.values() for b in spec.blocks)})
 

@@ -234,6 +234,14 @@ class TrustPCLOptions:
 
 
 BLOCKS = {"td": TDOptions}  # the family's own block (each learner declares its others: learners.registry)
+CRITIC_OPTIONS = ("critic_dropout", "critic_layer_norm", "critic_blocks")  # DroQ's and BRO's Q-networks
+
+
+def critic_options_given(algo, keys: tuple[str, ...] = CRITIC_OPTIONS) -> bool:
+    """Whether ``algo.td`` (as given) sets any of the critic options ``keys``: the learners whose critic is
+    not a plain MLP of Q-values (CrossQ's, NAF's, Trust-PCL's; REDQ's step) refuse them in their check."""
+    td = algo.td or {}
+    return any(td.get(key) for key in keys)
 
 
 def check(algo, learner) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from learners.options import ConfigError
 from learners.registry import LearnerSpec
-from learners.td import CrossQOptions, SACOptions
+from learners.td import CrossQOptions, SACOptions, critic_options_given
 from learners.td import sac
 
 
@@ -14,7 +14,7 @@ def _check(algo) -> None:
     if td.get("tau", 0.005) is not None:
         raise ConfigError(f"algo {algo.name}: loss crossq has no target networks; set algo.td.tau: null "
                           f"(got {td.get('tau', 0.005)})")
-    if td.get("critic_dropout") or td.get("critic_layer_norm") or td.get("critic_blocks"):
+    if critic_options_given(algo):
         raise ConfigError(f"algo {algo.name}: loss crossq's Q-networks are batch-normalised; set "
                           "algo.td.critic_dropout: 0.0, algo.td.critic_layer_norm: false and algo.td.critic_blocks: 0")
 

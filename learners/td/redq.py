@@ -8,13 +8,12 @@ import math
 
 from learners.options import ConfigError
 from learners.registry import LearnerSpec
-from learners.td import REDQOptions, SACOptions
+from learners.td import REDQOptions, SACOptions, critic_options_given
 from learners.td import sac
 
 
 def _check(algo) -> None:
-    td = algo.td or {}
-    if td.get("critic_dropout") or td.get("critic_layer_norm"):
+    if critic_options_given(algo, ("critic_dropout", "critic_layer_norm")):
         raise ConfigError(f"algo {algo.name}: loss redq's step computes plain or residual Q-networks (algo.td.critic_blocks); "
                           "set algo.td.critic_dropout: 0.0 and algo.td.critic_layer_norm: false")
 

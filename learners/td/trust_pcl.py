@@ -5,12 +5,12 @@ from __future__ import annotations
 
 from learners.options import ConfigError
 from learners.registry import LearnerSpec
-from learners.td import TrustPCLOptions
+from learners.td import TrustPCLOptions, critic_options_given
 
 
 def _check(algo) -> None:
     td = algo.td or {}
-    if td.get("critic_dropout") or td.get("critic_layer_norm") or td.get("critic_blocks"):
+    if critic_options_given(algo):
         raise ConfigError(f"algo {algo.name}: loss trust_pcl's value network is a plain MLP of network.critic_hidden; "
                           "set algo.td.critic_dropout: 0.0, algo.td.critic_layer_norm: false and "
                           "algo.td.critic_blocks: 0")
