@@ -9,23 +9,28 @@ the memory estimate. The rest of the module is its torch half (networks, loss mo
 imported when a run builds it: this module, the specs and the options load without torch, so a run's
 configuration is checked before torch loads.
 
-``spec(name)`` finds one; ``LEARNERS`` lists them all. Nothing else names a learner: what differs
-between learners is an attribute of their spec or a function of their module, never a comparison
-of ``algo.loss`` with a string (``tests/test_registry.py`` reads the code for one).
+The registry finds them itself: every module of ``learners/monte_carlo/`` and ``learners/td/`` whose
+top level assigns ``SPEC`` is a learner (read from its source, so the families' torch machinery beside
+them is not imported). ``spec(name)`` finds one; ``LEARNERS`` lists them all. Nothing else names a
+learner: what differs between learners is an attribute of their spec or a function of their module,
+never a comparison of ``algo.loss`` with a string (``tests/test_registry.py`` reads the code for one).
 """
 
 from __future__ import annotations
 
+import ast
 import importlib
+import importlib.util
+import pkgutil
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from learners.options import ConfigError
 
-# The learners' modules, in the order tables list them. Adding a learner: its module (with SPEC),
-# one line here, its conf/algo/<name>.yaml and its tests (docs/learners.md).
-MODULES = ("learners.monte_carlo.ppo", "learners.monte_carlo.spg", "learners.td.sac", "learners.td.tqc",
-           "learners.td.crossq", "learners.td.redq", "learners.td.td3", "learners.td.naf", "learners.td.trust_pcl")
+# The families, in the order tables list their learners; within one, learners by name. A learner is any
+# module of a family's package whose top level assigns SPEC: adding one is its module, its
+# conf/algo/<name>.yaml and its tests (docs/learners.md), no list to extend.
+FAMILY_ORDER = ("monte_carlo", "td")
 
 
 def _nothing(*_) -> None:
@@ -55,12 +60,40 @@ class LearnerSpec:
         return importlib.import_module(self.module)
 
 
+def _declares_spec(name: str) -> bool:
+    """Whether module ``name``'s top level assigns ``SPEC``, read from its source before importing it (the
+    families' machinery beside the learners imports torch; a configuration is checked before torch loads)."""
+    found = importlib.util.find_spec(name)
+    source = found.loader.get_source(name) if found is not None and found.loader is not None else None
+    if not source:
+        return False
+    for node in ast.parse(source, name).body:
+        targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
+        if any(isinstance(t, ast.Name) and t.id == "SPEC" for t in targets):
+            return True
+    return False
+
+
+def _modules() -> tuple[str, ...]:
+    """Every learner's module: the modules of each family's package that declare a ``SPEC``."""
+    found = []
+    for family in FAMILY_ORDER:
+        package = importlib.import_module(f"learners.{family}")
+        names = sorted(info.name for info in pkgutil.iter_modules(package.__path__) if not info.ispkg)
+        found += [f"learners.{family}.{name}" for name in names if _declares_spec(f"learners.{family}.{name}")]
+    return tuple(found)
+
+
+MODULES = _modules()
+
+
 def _load() -> dict[str, LearnerSpec]:
     specs = {}
     for name in MODULES:
         spec = importlib.import_module(name).SPEC
-        if spec.module != name or spec.name in specs:
-            raise RuntimeError(f"{name}: its SPEC must name this module and a learner no other module names")
+        if spec.module != name or f"learners.{spec.family}." not in name or spec.name in specs:
+            raise RuntimeError(f"{name}: its SPEC must name this module (module=__name__), the family whose package "
+                               "holds it, and a learner no other module names")
         specs[spec.name] = spec
     return specs
 

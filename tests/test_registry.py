@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import yaml
 
 import learners
@@ -82,3 +83,32 @@ def test_an_unknown_learner_is_refused_naming_every_one():
         assert str(err) == f"algo.loss must be one of {', '.join(LEARNERS)}; got 'no_such_learner'"
     else:
         raise AssertionError("no_such_learner was found")
+
+
+def test_a_new_learner_module_is_found_without_a_list_to_extend(tmp_path, monkeypatch):
+    """The registry finds learners in the families' folders: a module that assigns ``SPEC`` is one (however
+    it is spelled), a helper beside it is not imported, and a SPEC that names another module or family is
+    refused when the registry loads."""
+    import sys
+
+    import learners.registry as registry
+    import learners.td
+
+    (tmp_path / "toy.py").write_text(
+        "from learners.registry import LearnerSpec\n"
+        "SPEC: LearnerSpec = LearnerSpec(name='toy', title='Toy', family='td', module=__name__)\n")
+    (tmp_path / "toy_helper.py").write_text("raise AssertionError('a module without SPEC is not imported')\n")
+    monkeypatch.setattr(learners.td, "__path__", [*learners.td.__path__, str(tmp_path)])
+    monkeypatch.delitem(sys.modules, "learners.td.toy", raising=False)
+    modules = registry._modules()
+    assert "learners.td.toy" in modules and "learners.td.toy_helper" not in modules
+    assert "learners.td.learner" not in modules  # the family's machinery beside its learners
+    monkeypatch.setattr(registry, "MODULES", modules)
+    assert registry._load()["toy"].title == "Toy"
+
+    (tmp_path / "toy.py").write_text(
+        "from learners.registry import LearnerSpec\n"
+        "SPEC = LearnerSpec(name='toy', title='Toy', family='monte_carlo', module=__name__)\n")
+    monkeypatch.delitem(sys.modules, "learners.td.toy", raising=False)
+    with pytest.raises(RuntimeError, match="the family whose package holds it"):
+        registry._load()
