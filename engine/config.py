@@ -19,6 +19,7 @@ from learners.options import ACTIVATIONS
 from learners.options import ConfigError  # noqa: F401 (raised by every check here; part of this module's interface)
 from learners.options import at_least as _at_least
 from learners.options import build as _build
+from learners.options import capped
 from learners.options import choice as _choice
 from learners.options import positive as _positive
 
@@ -159,7 +160,7 @@ class AlgoConfig:
     critic_lr: float
     actor_lr: float
     adam_eps: float
-    minibatch_size: int
+    minibatch_size: int = capped((10_000_000, "transitions"))
     value_epochs: int | None = None  # the paper's protocol only (ppo, spg)
     policy_epochs: int | None = None
     entropy_coeff: float | None = None
@@ -261,7 +262,7 @@ class ERConfig:
     train_on_memory: bool
     train_on_recent: bool
     minibatch_fraction: float
-    buffer_size: int
+    buffer_size: int = capped((100_000_000, "transitions per member"))
     priority: dict | None = None  # proportional prioritised sampling of the memory (er=prioritised)
 
     def __post_init__(self) -> None:
@@ -364,8 +365,8 @@ class EnvConfig:
 
 @dataclass(frozen=True)
 class NetworkConfig:
-    actor_hidden: tuple[int, ...]
-    critic_hidden: tuple[int, ...]
+    actor_hidden: tuple[int, ...] = capped((65_536, "units in a hidden layer"), (64, "hidden layers"))
+    critic_hidden: tuple[int, ...] = capped((65_536, "units in a hidden layer"), (64, "hidden layers"))
     activation: str
 
     def __post_init__(self) -> None:
@@ -381,12 +382,12 @@ class RunConfig:
     """Everything one training run needs (``conf/config.yaml`` and its groups)."""
 
     seed: int
-    seeds: tuple[int, ...] | None
-    episodes: int
+    seeds: tuple[int, ...] | None = capped(length=(1_000, "members of a population"))
+    episodes: int = capped((10_000_000, "episodes"))
     gamma: float
     final_window: int
-    threads: int
-    processes: int
+    threads: int = capped((4_096, "threads"))
+    processes: int = capped((1_000, "processes"))
     device: str
     numerics: str
     compile: bool
@@ -395,8 +396,8 @@ class RunConfig:
     overwrite: bool
     checkpoint_every: int
     resume_numerics: str
-    eval_seeds: tuple[int, ...] | None
-    eval_episodes: int
+    eval_seeds: tuple[int, ...] | None = capped(length=(100_000, "evaluation tracks"))
+    eval_episodes: int = capped((100_000, "episodes per evaluation track"))
     algo: AlgoConfig
     er: ERConfig
     env: EnvConfig
@@ -468,9 +469,6 @@ class RunConfig:
         if self.er.train_on_memory and minibatch > self.er.buffer_size:
             raise ConfigError(f"a minibatch of {minibatch} is larger than the replay memory "
                               f"({self.er.buffer_size} transitions) that er={self.er.name} trains on")
-        from engine.limits import check_ceilings
-
-        check_ceilings(self)  # every size a run allocates by (engine/limits.py; memory: check_memory)
 
     @property
     def members(self) -> tuple[int, ...]:

@@ -1,17 +1,18 @@
-"""Every size a run allocates by, bounded before any work (torch-free).
+"""The memory a run will need, checked before any work (torch-free).
 
-Two checks, both before a run writes anything (train.py, and the sweeper for every job):
+Each configuration value that sets an allocation has a ceiling where it is declared (its field's
+``learners.options.capped``, checked as the configuration is built; the simulator's own,
+``racing.config.MAX_SEGMENTS``, ``MAX_STEPS`` and ``MAX_RAYS``, and a track file's,
+``racing.track_file.MAX_ROWS``, where those values are read; conf/ names each). Values under their
+ceilings can still add up to more than a machine has:
 
-- ``check_ceilings``: each configuration value that sets an allocation has a ceiling, far above any
-  use in this project and below what would exhaust a machine by itself (``CEILINGS``; the
-  simulator's own, ``racing.config.MAX_SEGMENTS``, ``MAX_STEPS`` and ``MAX_RAYS``, and a track file's,
-  ``racing.track_file.MAX_ROWS``, are checked where those values are read). conf/ names each.
-- ``check_memory``: the memory a run will need, estimated from its sizes (``estimate``: replay
-  memory and its checkpoint copies, episodes, the tracks' ray tables, networks with their
-  optimiser state, a minibatch's activations, and the process itself), against the memory the machine has available (``available_bytes``: the
-  kernel's MemAvailable, or a cgroup's limit if lower). A run that would not fit is refused with
-  the estimate, part by part. The estimate errs low rather than high (a run it refuses would not
-  have fitted); it is not a promise that a run it allows fits beside other work.
+``check_memory``, before a run writes anything (train.py, and the sweeper for every job), sets the
+memory a run will need, estimated from its sizes (``estimate``: replay memory and its checkpoint
+copies, episodes, the tracks' ray tables, networks with their optimiser state, a minibatch's
+activations, and the process itself), against the memory the machine has available
+(``available_bytes``: the kernel's MemAvailable, or a cgroup's limit if lower). A run that would not fit is refused with
+the estimate, part by part. The estimate errs low rather than high (a run it refuses would not
+have fitted); it is not a promise that a run it allows fits beside other work.
 """
 
 from __future__ import annotations
@@ -19,28 +20,6 @@ from __future__ import annotations
 import math
 
 from learners.options import ConfigError
-
-# name -> (ceiling, what the value counts)
-CEILINGS = {
-    "seeds": (1_000, "members of a population"),
-    "episodes": (10_000_000, "episodes"),
-    "er.buffer_size": (100_000_000, "transitions per member"),
-    "network.layers": (64, "hidden layers"),
-    "network.width": (65_536, "units of a hidden layer"),
-    "eval_seeds": (100_000, "evaluation tracks"),
-    "eval_episodes": (100_000, "episodes per evaluation track"),
-    "threads": (4_096, "threads"),
-    "processes": (1_000, "processes"),
-    "algo.minibatch_size": (10_000_000, "transitions"),
-    "algo.spg.num_samples": (100_000, "sampled actions per state"),
-    "algo.td.critic_blocks": (64, "residual blocks"),
-    "algo.td.critic_width": (65_536, "units"),
-    "algo.td.n_step": (10_000, "steps"),
-    "algo.td.updates_per_step": (1_000, "gradient steps per environment step"),
-    "algo.tqc.critics": (1_000, "Q-networks"),
-    "algo.tqc.quantiles": (10_000, "quantiles per Q-network"),
-    "algo.redq.critics": (1_000, "Q-networks"),
-}
 
 TRANSITION_BYTES = 32  # a stored transition besides its two observations (measured in all: 44 bytes for the paper's
 #                       learners, 70 for SAC's with priorities, at 6 observations)
@@ -53,37 +32,6 @@ EPISODE_STEP_BYTES = 640  # a collected step of one member, with the collector's
 PROCESS_BYTES = 600 * 2**20  # torch, the simulator and Python themselves
 PARAMETER_COPIES = 5  # a parameter, its gradient, Adam's two moments, and a target network's copy
 ACTIVATION_COPIES = 8  # per unit of a layer and row of a minibatch: forward values, gradients, temporaries
-
-
-def _over(name: str, value) -> str | None:
-    ceiling, unit = CEILINGS[name]
-    if isinstance(value, (int, float)) and value > ceiling:
-        return f"{name} is {value:,} {unit}, above its ceiling of {ceiling:,}"
-    return None
-
-
-def check_ceilings(cfg) -> None:
-    """``ConfigError`` naming the first value of ``cfg`` (a ``RunConfig``) above its ceiling."""
-    algo = cfg.algo
-    values = {
-        "seeds": len(cfg.members), "episodes": cfg.episodes, "er.buffer_size": cfg.er.buffer_size,
-        "network.layers": max(len(cfg.network.actor_hidden), len(cfg.network.critic_hidden)),
-        "network.width": max((*cfg.network.actor_hidden, *cfg.network.critic_hidden)),
-        "eval_seeds": len(cfg.eval_seeds or ()), "eval_episodes": cfg.eval_episodes, "threads": cfg.threads,
-        "processes": cfg.processes, "algo.minibatch_size": algo.minibatch_size,
-        "algo.spg.num_samples": algo.spg.num_samples if algo.spg is not None else None,
-        "algo.td.critic_blocks": algo.td.critic_blocks if algo.td is not None else None,
-        "algo.td.critic_width": algo.td.critic_width if algo.td is not None else None,
-        "algo.td.n_step": algo.td.n_step if algo.td is not None else None,
-        "algo.td.updates_per_step": algo.td.updates_per_step if algo.td is not None else None,
-        "algo.tqc.critics": algo.tqc.critics if algo.tqc is not None else None,
-        "algo.tqc.quantiles": algo.tqc.quantiles if algo.tqc is not None else None,
-        "algo.redq.critics": algo.redq.critics if algo.redq is not None else None,
-    }
-    for name, value in values.items():
-        problem = _over(name, value)
-        if problem:
-            raise ConfigError(f"{problem} (conf/ documents each ceiling; they bound what a run allocates)")
 
 
 def _mlp_parameters(sizes: list[int]) -> int:

@@ -2,8 +2,10 @@
 
 A config node is a frozen dataclass built by ``build`` from a plain mapping (a node of the
 Hydra config): every field required unless it has a default, no unknown keys, each value of
-its declared type; rules beyond types live in each class's ``__post_init__`` and fail with
-``ConfigError``, one sentence naming what was expected. The run's configuration
+its declared type, and at most the ceiling its field declares (``capped``: every value that sets
+an allocation has one, far above any use and below what would exhaust a machine by itself); rules
+beyond types live in each class's ``__post_init__`` and fail with ``ConfigError``, one sentence naming
+what was expected. The run's configuration
 (``engine.config``) and each learner family's options (``learners.<family>``) are built so.
 """
 
@@ -12,7 +14,7 @@ from __future__ import annotations
 import math
 import typing
 from collections.abc import Mapping
-from dataclasses import MISSING, fields
+from dataclasses import MISSING, field, fields
 from typing import Any, get_type_hints
 
 
@@ -21,6 +23,35 @@ ACTIVATIONS = ("tanh", "relu", "elu")  # the hidden activations the networks off
 
 class ConfigError(ValueError):
     """A configuration value or combination that cannot be run."""
+
+
+CEILING_NOTE = "conf/ documents each ceiling; they bound what a run allocates"
+
+
+def capped(value: tuple[int, str] | None = None, length: tuple[int, str] | None = None, **kwargs) -> Any:
+    """A dataclass field with ceilings ``build`` checks: ``value=(ceiling, what it counts)`` on the value
+    (each value, for a list), ``length=(ceiling, what they count)`` on how many values a list holds. The
+    rest of ``kwargs`` go to ``dataclasses.field`` (``default=``)."""
+    return field(metadata={"ceilings": (value, length)}, **kwargs)
+
+
+def ceilings(cls) -> dict[str, tuple[tuple[int, str] | None, tuple[int, str] | None]]:
+    """``{field: (value ceiling, length ceiling)}`` of the fields of ``cls`` declared with ``capped``."""
+    return {f.name: f.metadata["ceilings"] for f in fields(cls) if "ceilings" in f.metadata}
+
+
+def _check_ceilings(where: str, value: Any, caps) -> None:
+    on_value, on_length = caps
+    if value is None:
+        return
+    several = isinstance(value, tuple)
+    if on_length is not None and several and len(value) > on_length[0]:
+        raise ConfigError(f"{where} holds {len(value):,} {on_length[1]}, above its ceiling of {on_length[0]:,} "
+                          f"({CEILING_NOTE})")
+    largest = max(value, default=None) if several else value
+    if on_value is not None and largest is not None and largest > on_value[0]:
+        said = f"has {largest:,} {on_value[1]}" if several else f"is {largest:,} {on_value[1]}"
+        raise ConfigError(f"{where} {said}, above its ceiling of {on_value[0]:,} ({CEILING_NOTE})")
 
 
 def build(cls, where: str, values: Mapping[str, Any]):
@@ -33,10 +64,13 @@ def build(cls, where: str, values: Mapping[str, Any]):
     if missing:
         raise ConfigError(f"{where}: missing key(s) {missing}")
     hints = get_type_hints(cls)
+    caps = ceilings(cls)
     kwargs = {}
     for name in names:
         if name in values:
             kwargs[name] = coerce(f"{where}.{name}", values[name], hints[name])
+            if name in caps:
+                _check_ceilings(f"{where}.{name}", kwargs[name], caps[name])
     return cls(**kwargs)
 
 

@@ -226,7 +226,7 @@ OVERSIZED = [  # each passed validation, wrote .hydra/, then ran out of memory
     ("env.options.num_segments=100000000", "num_segments must be an integer in [2, 5,000]"),
     ("env.options.max_steps=1000000000", "max_steps must be an integer in [1, 1,000,000]"),
     ("er.buffer_size=1000000000", "er.buffer_size is 1,000,000,000 transitions per member, above its ceiling"),
-    ("network.actor_hidden=[1000000000]", "network.width is 1,000,000,000 units of a hidden layer, above its"),
+    ("network.actor_hidden=[1000000000]", "network.actor_hidden has 1,000,000,000 units in a hidden layer, above its"),
     ("network.critic_hidden=[60000,60000]", "this run needs about "),
     ("er.buffer_size=90000000", "this run needs about "),
 ]
@@ -259,23 +259,67 @@ def test_the_memory_estimate_allows_every_shipped_configuration_and_names_its_pa
         assert sum(estimate(cfg).values()) < 2 * 2**30
 
 
-def test_every_ceiling_is_documented_in_conf():
-    from engine.limits import CEILINGS
+def _capped_fields():
+    """(config class, field, ceilings) of every field declared with a ceiling (learners.options.capped)."""
+    from dataclasses import fields, is_dataclass
+
+    import engine.config
+    import learners
+    from learners.options import ceilings
+
+    classes = {c for c in vars(engine.config).values() if isinstance(c, type) and is_dataclass(c)}
+    classes |= {c for spec in learners.LEARNERS.values() for c in spec.blocks.values()}
+    classes |= {c for family in learners.FAMILIES.values() for c in family.BLOCKS.values()}
+    for cls in sorted(classes, key=lambda c: c.__name__):
+        for name, caps in ceilings(cls).items():
+            yield cls, name, caps
+        for f in fields(cls):
+            assert f.name in ceilings(cls) or not any(word in f.name for word in ("size", "critics", "samples")), \
+                f"{cls.__name__}.{f.name} sets an allocation: declare its ceiling (learners.options.capped)"
+
+
+def test_every_ceiling_is_documented_in_conf_beside_its_key():
+    """Each ceiling a field declares is in conf/'s comment of that key (the key's line and the comment lines
+    under it), and a value above it is refused naming the key."""
     from racing.config import MAX_RAYS, MAX_SEGMENTS, MAX_STEPS
     from racing.track_file import MAX_ROWS
 
-    conf = "\n".join(p.read_text() for p in Path(__file__).resolve().parent.parent.glob("conf/**/*.yaml"))
-    for name, (ceiling, _) in CEILINGS.items():
-        if name in ("algo.minibatch_size", "algo.tqc.critics", "algo.redq.critics", "algo.tqc.quantiles",
-                    "algo.spg.num_samples", "algo.td.critic_blocks", "algo.td.critic_width", "algo.td.n_step",
-                    "algo.td.updates_per_step"):
-            key = name.split(".")[-1]
-            assert any(line.lstrip().startswith(f"{key}:") and f"at most {ceiling:,}" in line
-                       for line in conf.splitlines()), name
-        else:
-            assert f"at most {ceiling:,}" in conf, name
+    lines = [line for p in sorted((ROOT / "conf").glob("**/*.yaml")) for line in p.read_text().splitlines()]
+    conf = "\n".join(lines)
+    found = 0
+    for cls, name, caps in _capped_fields():
+        blocks = []
+        for i, line in enumerate(lines):
+            if line.lstrip().startswith(f"{name}:"):
+                block = [line]
+                for after in lines[i + 1:]:
+                    if not after.lstrip().startswith("#"):
+                        break
+                    block.append(after)
+                blocks.append("\n".join(block))
+        assert blocks, f"{cls.__name__}.{name} is not in conf/"
+        for ceiling, _ in filter(None, caps):
+            assert any(f"at most {ceiling:,}" in block for block in blocks), (cls.__name__, name, ceiling)
+            found += 1
+    assert found >= 18
     for ceiling in (MAX_SEGMENTS, MAX_STEPS, MAX_ROWS, MAX_RAYS):
         assert f"at most {ceiling:,}" in conf
+
+
+@pytest.mark.parametrize("override, expected", [
+    ("algo.spg.num_samples=100001", "spg.num_samples is 100,001 sampled actions per state, above its "
+                                     "ceiling of 100,000"),
+    ("seeds=[" + ",".join(map(str, range(1001))) + "]", "config.seeds holds 1,001 members of a population, above its "
+                                                         "ceiling of 1,000"),
+    ("network.critic_hidden=[8]*65", "network.critic_hidden holds 65 hidden layers, above its ceiling of 64"),
+])
+def test_a_value_above_its_ceiling_is_refused_naming_it(override, expected):
+    from engine.config import ConfigError, RunConfig
+
+    if "*" in override:
+        override = override.split("[")[0] + "[" + ",".join(["8"] * 65) + "]"
+    with pytest.raises(ConfigError, match=re.escape(expected)):
+        RunConfig.compose(override)
 
 
 def test_a_huge_track_file_and_a_byte_order_mark(tmp_path):

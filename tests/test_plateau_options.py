@@ -250,8 +250,8 @@ def test_privileged_members_equal_their_solo_runs_and_resume_exactly(tmp_path):
 
 
 @pytest.mark.parametrize("override, message", [
-    (["algo=td3", "algo.td.privileged_critic=true"], "built for the losses sac, redq"),
-    (["algo=tqc", "algo.td.critic_history=2"], "algo.td.critic_history is built for the losses sac, redq"),
+    (["algo=td3", "algo.td.privileged_critic=true"], "built for the losses redq, sac"),
+    (["algo=tqc", "algo.td.critic_history=2"], "algo.td.critic_history is built for the losses redq, sac"),
     (["algo=sac", "algo.td.critic_history=65"], "critic_history must be at most 64"),
     (["algo=sac", "algo.td.critic_history=-1"], "critic_history must be >= 0"),
     (["algo=sac", "algo.td.critic_history=2", "algo.td.n_step=2"], "takes one-step transitions"),

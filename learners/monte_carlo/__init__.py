@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from learners.options import ConfigError, at_least, choice
+from learners.options import ConfigError, at_least, capped, choice
 
 DESCRIPTION = "the paper's protocol (its learners: ppo, spg)"
 OFF_POLICY = False  # trains on its own Monte-Carlo returns: any er mode
@@ -38,7 +38,7 @@ class SPGOptions:
     """``algo.spg`` (``losses.SPGLoss``)."""
 
     prioritised: bool
-    num_samples: int
+    num_samples: int = capped((100_000, "sampled actions per state"))
     temperature: float
     temperature_decay: float
     sample_around: str

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from learners.options import ACTIVATIONS, ConfigError, at_least, choice, positive
+from learners.options import ACTIVATIONS, ConfigError, at_least, capped, choice, positive
 from racing.memory import MAX_HISTORY
 
 DESCRIPTION = "the off-policy learners"
@@ -26,15 +26,15 @@ LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
 class TDOptions:
     """The off-policy schedule every learner of the family reads (``algo.td``; ``conf/algo/sac.yaml`` explains each key)."""
 
-    updates_per_step: float
+    updates_per_step: float = capped((1_000, "gradient steps per environment step"))
     warmup_episodes: int
     tau: float | None  # None: no target networks (crossq)
     loss_function: str
-    n_step: int = 1  # TD targets over n environment steps (collectors.returns.n_step_transitions)
+    n_step: int = capped((10_000, "steps"), default=1)  # TD targets over n environment steps (collectors.returns.n_step_transitions)
     critic_dropout: float = 0.0  # DroQ: dropout of the Q-networks' hidden units (each member's own masks)
     critic_layer_norm: bool = False  # DroQ: layer normalisation of the Q-networks' hidden units
-    critic_blocks: int = 0  # BRO: residual blocks of a layer-normalised Q-network (0: the MLP of network.critic_hidden)
-    critic_width: int | None = None  # BRO: its hidden units (None: network.critic_hidden[0])
+    critic_blocks: int = capped((64, "residual blocks"), default=0)  # BRO: residual blocks of a layer-normalised Q-network (0: the MLP of network.critic_hidden)
+    critic_width: int | None = capped((65_536, "units"), default=None)  # BRO: its hidden units (None: network.critic_hidden[0])
     critic_activation: str | None = None  # BRO: its activation (None: network.activation)
     critic_weight_decay: float = 0.0  # decoupled weight decay of the Q-networks (AdamW's)
     reset_every: int = 0  # re-initialise every network, temperature and optimiser every this-many episodes
@@ -129,8 +129,8 @@ class TD3Options:
 class TQCOptions:
     """``algo.tqc`` (TorchRL's ``TQCLoss``): the ensemble of quantile critics and the truncation."""
 
-    critics: int  # Q-networks, each outputting `quantiles` quantiles of the return
-    quantiles: int
+    critics: int = capped((1_000, "Q-networks"))  # each outputting `quantiles` quantiles of the return
+    quantiles: int = capped((10_000, "quantiles per Q-network"))
     drop_per_critic: int  # the target drops the highest critics * drop_per_critic of the pooled quantiles
 
     def __post_init__(self) -> None:
@@ -160,7 +160,7 @@ class REDQOptions:
     """``algo.redq`` (TorchRL's ``REDQLoss``): the ensemble, the target's random subset, the actor's
     schedule and the temperature's bounds."""
 
-    critics: int  # Q-networks in the ensemble
+    critics: int = capped((1_000, "Q-networks"))  # in the ensemble
     subset: int  # target networks whose minimum makes each member's target, drawn anew per minibatch
     policy_delay: int | None  # one actor (and temperature) step every this-many critic steps (None: one per
     #                           environment step, updates_per_step rounded; ``actor_every``)
