@@ -45,9 +45,9 @@ def curvature(run: Path) -> dict[str, float]:
 
     if settings["algo"]["loss"] != SPEC.name:  # NAF's networks: V, mu and the advantage's L
         raise RunFolderError(f"{run} is a run of loss {settings['algo']['loss']!r}, not {SPEC.name}")
-    if settings["env"].get("memory"):
-        raise RunFolderError(f"{run} trained with env.memory (its networks read past steps); this analysis reads "
-                             "runs without memory only")
+    if settings["env"].get("past_steps"):
+        raise RunFolderError(f"{run} trained with env.past_steps (its networks read past steps); this analysis reads "
+                             "runs without past steps only")
     network, options = settings["network"], settings["env"].get("options", {})
     obs_size = RacingConfig(**options).obs_size
 

@@ -236,6 +236,11 @@ class _HydraErrors:
             first += f" ({hint[0].lower()}{hint[1:]})"
         elif len(lines) > 1 and first.startswith("Could not"):
             first += f" ({lines[1]})"
+        from engine.config import RENAMED_KEYS
+
+        for (node, old), new in RENAMED_KEYS.items():  # a key given by the name it had before
+            if f"'{node}.{old}'" in first:
+                return f"{node}.{old} is called {node}.{new} now: give {node}.{new}=... instead"
         return first
 
     def __getattr__(self, name):

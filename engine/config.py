@@ -81,18 +81,36 @@ def config_mapping(cfg) -> dict:
     env = mapping.get("env")
     if isinstance(env, dict) and isinstance(env.get("options"), dict):
         env["options"] = {k: v for k, v in env["options"].items() if v is not None}
-    if isinstance(env, dict):  # how to read a track file, and a memory: recorded only when set
+    if isinstance(env, dict):  # how to read a track file, and past steps: recorded only when set
         for key in ("track_scale", "track_closed"):
             if key in env and env[key] is None:
                 del env[key]
-        if type(env.get("memory")) is int and env["memory"] == 0:  # (0.0 or false stay, to be refused)
-            del env["memory"]
+        if type(env.get("past_steps")) is int and env["past_steps"] == 0:  # (0.0 or false stay, to be refused)
+            del env["past_steps"]
     if isinstance(env, dict) and "track_file" in env:  # recorded only when set, with its content's hash
         if env["track_file"] is None:
             del env["track_file"]
         elif "track_file_sha256" not in env:
             env["track_file_sha256"] = track_file_sha256(env["track_file"])
     return mapping
+
+
+# Keys renamed since runs were first recorded: (node, old name) -> new name. A recorded run's settings
+# are read with today's names (``current_names``: read_summary, and run_settings for checkpoints), so an
+# old run folder still evaluates, compares and resumes.
+RENAMED_KEYS = {("env", "memory"): "past_steps"}  # the observation's past steps; "memory" is the replay memory
+
+
+def current_names(settings):
+    """A recorded run's settings mapping with today's key names (``RENAMED_KEYS``); anything else as given."""
+    if not isinstance(settings, dict):
+        return settings
+    renamed = dict(settings)
+    for (node, old), new in RENAMED_KEYS.items():
+        inner = renamed.get(node)
+        if isinstance(inner, dict) and old in inner and new not in inner:
+            renamed[node] = {(new if k == old else k): v for k, v in inner.items()}
+    return renamed
 
 
 def settings_difference(old, new, limit: int = 3) -> str:
@@ -306,14 +324,14 @@ class EnvConfig:
     track_file_sha256: str | None = None  # its content, recorded (config_mapping): a changed file is another run
     track_scale: float | None = None  # the file's pixels per file unit (None: its comment, else the width rule)
     track_closed: bool | None = None  # the file is a circuit (None: its comment, else its geometry)
-    memory: int = 0  # every network reads the observation now and the car's last this-many observations and actions
+    past_steps: int = 0  # every network reads the observation now and the car's last this-many observations and actions
 
     def __post_init__(self) -> None:
         _choice("env.track", self.track, TRACK_SOURCES)
-        from racing.memory import check_steps
+        from racing.history import check_steps
 
         try:
-            check_steps("env.memory", self.memory)
+            check_steps("env.past_steps", self.past_steps)
         except ValueError as err:
             raise ConfigError(str(err)) from None
         _choice("env.collector", self.collector, COLLECTORS)
@@ -356,11 +374,11 @@ class EnvConfig:
     @property
     def observation_size(self) -> int:
         """The width of the observation the networks read: ``env.options``' rays and speed, with
-        ``env.memory`` past steps (``racing.memory.memory_size``)."""
+        ``env.past_steps`` past steps (``racing.history.past_size``)."""
         from racing.config import RacingConfig
-        from racing.memory import memory_size
+        from racing.history import past_size
 
-        return memory_size(RacingConfig(**self.options).obs_size, self.memory)
+        return past_size(RacingConfig(**self.options).obs_size, self.past_steps)
 
 
 @dataclass(frozen=True)
@@ -495,7 +513,7 @@ class RunConfig:
         """The part of a config mapping that decides what a run computes (summary.json's ``settings``).
         Applied to a recorded run's settings too, before they are compared with a new run's (a run
         recorded with ``env.collector`` is the same run as one without it)."""
-        kept = {k: v for k, v in settings.items() if k not in cls.PRESENTATION_KEYS and k != "hydra"}
+        kept = {k: v for k, v in current_names(settings).items() if k not in cls.PRESENTATION_KEYS and k != "hydra"}
         for outer, inner in cls.PATH_KEYS:
             if isinstance(kept.get(outer), dict) and inner in kept[outer]:
                 kept[outer] = {k: v for k, v in kept[outer].items() if k != inner}

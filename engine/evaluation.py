@@ -13,7 +13,7 @@ from learners.solo import GaussianPolicyNet
 from engine.outputs import RunFolderError, first_line  # RunFolderError: part of this module's interface
 from racing.config import RacingConfig
 from racing.gym_env import RacingEnv
-from racing.memory import History, memory_size
+from racing.history import History, past_size
 
 
 class Policy:
@@ -23,19 +23,19 @@ class Policy:
     their Gaussian's mean; TD3 and NAF with their actor's output. Their actors are rebuilt as a
     population of one (``learners.td.learner``), the networks they were trained as.
 
-    A run trained with ``env.memory=k`` keeps its own memory of the episode (``racing.memory.History``):
+    A run trained with ``env.past_steps=k`` keeps its own history of the episode (``racing.history.History``):
     call ``reset()`` at each episode's start (``drive_episode`` does), then the policy once per step;
     it reads the observation with its last k observations and actions, as the run's networks did."""
 
-    def __init__(self, net: torch.nn.Module, stacked: bool, memory: int = 0, obs_size: int | None = None):
+    def __init__(self, net: torch.nn.Module, stacked: bool, past_steps: int = 0, obs_size: int | None = None):
         """``stacked``: ``net`` is a population of one (the off-policy learners' layout), else the paper's
         ``GaussianPolicyNet``."""
-        self.net, self.stacked, self.memory = net, stacked, memory
-        self.history = History(1, memory, obs_size) if memory else None
+        self.net, self.stacked, self.past_steps = net, stacked, past_steps
+        self.history = History(1, past_steps, obs_size) if past_steps else None
         self._start = True
 
     def reset(self) -> None:
-        """The next observation is an episode's first (a policy without memory ignores it)."""
+        """The next observation is an episode's first (a policy without past steps ignores it)."""
         self._start = True
 
     @torch.no_grad()
@@ -43,7 +43,7 @@ class Policy:
         if self.history is not None:
             self.history.observe(np.asarray(observation, np.float32)[None], started=[0] if self._start else None)
             self._start = False
-            observation = self.history.memory_observation(self.memory)[0]
+            observation = self.history.with_past(self.past_steps)[0]
         x = torch.as_tensor(observation, dtype=torch.float32).unsqueeze(0)
         if not self.stacked:  # the paper's learners: the Gaussian's mean, clipped
             loc, _ = self.net(x)
@@ -95,7 +95,7 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
         raise RunFolderError(str(err)) from None
     try:
         policy = make_policy(loss, network, RacingConfig(**env.get("options", {})).obs_size, state_dict,
-                             memory=env.get("memory", 0))
+                             past_steps=env.get("past_steps", 0))
     except Exception as err:  # mismatched shapes or keys
         raise RunFolderError(f"{actor_path} is not this run's actor ({first_line(err)})") from None
     if not all(torch.isfinite(p).all() for p in policy.parameters()):
@@ -103,10 +103,10 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
     return policy, settings
 
 
-def make_policy(loss: str, network: dict, obs_size: int, state: dict, memory: int = 0) -> Policy:
+def make_policy(loss: str, network: dict, obs_size: int, state: dict, past_steps: int = 0) -> Policy:
     """The deterministic policy of an actor's saved weights (``actor.pt``) for ``algo.loss``, with the
-    run's ``env.memory`` (its networks read ``racing.memory.memory_size(obs_size, memory)`` inputs)."""
-    width = memory_size(obs_size, memory)
+    run's ``env.past_steps`` (its networks read ``racing.history.past_size(obs_size, past_steps)`` inputs)."""
+    width = past_size(obs_size, past_steps)
     learner = learners.spec(loss)
     stacked = learners.FAMILIES[learner.family].OFF_POLICY  # the off-policy learners' actors: populations of one
     if stacked:
@@ -123,7 +123,7 @@ def make_policy(loss: str, network: dict, obs_size: int, state: dict, memory: in
         net = GaussianPolicyNet(width, 2, network["actor_hidden"], network["activation"])
         net.load_state_dict(state)
     net.eval()
-    return Policy(net, stacked, memory, obs_size)
+    return Policy(net, stacked, past_steps, obs_size)
 
 
 def deterministic_action(policy: Policy, observation: np.ndarray) -> np.ndarray:

@@ -43,7 +43,7 @@ def estimate(cfg) -> dict[str, int]:
     from racing.config import RacingConfig
 
     options = RacingConfig(**cfg.env.options)
-    members, steps, obs = len(cfg.members), options.max_steps, cfg.env.observation_size  # env.memory's width
+    members, steps, obs = len(cfg.members), options.max_steps, cfg.env.observation_size  # env.past_steps's width
     checkpoints = options.num_segments
     if cfg.env.track_file is not None:  # the file decides (validated already: it reads)
         from racing.track_file import read_rows

@@ -273,7 +273,9 @@ def read_summary(out_dir: Path) -> dict | None:
     problem = _files_problem(summary.get("files", {}))
     if problem:
         raise RunFolderError(f"{path} has a malformed \"files\" record ({problem}): not a summary written by train.py")
-    return summary
+    from engine.config import current_names  # a run recorded under an older name of a key reads as today's
+
+    return {**summary, "settings": current_names(summary["settings"])}
 
 
 def _files_problem(record) -> str | None:

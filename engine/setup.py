@@ -68,7 +68,7 @@ def make_env(cfg: RunConfig, seeds: tuple[int, ...]) -> RacingTorchEnv:
     with ``seeds[r]``."""
     td = getattr(cfg.algo, "td", None)  # what an off-policy learner's Q-networks read besides (s, a)
     extra = {"privileged": bool(getattr(td, "privileged_critic", False)), "history": getattr(td, "critic_history", 0),
-             "memory": cfg.env.memory}
+             "past_steps": cfg.env.past_steps}
     if cfg.env.track == "file":
         env = RacingTorchEnv(len(seeds), track_file=cfg.env.track_file, track_scale=cfg.env.track_scale,
                              track_closed=cfg.env.track_closed, device=cfg.device, nearest_ray=cfg.env.nearest_ray,

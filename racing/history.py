@@ -1,12 +1,12 @@
-"""A car's memory of its own episode: the observations it acted on and the actions it took, newest first.
+"""A car's history of its own episode: the observations it acted on and the actions it took, newest first.
 
 One rule, kept by ``History`` for every place that needs it: the TorchRL env's ``history`` entry (what
-Q-networks may read, ``algo.td.critic_history``) and its memory observation (``env.memory``: what every
-network reads), and a trained policy acting in a Gymnasium env (``engine.evaluation.Policy``), which
+Q-networks may read, ``algo.td.critic_history``) and its observation with past steps (``env.past_steps``:
+what every network reads), and a trained policy acting in a Gymnasium env (``engine.evaluation.Policy``), which
 keeps its own. At an episode's start the first observation stands for the ones before it and the
 actions before it are 0; a respawn after leaving the track is not an episode's start.
 
-The memory observation of ``k`` steps is the observation now, then the last ``k`` observations, then
+The observation with ``k`` past steps is the observation now, then the last ``k`` observations, then
 the ``k`` actions taken from them: ``obs_size + k * (obs_size + 2)`` floats.
 """
 
@@ -14,17 +14,17 @@ from __future__ import annotations
 
 import numpy as np
 
-MAX_HISTORY = 64  # past steps a car's memory keeps (env.memory, algo.td.critic_history)
+MAX_HISTORY = 64  # past steps a car's history keeps (env.past_steps, algo.td.critic_history)
 ACTION_SIZE = 2
 
 
-def memory_size(obs_size: int, steps: int) -> int:
-    """The width of a memory observation of ``steps`` past steps (``steps`` 0: the observation alone)."""
+def past_size(obs_size: int, steps: int) -> int:
+    """The width of an observation with ``steps`` past steps (``steps`` 0: the observation alone)."""
     return obs_size + steps * (obs_size + ACTION_SIZE)
 
 
-def memory_bounds(obs_size: int, steps: int) -> tuple[np.ndarray, np.ndarray]:
-    """(low, high) of a memory observation: observations in [0, 1], actions in [-1, 1]."""
+def past_bounds(obs_size: int, steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high) of an observation with past steps: observations in [0, 1], actions in [-1, 1]."""
     low = np.concatenate([np.zeros(obs_size * (1 + steps)), -np.ones(ACTION_SIZE * steps)]).astype(np.float32)
     return low, np.ones_like(low)
 
@@ -68,8 +68,8 @@ class History:
         cars = self.obs.shape[0]
         return np.concatenate([self.obs[:, :k].reshape(cars, -1), self.actions[:, :k].reshape(cars, -1)], axis=1)
 
-    def memory_observation(self, k: int) -> np.ndarray:
-        """The observation now followed by ``flat(k)``: what a policy with a memory of ``k`` steps reads."""
+    def with_past(self, k: int) -> np.ndarray:
+        """The observation now followed by ``flat(k)``: what a policy that reads ``k`` past steps reads."""
         return np.concatenate([self.now, self.flat(k)], axis=1)
 
     def state_dict(self) -> dict:

@@ -12,7 +12,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from racing.gym_env import ACTION_HELP
-from racing.memory import History, check_steps, memory_bounds
+from racing.history import History, check_steps, past_bounds
 from racing.sim import RacingSim
 from racing.track_file import env_track
 
@@ -42,9 +42,9 @@ class RacingTorchEnv(EnvBase):
     With ``history=k`` also ``history`` (N, k * (obs + 2)) float32: the car's k observations before this
     one, newest first, then the k actions it took from them, newest first; at an episode's start the
     first observation stands for the ones before it and the actions are 0 (a respawn after leaving the
-    track is not an episode's start; ``racing.memory``). With ``memory=k`` the ``observation`` itself is
+    track is not an episode's start; ``racing.history``). With ``past_steps=k`` the ``observation`` itself is
     (N, 6 + k * (6 + 2)): the observation now, then the car's last k observations and k actions as in
-    ``history`` (what every network reads: a policy with memory). ``sim_state`` / ``load_sim_state`` save
+    ``history`` (what every network reads: a policy with past steps). ``sim_state`` / ``load_sim_state`` save
     and restore both with the cars.
     ``env.set_seed(k)`` seeds car i's stream with ``k + i``.
     """
@@ -52,7 +52,7 @@ class RacingTorchEnv(EnvBase):
     def __init__(self, num_envs: int = 1, track_seeds: int | None | Sequence[int | None] = None,
                  device: Any = "cpu", nearest_ray: bool = False, track_file: str | None = None,
                  track_scale: float | None = None, track_closed: bool | None = None, privileged: bool = False,
-                 history: int = 0, memory: int = 0, **config: Any):
+                 history: int = 0, past_steps: int = 0, **config: Any):
         owner = "RacingTorchEnv (besides num_envs, track_seeds, device, nearest_ray, track_file, ...)"
         seeded = track_seeds is not None and any(s is not None for s in np.atleast_1d(np.asarray(track_seeds, object)))
         track, cfg = env_track(owner, seeded, track_file, track_scale, track_closed, config)
@@ -65,14 +65,14 @@ class RacingTorchEnv(EnvBase):
             raise TypeError(f"privileged must be True or False, got {privileged!r}")
         self.privileged = bool(privileged)
         self.history = check_steps("history", history)
-        self.memory = check_steps("memory", memory)
+        self.past_steps = check_steps("past_steps", past_steps)
         # the cars' past observations and actions, as long as the longer of the two needs
-        self._past = History(num_envs, max(self.history, self.memory), cfg.obs_size)
+        self._past = History(num_envs, max(self.history, self.past_steps), cfg.obs_size)
         # what a collector carries from a step's result to the next step's root (besides the done flags)
         self.carried_keys = ("observation", *(("privileged",) if self.privileged else ()),
                              *(("history",) if self.history else ()))
         n = (num_envs,)
-        low, high = memory_bounds(cfg.obs_size, self.memory)
+        low, high = past_bounds(cfg.obs_size, self.past_steps)
         self.observation_spec = Composite(
             observation=Bounded(torch.from_numpy(low).expand(n + low.shape),
                                 torch.from_numpy(high).expand(n + low.shape), n + low.shape, dtype=torch.float32,
@@ -119,7 +119,7 @@ class RacingTorchEnv(EnvBase):
         self._continue = True
 
     def sim_state(self) -> dict:
-        """``sim.state_dict()`` and, with ``history`` or ``memory``, the cars' past observations and actions:
+        """``sim.state_dict()`` and, with ``history`` or ``past_steps``, the cars' past observations and actions:
         what ``load_sim_state`` continues exactly from."""
         state = self.sim.state_dict()
         if self._past.steps:  # before the first reset: no observation yet (zeros, as the history)
@@ -215,8 +215,8 @@ class RacingTorchEnv(EnvBase):
         observation = self.sim.observe().astype(np.float32)
         if self._past.steps:  # a new episode: its first observation stands for the ones before it
             self._past.observe(observation, started=_reset)
-        if self.memory:
-            observation = self._past.memory_observation(self.memory)
+        if self.past_steps:
+            observation = self._past.with_past(self.past_steps)
         entries["observation"] = torch.from_numpy(observation)
         entries["checkpoint"] = _column(self.sim.checkpoint.copy())  # a copy: updated in place
         if self.privileged:

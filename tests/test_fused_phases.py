@@ -64,7 +64,7 @@ def _phases(fused: bool, overrides, minibatch: int, phases: int = 3, freeze: int
 
 
 @pytest.mark.parametrize("overrides", [["algo=spg_p_multi"], ["algo=spg"], ["algo=ppo"], ["algo=ppo_log"],
-                                       ["algo=spg_multi", "env.memory=2", "algo.value_epochs=7"],
+                                       ["algo=spg_multi", "env.past_steps=2", "algo.value_epochs=7"],
                                        ["algo=ppo", "network.critic_hidden=[24,40,16]", "network.actor_hidden=[48,40]"],
                                        ["algo=ppo_log", "algo.joint_log_prob=true"],
                                        ["algo=spg_p", "algo.joint_log_prob=true", "algo.spg.baseline=action",
@@ -76,7 +76,7 @@ def test_a_fused_phase_is_the_loss_modules_phase_bit_for_bit(overrides, minibatc
     """Three phases of three members on data of different sizes: the same parameters, Adam moments,
     per-step diagnostics, generator states and temperatures (SPG), whether the minibatch fills its
     padded rows (100 of 104) or not (37 of 40), with deeper networks of other widths, a wider
-    observation (env.memory), joint log-probabilities, SPG's other centre and baseline, PPO with and
+    observation (env.past_steps), joint log-probabilities, SPG's other centre and baseline, PPO with and
     without its entropy bonus and with ratios outside the clip bounds."""
     theirs, names = _phases(False, overrides, minibatch)
     ours, our_names = _phases(True, overrides, minibatch)

@@ -529,7 +529,8 @@ def test_hydras_own_errors_are_one_line_with_status_2(tmp_path):
 
     for override, expected in (("algo=nope", "Could not find 'algo/nope' (options: bro, crossq,"),
                                ("nope=1", "Could not override 'nope'. (to append to your config use +nope=1)"),
-                               ("seed=${oc.env:NOPE}", "Environment variable 'NOPE' not found")):
+                               ("seed=${oc.env:NOPE}", "Environment variable 'NOPE' not found"),
+                               ("env.memory=2", "env.memory is called env.past_steps now: give env.past_steps=...")):
         result = run_train(override, f"hydra.run.dir={tmp_path / 'run'}")
         lines = [line for line in result.stderr.splitlines() if line.strip()]
         assert result.returncode == 2 and len(lines) == 1 and expected in lines[0], result.stderr

@@ -1,12 +1,13 @@
-"""A policy with memory (``env.memory=k``): every network reads the observation now, then the car's last k
-observations and the k actions taken from them (``racing.memory``).
+"""A policy that reads past steps (``env.past_steps=k``): every network reads the observation now, then the car's last k
+observations and the k actions taken from them (``racing.history``).
 
-Checked: the memory observation against the env's ``history`` entry (the one rule both follow) and its
-spec; both collectors carry it bit for bit; a trained policy keeps its own memory in a Gymnasium env and
+Checked: the observation with past steps against the env's ``history`` entry (the one rule both follow) and its
+spec; both collectors carry it bit for bit; a trained policy keeps its own history in a Gymnasium env and
 acts there exactly as the run's acting policy did in training (across a respawn and a new episode, where
-its memory starts over); whole runs: a member equals its solo run and resumes exactly, the default leaves a
+its history starts over); whole runs: a member equals its solo run and resumes exactly, the default leaves a
 run's bits and its recorded settings alone, the saved actor evaluates as the run evaluated it (evaluate.py
-and the benchmark's agent too), and bad values are refused.
+and the benchmark's agent too), a run recorded under the key's old name (``env.memory``) still
+evaluates and compares as the same run, and bad values are refused.
 """
 
 import json
@@ -21,20 +22,20 @@ from engine.evaluation import evaluate, load_policy, make_policy
 from engine.runner import train_population
 from learners.networks import member_state_dict
 from learners.solo import GaussianPolicyNet, make_actor, make_policy as make_td_policy, make_sampler
-from racing.memory import History, memory_size
+from racing.history import History, past_size
 from tests.test_config import load
 from tests.test_few_samples import assert_member_is_solo_and_resumes
 from tests.test_offpolicy import A, B, FAST, training
 from tests.test_train import run_train
 
 
-def test_the_memory_observation_is_the_observation_then_the_history():
+def test_the_with_past_is_the_observation_then_the_history():
     from torchrl.envs import check_env_specs
 
     from racing.torchrl_env import RacingTorchEnv
 
-    assert memory_size(6, 3) == 6 + 3 * 8
-    remembering = RacingTorchEnv(2, track_seeds=[1, 2], memory=3, history=2)
+    assert past_size(6, 3) == 6 + 3 * 8
+    remembering = RacingTorchEnv(2, track_seeds=[1, 2], past_steps=3, history=2)
     recording = RacingTorchEnv(2, track_seeds=[1, 2], history=3)
     assert remembering.observation_spec["observation"].shape == (2, 30)
     for env in (remembering, recording):
@@ -47,8 +48,8 @@ def test_the_memory_observation_is_the_observation_then_the_history():
         assert torch.equal(seen["history"], torch.cat([past[:, :12], past[:, 18:22]], 1)), step  # the first 2 of 3
         action = torch.rand(2, 2, generator=g) * 2.4 - 1.2  # some beyond [-1, 1]: remembered clipped
         seen, reference = remembering.step_tensors(action), recording.step_tensors(action)
-    assert remembering.sim.crashes.sum() > 0  # respawns happened: the memory went on through them
-    check_env_specs(RacingTorchEnv(3, track_seeds=[1, 2, 3], memory=2))
+    assert remembering.sim.crashes.sum() > 0  # respawns happened: the history went on through them
+    check_env_specs(RacingTorchEnv(3, track_seeds=[1, 2, 3], past_steps=2))
 
 
 def _collect(backend: str):
@@ -56,15 +57,15 @@ def _collect(backend: str):
     from racing.torchrl_env import RacingTorchEnv
 
     torch.manual_seed(0)
-    net = GaussianPolicyNet(memory_size(6, 2), 2, [32])
-    env = RacingTorchEnv(2, track_seeds=[A, A], memory=2)
+    net = GaussianPolicyNet(past_size(6, 2), 2, [32])
+    env = RacingTorchEnv(2, track_seeds=[A, A], past_steps=2)
     env.set_seed(7)
     collector = make_collector(backend, env, policy=make_td_policy(make_actor(net)), sample=make_sampler(net),
                                steps=70, episodes=4)
     return list(collector)
 
 
-def test_both_collectors_carry_the_memory_bit_for_bit():
+def test_both_collectors_carry_the_past_steps_bit_for_bit():
     direct, reference = _collect("direct"), _collect("torchrl")
     for ours, theirs in zip(direct, reference, strict=True):
         for key in ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done")):
@@ -75,10 +76,10 @@ def test_both_collectors_carry_the_memory_bit_for_bit():
 
 
 def _drive_in_training(learner, track: int, seed: int, steps: int) -> tuple[list, list]:
-    """The run's acting policy without noise (a paused probe) in the TorchRL env of one car with memory."""
+    """The run's acting policy without noise (a paused probe) in the TorchRL env of one car with past steps."""
     from racing.torchrl_env import RacingTorchEnv
 
-    env = RacingTorchEnv(1, track_seeds=[track], memory=3)
+    env = RacingTorchEnv(1, track_seeds=[track], past_steps=3)
     env.set_seed(seed)
     state, observations, actions = env.reset_tensors(), [], []
     with learner.sampler.paused():
@@ -90,18 +91,18 @@ def _drive_in_training(learner, track: int, seed: int, steps: int) -> tuple[list
     return observations, actions
 
 
-def test_a_policy_keeps_its_memory_and_acts_as_the_run_acted_in_training():
+def test_a_policy_keeps_its_history_and_acts_as_the_run_acted_in_training():
     """Policy (the Gymnasium path of evaluate.py, score.py, the benchmark) against the acting policy in
     training: the same actions to the last bit over a whole episode with respawns and into a new one."""
     from racing.gym_env import RacingEnv
 
-    cfg, learner = training("sac", "env.memory=3", seeds=(A,))
+    cfg, learner = training("sac", "env.past_steps=3", seeds=(A,))
     with torch.no_grad():  # a policy that steers hard, so that the car leaves the track
         learner.networks.actor_net[0].layers[-1].bias[0, :2] = torch.tensor([1.0, 0.8])
     network = {"actor_hidden": list(cfg.network.actor_hidden), "activation": cfg.network.activation}
-    policy = make_policy("sac", network, 6, member_state_dict(learner.networks.policy_net, 0), memory=3)
+    policy = make_policy("sac", network, 6, member_state_dict(learner.networks.policy_net, 0), past_steps=3)
     env = RacingEnv(track_seed=A)
-    for seed in (4, 5):  # a second episode: the memory starts over
+    for seed in (4, 5):  # a second episode: the history starts over
         expected_obs, expected = _drive_in_training(learner, A, seed, 200)
         observation, _ = env.reset(seed=seed)
         policy.reset()
@@ -111,7 +112,7 @@ def test_a_policy_keeps_its_memory_and_acts_as_the_run_acted_in_training():
             assert np.array_equal(action, expected[step]), (seed, step)
             observation, *_ = env.step(action)
         assert env.unwrapped.sim.crashes[0] > 0
-    # without reset() the memory of the last episode would carry over: other actions
+    # without reset() the history of the last episode would carry over: other actions
     env.reset(seed=4)
     assert not np.array_equal(policy(env.reset(seed=4)[0]), _drive_in_training(learner, A, 4, 1)[1][0])
 
@@ -123,7 +124,7 @@ def test_the_history_refuses_to_act_before_it_has_seen_an_observation():
 
 
 @pytest.mark.parametrize("algo", ["sac", "spg_p"])
-def test_a_run_with_memory_evaluates_as_it_did_and_the_benchmark_resets_its_memory(tmp_path, algo):
+def test_a_run_with_past_steps_evaluates_as_it_did_and_the_benchmark_resets_its_history(tmp_path, algo):
     from benchmark.protocol import load_agent, run_episode
     from racing.gym_env import RacingEnv
 
@@ -131,49 +132,61 @@ def test_a_run_with_memory_evaluates_as_it_did_and_the_benchmark_resets_its_memo
     extra = ([*FAST[1:], "algo.td.updates_per_step=0.1"] if algo == "sac"
              else ["progress=false", "logger=none", "algo.minibatch_size=30"])
     result = run_train(f"algo={algo}", er, *extra, "episodes=3", "env.options.max_steps=60", f"seed={B}",
-                       "eval_seeds=[1001]", "eval_episodes=2", "env.memory=2", f"hydra.run.dir={tmp_path / 'run'}")
+                       "eval_seeds=[1001]", "eval_episodes=2", "env.past_steps=2", f"hydra.run.dir={tmp_path / 'run'}")
     assert result.returncode == 0, result.stderr[-3000:]
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
-    assert summary["settings"]["env"]["memory"] == 2
+    assert summary["settings"]["env"]["past_steps"] == 2
     policy, settings = load_policy(tmp_path / "run")
-    assert policy.net is not None and policy.memory == 2
+    assert policy.net is not None and policy.past_steps == 2
     scores = evaluate(policy, settings, [B, 1001], 2)
     assert scores[B] == summary["evaluation"]["own_track"] and scores[1001] == summary["evaluation"]["tracks"]["1001"]
-    agent = load_agent(str(tmp_path / "run"))  # the benchmark's agent: the memory starts over in each episode
+    agent = load_agent(str(tmp_path / "run"))  # the benchmark's agent: the history starts over in each episode
     env = RacingEnv(track_seed=1001, max_steps=60)
     assert [run_episode(agent, env, seed) for seed in (0, 1)] == [run_episode(agent, env, seed) for seed in (0, 1)]
     assert run_episode(agent, env, 0) + run_episode(agent, env, 1) == pytest.approx(2 * scores[1001], abs=1e-9)
 
+    # the same run as an older train.py recorded it (env.memory, sealed so): read with today's name
+    from engine.config import RunConfig
+    from engine.outputs import write_summary
 
-def test_members_equal_their_solo_runs_and_resume_exactly_with_memory(tmp_path):
+    old = json.loads(json.dumps(summary))
+    old["settings"]["env"] = {("memory" if k == "past_steps" else k): v for k, v in old["settings"]["env"].items()}
+    write_summary(tmp_path / "run", old)
+    assert "memory" in json.loads((tmp_path / "run" / "summary.json").read_text())["settings"]["env"]
+    policy, _ = load_policy(tmp_path / "run")
+    assert policy.past_steps == 2 and evaluate(policy, settings, [1001], 2)[1001] == scores[1001]
+    assert RunConfig.same_run(old["settings"], summary["settings"])
+
+
+def test_members_equal_their_solo_runs_and_resume_exactly_with_past_steps(tmp_path):
     assert_member_is_solo_and_resumes(tmp_path, ["algo=sac", "er=prioritised", *FAST, "episodes=5",
-                                                 "algo.td.updates_per_step=0.1", "env.memory=2",
+                                                 "algo.td.updates_per_step=0.1", "env.past_steps=2",
                                                  "algo.td.critic_history=1"])
 
 
 def test_the_default_leaves_a_run_and_its_settings_alone(tmp_path):
     run = ["algo=sac", "er=memory", *FAST, "algo.td.updates_per_step=0.1", f"seed={A}"]
     train_population(load(*run), tmp_path / "plain")
-    train_population(load(*run, "env.memory=0"), tmp_path / "zero")
-    train_population(load(*run, "env.memory=1"), tmp_path / "one")
+    train_population(load(*run, "env.past_steps=0"), tmp_path / "zero")
+    train_population(load(*run, "env.past_steps=1"), tmp_path / "one")
     plain = (tmp_path / "plain" / "metrics.csv").read_bytes()
     assert (tmp_path / "zero" / "metrics.csv").read_bytes() == plain
     assert (tmp_path / "one" / "metrics.csv").read_bytes() != plain
     from engine.config import RunConfig
 
-    # recorded only when set: the settings of runs without memory (older ones too) stay the same
-    assert "memory" not in RunConfig.compose_mapping("algo=sac", "env.memory=0")["env"]
-    assert RunConfig.compose_mapping("algo=sac", "env.memory=2")["env"]["memory"] == 2
+    # recorded only when set: the settings of runs without past steps (older ones too) stay the same
+    assert "past_steps" not in RunConfig.compose_mapping("algo=sac", "env.past_steps=0")["env"]
+    assert RunConfig.compose_mapping("algo=sac", "env.past_steps=2")["env"]["past_steps"] == 2
 
 
 @pytest.mark.parametrize("override, message", [
-    ("env.memory=65", "env.memory must be an integer in [0, 64]"),
-    ("env.memory=-1", "env.memory must be an integer in [0, 64]"),
-    ("env.memory=1.5", "env.memory must be an integer"),
-    ("env.memory=true", "env.memory must be an integer"),
-    ("env.memory=false", "env.memory must be an integer"),
-    ("env.memory=0.0", "env.memory must be an integer"),
+    ("env.past_steps=65", "env.past_steps must be an integer in [0, 64]"),
+    ("env.past_steps=-1", "env.past_steps must be an integer in [0, 64]"),
+    ("env.past_steps=1.5", "env.past_steps must be an integer"),
+    ("env.past_steps=true", "env.past_steps must be an integer"),
+    ("env.past_steps=false", "env.past_steps must be an integer"),
+    ("env.past_steps=0.0", "env.past_steps must be an integer"),
 ])
-def test_bad_memories_are_refused_with_a_reason(override, message):
+def test_bad_past_steps_are_refused_with_a_reason(override, message):
     with pytest.raises(ConfigError, match=re.escape(message)):  # as train.py reads them (0.0 is not 0 steps)
         load("algo=sac", override)

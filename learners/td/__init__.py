@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass
 
 from learners.options import ACTIVATIONS, ConfigError, at_least, capped, choice, positive
-from racing.memory import MAX_HISTORY
+from racing.history import MAX_HISTORY
 
 DESCRIPTION = "the off-policy learners"
 OFF_POLICY = True  # trains on a replay memory only: er=memory or er=prioritised
