@@ -81,13 +81,13 @@ def validated(cfg) -> tuple[dict, "RunConfig"]:  # noqa: F821
 
     from engine import numerics
     from engine.config import ConfigError, RunConfig, config_mapping
-    from engine.limits import check_memory
+    from engine.limits import check_ram
 
     getattr(sys.stderr, "pass_through", lambda: None)()  # Hydra has composed the configuration (_HydraErrors)
     try:
         settings = config_mapping(cfg)
         run_cfg = RunConfig.from_mapping(settings)
-        check_memory(run_cfg)
+        check_ram(run_cfg)
     except (ConfigError, OmegaConfBaseException) as err:  # e.g. seed=${oops}: an interpolation to nothing
         end(str(err).strip().splitlines()[0], 2, prefix="Invalid configuration: ")
     try:

@@ -1,4 +1,4 @@
-"""The memory a run will need, checked before any work (torch-free).
+"""The RAM a run will need, checked before any work (torch-free).
 
 Each configuration value that sets an allocation has a ceiling where it is declared (its field's
 ``learners.options.capped``, checked as the configuration is built; the simulator's own,
@@ -6,13 +6,13 @@ Each configuration value that sets an allocation has a ceiling where it is decla
 ``racing.track_file.MAX_ROWS``, where those values are read; conf/ names each). Values under their
 ceilings can still add up to more than a machine has:
 
-``check_memory``, before a run writes anything (train.py, and the sweeper for every job), sets the
-memory a run will need, estimated from its sizes (``estimate``: replay memory and its checkpoint
-copies, episodes, the tracks' ray tables, networks with their optimiser state, a minibatch's
-activations, and the process itself), against the memory the machine has available
-(``available_bytes``: the kernel's MemAvailable, or a cgroup's limit if lower). A run that would not fit is refused with
-the estimate, part by part. The estimate errs low rather than high (a run it refuses would not
-have fitted); it is not a promise that a run it allows fits beside other work.
+``check_ram``, before a run writes anything (train.py, and the sweeper for every job), sets the
+RAM a run will need, estimated from its sizes (``estimate``: replay memory and its checkpoint copies,
+episodes, the tracks' ray tables, networks with their optimiser state, a minibatch's activations, and
+the process itself), against the RAM the machine has available (``available_bytes``: the kernel's
+MemAvailable, or a cgroup's limit if lower). A run that would not fit is refused with the estimate,
+part by part. The estimate errs low rather than high (a run it refuses would not have fitted); it
+is not a promise that a run it allows fits beside other work.
 """
 
 from __future__ import annotations
@@ -105,7 +105,7 @@ def _gb(size: float) -> str:
     return f"{size / 2**30:.1f} GB" if size >= 2**30 else f"{math.ceil(size / 2**20)} MB"
 
 
-def check_memory(cfg, available: int | None = None) -> None:
+def check_ram(cfg, available: int | None = None) -> None:
     """``ConfigError`` with the estimate if a run of ``cfg`` would not fit in ``available`` bytes
     (default: ``available_bytes()``; no check where that is unknown)."""
     available = available_bytes() if available is None else available
@@ -115,6 +115,6 @@ def check_memory(cfg, available: int | None = None) -> None:
     total = sum(parts.values())
     if total > available:
         detail = ", ".join(f"{name} {_gb(size)}" for name, size in parts.items() if size >= 2**20)
-        raise ConfigError(f"this run needs about {_gb(total)} of memory ({detail}) and the machine has "
+        raise ConfigError(f"this run needs about {_gb(total)} of RAM ({detail}) and the machine has "
                           f"{_gb(max(available, 0))} available; make it smaller (er.buffer_size, seeds, "
                           "env.options.max_steps, network sizes) or split it (processes, or several commands)")

@@ -234,9 +234,9 @@ OVERSIZED = [  # each passed validation, wrote .hydra/, then ran out of memory
 
 def test_every_size_is_bounded_before_anything_is_written(tmp_path):
     """train.py refuses in one line before writing anything (three values: a process each costs
-    seconds); the same checks (RunConfig's ceilings, then check_memory) refuse the others."""
+    seconds); the same checks (RunConfig's ceilings, then check_ram) refuse the others."""
     from engine.config import ConfigError, RunConfig
-    from engine.limits import check_memory
+    from engine.limits import check_ram
     from tests.test_train import run_train
 
     for override, expected in OVERSIZED[:2] + OVERSIZED[4:5]:
@@ -246,16 +246,16 @@ def test_every_size_is_bounded_before_anything_is_written(tmp_path):
         assert {p.name for p in (tmp_path / "run").iterdir()} <= {"train.log"}  # Hydra's folder and log, empty
     for override, expected in OVERSIZED[2:]:
         with pytest.raises(ConfigError, match=re.escape(expected)):
-            check_memory(RunConfig.compose("er=memory", override), available=16 * 2**30)
+            check_ram(RunConfig.compose("er=memory", override), available=16 * 2**30)
 
 
 def test_the_memory_estimate_allows_every_shipped_configuration_and_names_its_parts():
     from engine.config import RunConfig
-    from engine.limits import check_memory, estimate
+    from engine.limits import check_ram, estimate
 
     for algo in sorted(p.stem for p in (ROOT / "conf" / "algo").glob("*.yaml")):  # every shipped algorithm
         cfg = RunConfig.compose(f"algo={algo}", "er=memory", f"seeds=[{','.join(map(str, range(25)))}]")
-        check_memory(cfg, available=2 * 2**30)  # a population of 25 of every learner fits in 2 GB
+        check_ram(cfg, available=2 * 2**30)  # a population of 25 of every learner fits in 2 GB
         assert sum(estimate(cfg).values()) < 2 * 2**30
 
 
@@ -511,7 +511,7 @@ def test_a_track_file_that_is_a_device_or_a_pipe_is_refused_at_once(tmp_path, ki
 def test_rays_and_checkpoints_by_the_thousand_are_bounded_before_work():
     """3,000 rays passed and ran out of memory; 20,000 segments needed 12 GiB of ray tables, unestimated."""
     from engine.config import ConfigError, RunConfig
-    from engine.limits import check_memory, estimate
+    from engine.limits import check_ram, estimate
 
     with pytest.raises(ConfigError, match="ray_angles_deg holds 3,000 rays, more than 64"):
         RunConfig.compose("er=memory", f"env.options.ray_angles_deg=[{','.join(['0.0'] * 3000)}]")
@@ -520,7 +520,7 @@ def test_rays_and_checkpoints_by_the_thousand_are_bounded_before_work():
     cfg = RunConfig.compose("er=memory", "env.options.num_segments=5000", "seeds=[1,2,3,4,5,6,7,8]")
     assert estimate(cfg)["track tables"] > 5 * 2**30  # 3.6 GB measured to build one such track's tables
     with pytest.raises(ConfigError, match=r"track tables \d+\.\d GB"):
-        check_memory(cfg, available=4 * 2**30)
+        check_ram(cfg, available=4 * 2**30)
 
 
 def test_hydras_own_errors_are_one_line_with_status_2(tmp_path):

@@ -169,7 +169,7 @@ def check_jobs(loader, master, jobs: list[list[str]], folders: list | None = Non
     ``folders``, if given, receives each job's member folders (a list per job; empty where unknown)."""
     from engine import rundir
     from engine.config import ConfigError, RunConfig, config_mapping, register_resolvers
-    from engine.limits import check_memory
+    from engine.limits import check_ram
 
     register_resolvers()
     sweep_dir = Path(str(master.hydra.sweep.dir))
@@ -198,7 +198,7 @@ def check_jobs(loader, master, jobs: list[list[str]], folders: list | None = Non
         try:
             settings = config_mapping(cfg)
             run_cfg = RunConfig.from_mapping(settings)
-            check_memory(run_cfg)
+            check_ram(run_cfg)
         except (ConfigError, ValueError, TypeError, OmegaConfBaseException) as err:
             problems.append(f"{label}: invalid configuration: {_first_line(err)}")
             continue
