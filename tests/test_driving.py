@@ -1,5 +1,5 @@
 """``python -m analysis.driving``: how a trained policy drives beside the oracle (docs/beyond.md, "Where the
-deterministic policy loses"). Checked on a tiny run: the policy's row is its evaluation (the same episodes,
+gap to the oracle is"). Checked on a tiny run: the policy's row is its evaluation (the same episodes,
 the same total reward), the oracle's row is the oracle's own score on those episodes, the throttle shares
 are those of the actions taken, and the full-throttle diagnostic changes only the throttles it names."""
 

@@ -1,4 +1,4 @@
-"""The off-policy learners' options that test what they share (docs/tuning.md, "What the learners share"):
+"""The off-policy learners' options that test what they share (docs/journal/2026-11-tuning.md, "What the learners share"):
 running observation normalisation (``algo.td.observation_norm``), a falling entropy target
 (``algo.sac.target_entropy_end``) and Q-networks that also see the car's true state
 (``algo.td.privileged_critic``) or its own past observations and actions (``algo.td.critic_history``); the

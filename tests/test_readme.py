@@ -173,7 +173,7 @@ def test_every_documented_sweep_of_the_current_code_composes():
             for value in values:
                 RunConfig.compose(*first[:i], value, *first[i + 1:])
                 checked += 1
-    assert checked >= 20
+    assert checked >= 2  # the README's paper and full grids at least (the journal's sweeps are history: not checked)
 
 
 def test_the_quick_tier_selects_every_test_file_but_the_listed_slow_tests():
@@ -189,3 +189,15 @@ def test_the_quick_tier_selects_every_test_file_but_the_listed_slow_tests():
     selected = {line for line in result.stdout.splitlines() if "::" in line}
     assert not selected & _slow_tests() and len(selected) > 400
     assert len({test.split("::")[0] for test in selected}) >= 30
+
+
+def test_every_committed_figure_is_shown_on_a_page():
+    """A figure a run made and the project committed is shown (``![...](...)``) on a page of README.md or
+    docs/ (the page that discusses it), not left in a folder for nobody to find."""
+    figures = {p.resolve() for p in (ROOT / "docs").rglob("*") if p.suffix in (".png", ".gif", ".svg", ".jpg")}
+    shown = set()
+    for page in [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]:
+        for target in re.findall(r"!\[[^\]]*\]\(([^)\s]+)\)", page.read_text()):
+            shown.add((page.parent / target).resolve())
+    missing = sorted(str(p.relative_to(ROOT)) for p in figures - shown)
+    assert not missing, "figures shown on no page:\n" + "\n".join(missing)
