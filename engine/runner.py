@@ -3,7 +3,7 @@
 A run is a population of independent members, one per seed of ``cfg.members`` (a solo run is a
 population of one), trained in lockstep in one process. Its construction is one call, ``engine.setup.build``
 (generators, cars, the learner family's ``build``, the schedule); the loop below only runs it. Per episode
-(see ALGO_SPEC's protocol, as ``collectors.replay`` schedules it), for every member at once:
+(docs/specification.md's protocol, as ``collectors.replay`` schedules it), for every member at once:
 
 1. if the schedule trains on memory and the memory is not empty: a phase on the memory;
 2. collect one episode with the stochastic policy; its total reward is the learning curve;

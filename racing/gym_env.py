@@ -40,7 +40,7 @@ class RacingEnv(gym.Env):
     distance sensors look at the walls ahead; the agent sets throttle and steering. The
     simulator reproduces the reference simulator of Holubar & Wiering, "Continuous-action
     Reinforcement Learning for Playing Racing Games: Comparing SPG to PPO", to floating-
-    point precision (see ``ENV_SPEC.md`` beside the project and ``tests/test_conformance.py``).
+    point precision (``docs/specification.md`` states every rule; ``tests/test_conformance.py``).
 
     ## Action Space
 

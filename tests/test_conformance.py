@@ -1,4 +1,4 @@
-"""The simulator against the reference vectors of the five paper tracks (ENV_SPEC.md).
+"""The simulator against the reference vectors of the five paper tracks (docs/specification.md).
 
 Every implementation is checked: the batched engine (all rollouts of a track as one
 batch), both environments, and the plain-Python benchmark baseline.
