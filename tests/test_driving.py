@@ -74,3 +74,14 @@ def test_a_table_goes_into_new_folders_a_folder_is_refused_first_and_a_run_named
 def test_a_folder_without_runs_is_refused_in_one_line(tmp_path, capsys):
     assert driving.main([str(tmp_path)]) == 2
     assert "holds no finished train.py run" in capsys.readouterr().err
+
+
+def test_the_documented_command_runs(run, tmp_path):
+    """docs/beyond.md's ``python -m analysis.driving <run folder>`` line, on the tiny run (one episode)."""
+    from tests.test_readme import readme_commands
+
+    lines = readme_commands("-m analysis.driving")
+    assert lines
+    for args in lines:
+        args = [str(run) if a.startswith("outputs/") else a for a in args]
+        assert driving.main([*args, "--episodes", "1", "--table", str(tmp_path / "d.csv")]) == 0

@@ -63,3 +63,17 @@ def test_the_oracle_offers_its_last_elite_mean_beside_its_action():
     oracle = Oracle(settings=settings, seed=3)
     action = oracle.act(sim, 0)
     assert oracle.elite_mean.shape == action.shape == (2,) and abs(oracle.elite_mean).max() <= 1
+
+
+def test_the_documented_command_runs(tmp_path):
+    """Each documented ``python imitate.py`` line, on one track at the smallest size (its other options as
+    written: the network's width, the labels)."""
+    import imitate
+    from tests.test_readme import readme_commands
+
+    lines = readme_commands("imitate.py")
+    assert lines
+    for args in lines:
+        small = ["--tracks", "2067791", "--rounds", "0", "--episodes", "1", "--epochs", "2", "--processes", "1",
+                 "--table", str(tmp_path / "ceiling.csv")]
+        assert imitate.main([*args, *small]) == 0

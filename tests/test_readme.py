@@ -191,6 +191,31 @@ def test_the_quick_tier_selects_every_test_file_but_the_listed_slow_tests():
     assert len({test.split("::")[0] for test in selected}) >= 30
 
 
+# Each tool whose command a page shows, and the test that runs that page's lines of it at a tiny size.
+DOCUMENTED_TOOLS = {
+    "train.py": "tests/test_readme.py", "report.py": "tests/test_readme.py", "evaluate.py": "tests/test_readme.py",
+    "clean_sweep.py": "tests/test_readme.py", "tracks.py": "tests/test_track_files.py",
+    "score.py": "tests/test_benchmark.py", "drive.py": "tests/test_benchmark.py", "baseline.py": "tests/test_baseline.py",
+    "imitate.py": "tests/test_imitation.py", "-m analysis.driving": "tests/test_driving.py",
+    "-m benchmark.leaderboard": "tests/test_benchmark.py", "-m tests.fault_injection": "tests/test_fault_injection.py",
+    "-m tests.slurm_cluster": "tests/test_slurm.py", "-m pytest": "tests/test_readme.py",
+}
+
+
+def test_every_documented_command_is_run_by_a_test():
+    """Every ``python <tool>`` line a page shows (README.md, docs/*.md) names a tool whose test reads the pages'
+    lines of it (``readme_commands``) or the command itself and runs it small: a new documented tool, or a
+    tool whose test stops reading the docs, fails here."""
+    text = README.replace("\\\n", " ")
+    shown = set(re.findall(r"^\s*(?:\.venv/bin/)?python3? (-m [\w.]+|[\w]+\.py)", text, re.MULTILINE)) - {"-m venv"}
+    unlisted = sorted(shown - set(DOCUMENTED_TOOLS))
+    assert not unlisted, f"documented commands no test runs: {unlisted} (add a test and its line in DOCUMENTED_TOOLS)"
+    for tool in shown:
+        source = (ROOT / DOCUMENTED_TOOLS[tool]).read_text()
+        named = tool.removeprefix("-m ").split(".")[-1]  # the script, or the module as its test imports it
+        assert f'readme_commands("{tool}"' in source or named in source, (tool, DOCUMENTED_TOOLS[tool])
+
+
 def test_every_committed_figure_is_shown_on_a_page():
     """A figure a run made and the project committed is shown (``![...](...)``) on a page of README.md or
     docs/ (the page that discusses it), not left in a folder for nobody to find."""
