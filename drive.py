@@ -94,11 +94,24 @@ def play(track, seed: int = 0, ghost=None, max_steps: int = 200, fps: int = 30, 
     if "oracle" in totals:
         lines.append(f"oracle: {totals['oracle']:.1f}")
     renderer.draw(env.unwrapped.sim, extra=["", *lines, "", "(close the window, or press Escape)"])
+    print("; ".join(lines), flush=True)  # the result now, not when the window closes
     if hold if hold is not None else (script is None and pg.display.get_driver() not in ("dummy", "offscreen")):
         _wait_for_close(pg)  # a window someone can close (no display: SDL's dummy or offscreen driver, no wait)
     renderer.close()
-    print("; ".join(lines))
     return totals
+
+
+def display_problem(environ=None, platform: str | None = None) -> str | None:
+    """Why no window can open here, in one line (None: one can, or the user chose SDL's video driver)."""
+    environ = os.environ if environ is None else environ
+    platform = sys.platform if platform is None else platform
+    if environ.get("SDL_VIDEODRIVER"):
+        return None
+    if platform.startswith(("linux", "freebsd", "openbsd")) and not (environ.get("DISPLAY") or
+                                                                       environ.get("WAYLAND_DISPLAY")):
+        return ("no display to open a window on (DISPLAY and WAYLAND_DISPLAY are unset): driving needs one; "
+                "to watch an agent without a display, film it: python score.py AGENT --video agent.gif")
+    return None
 
 
 def _wait_for_close(pg) -> None:
@@ -140,6 +153,10 @@ def main(argv: list[str] | None = None) -> int:
         except AgentError as err:
             print(f"drive: {err}", file=sys.stderr)
             return 2
+    problem = display_problem()
+    if problem:
+        print(f"drive: {problem}", file=sys.stderr)
+        return 2
     try:
         play(track, args.seed, ghost, args.max_steps, args.fps, oracle=not args.no_oracle)
     except ImportError as err:

@@ -142,6 +142,22 @@ def test_driving_yourself_headless_with_scripted_keys(monkeypatch, capsys):
     assert f"you: {totals['you']:.1f}; ghost (ray_follower): {totals['ghost']:.1f}; oracle:" in capsys.readouterr().out
 
 
+def test_driving_without_a_display_ends_in_one_line_at_once(monkeypatch, capsys):
+    """Without a display drive.py printed SDL's warning, drove an invisible episode and waited for a key
+    that could never come; now it ends at once, in one line, with status 2 (SDL_VIDEODRIVER set: the
+    user's choice, as the tests' dummy driver)."""
+    import drive
+
+    for key in ("SDL_VIDEODRIVER", "DISPLAY", "WAYLAND_DISPLAY"):
+        monkeypatch.delenv(key, raising=False)
+    assert drive.main(["--max-steps", "5"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("drive: no display to open a window on") and "score.py" in err[0]
+    assert drive.display_problem({"DISPLAY": ":0"}, "linux") is None
+    assert drive.display_problem({"SDL_VIDEODRIVER": "dummy"}, "linux") is None
+    assert drive.display_problem({}, "darwin") is None and drive.display_problem({}, "linux")
+
+
 def test_the_documented_benchmark_commands_run(tmp_path, monkeypatch, capsys):
     """Every python score.py / drive.py line of the README and docs/, at a tiny size."""
     import drive
