@@ -28,8 +28,8 @@ import numpy as np
 
 from racing.config import MAX_STEPS, RacingConfig
 from racing.track import track_from_seed
-from racing.track_file import (MAX_ROWS, TrackFileError, add_track_options, load_track, make_circuit, save_track,
-                               write_rows)
+from racing.track_file import (MAX_ROWS, TrackFileError, WallsCross, add_track_options, load_track, make_circuit,
+                               save_track, write_rows)
 
 STEP_SECONDS = 1 / 30  # racing.sim.RacingSim.STEP_SECONDS (not imported: check stays free of the simulator's tables)
 
@@ -154,6 +154,17 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     try:
         track = load_track(args.file, args.track_scale, args.track_closed)
+    except WallsCross as err:  # refused; shown anyway, so the crossing can be seen
+        if args.command == "show":
+            try:
+                from racing.figures import track_file_figure
+
+                drawn = track_file_figure(err.track, out, "refused: its walls cross (marked in red)", err.segments)
+                print(f"wrote {drawn}: the refused track, its crossing marked in red")
+            except ImportError:
+                pass  # the refusal below says what matters
+        print(f"tracks: {err}", file=sys.stderr)
+        return 2
     except TrackFileError as err:
         print(f"tracks: {err}", file=sys.stderr)
         return 2

@@ -56,18 +56,34 @@ def tracks_figure(path: str | Path, seeds: Sequence[int] = PAPER_TRACK_SEEDS,
     return _save(plt, fig, path)
 
 
-def track_file_figure(track: Track, path: str | Path, title: str | None = None) -> Path:
-    """One track (e.g. a file's) with every tenth checkpoint numbered (about forty on a long circuit)
-    and the start line marked."""
+def track_file_figure(track: Track, path: str | Path, title: str | None = None,
+                      crossing: Sequence[tuple[np.ndarray, np.ndarray]] = ()) -> Path:
+    """One track (e.g. a file's): its name above a description (``title``), every tenth checkpoint
+    numbered (about forty on a long circuit), the start line and an arrow for the direction of travel;
+    ``crossing``: wall segments ``(from, to)`` drawn in red (where a refused file's walls cross)."""
     plt = import_pyplot()
     low, high = track.bounds()
     span = np.maximum(high - low, 1.0)
-    fig, ax = plt.subplots(figsize=(min(max(6.0 * span[0] / span[1], 3.0), 12.0), 6.0))
+    width = min(max(6.0 * span[0] / span[1], 4.0), 12.0)
+    fig, ax = plt.subplots(figsize=(width, 6.0))
     draw_track(ax, track)
     every = max(10, round(track.num_checkpoints / 40, -1))  # about 40 numbers on a long circuit, not 120 overlapping
     for i in range(0, track.num_checkpoints, int(every)):
-        ax.annotate(str(i), track.centres[i], fontsize=7, ha="center", va="center", color="white")
-    ax.set_title(textwrap.fill(title or track.name or "track", 70), fontsize=9)
+        ax.annotate(str(i), track.centres[i], fontsize=6, ha="center", va="center", color="black",
+                    bbox={"boxstyle": "round,pad=0.15", "facecolor": "white", "edgecolor": "none", "alpha": 0.8})
+    ahead = track.centres[min(max(1, track.num_checkpoints // 25), track.num_checkpoints - 1)]  # a 25th of the way
+    if track.num_checkpoints > 1:  # the direction of travel, from the start
+        ax.annotate("", xy=ahead, xytext=track.centres[0],
+                    arrowprops={"arrowstyle": "-|>", "color": "tab:green", "linewidth": 1.5})
+    for start, end in crossing:
+        ax.plot(*np.stack([start, end]).T, color="red", linewidth=2.5)
+        ax.plot(*((np.asarray(start) + np.asarray(end)) / 2), "o", markersize=12, markerfacecolor="none",
+                markeredgecolor="red")
+    name = track.name or "track"
+    detail = title if title and title != name else ""
+    if detail.startswith(f"{name}: "):  # tracks.py's description names the track first
+        detail = detail[len(name) + 2:]
+    ax.set_title("\n".join([name, *textwrap.wrap(detail, max(int(width * 11), 40))]), fontsize=9)
     return _save(plt, fig, path)
 
 

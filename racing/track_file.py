@@ -61,6 +61,23 @@ class TrackFileError(ValueError):
     """A track file that cannot be loaded; the message names the line and the problem."""
 
 
+class WallsCross(TrackFileError):
+    """A file whose walls cross: ``track`` is what it would have been (to draw it, not to drive it), and
+    ``segments`` the two crossing wall segments, each ``(from, to)`` in the track's coordinates."""
+
+    def __init__(self, message: str, track: Track, segments: tuple[np.ndarray, np.ndarray]):
+        super().__init__(message)
+        self.track, self.segments = track, segments
+
+
+# Why a file's walls may not cross, said with every such refusal.
+CROSSING_HELP = ("a track here is flat: the car is inside one checkpoint at a time and its rays see every wall "
+                 "ahead, so a circuit that passes over itself (a bridge or a tunnel, a figure-eight such as "
+                 "Suzuka) cannot be represented, and walls that cross by mistake (a width too large at a "
+                 "tight bend) are refused the same way; `python tracks.py show FILE` draws it with the "
+                 "crossing marked")
+
+
 def example(name: str) -> Path:
     """The path of an example track file shipped with the package (``racing/tracks/<name>.csv``)."""
     path = EXAMPLES / f"{name}.csv"
@@ -216,7 +233,7 @@ def load_track(path: Path | str, scale: float | None = None, closed: bool | None
     if closed:
         left_wall, right_wall = np.vstack([left_wall, left_wall[:1]]), np.vstack([right_wall, right_wall[:1]])
     left_wall, right_wall = _pose(left_wall, right_wall, xy[0], tangent[0], config.start_line_y)
-    _check_crossings(path, left_wall, right_wall, lines, closed)
+    _check_crossings(path, left_wall, right_wall, lines, closed, path.stem)
     reading = Reading(str(path), scale, scale_from, closed, closed_from,
                       fit_warnings(xy, right + left, lengths, lines, closed, config))
     return Track(left_wall, right_wall, closed=closed, name=path.stem, reading=reading)
@@ -268,8 +285,9 @@ def _pose(left: np.ndarray, right: np.ndarray, first: np.ndarray, heading: np.nd
     return place(left), place(right)
 
 
-def _check_crossings(path: Path, left: np.ndarray, right: np.ndarray, lines: list[int], closed: bool) -> None:
-    """Refuse walls that cross themselves or each other (neighbouring segments of a wall touch)."""
+def _check_crossings(path: Path, left: np.ndarray, right: np.ndarray, lines: list[int], closed: bool,
+                     name: str) -> None:
+    """Refuse walls that cross themselves or each other (neighbouring segments of a wall touch): ``WallsCross``."""
     n = len(left) - 1
     a = np.concatenate([left[:-1], right[:-1]])  # segment k: left wall of checkpoint k; n + k: right wall
     b = np.concatenate([left[1:], right[1:]])
@@ -285,8 +303,10 @@ def _check_crossings(path: Path, left: np.ndarray, right: np.ndarray, lines: lis
         if hit.any():
             first, second = (int(v) for v in np.argwhere(hit)[0])
             first += start
-            raise TrackFileError(f"{path}: the walls cross themselves: the {_describe(first, n, lines)} crosses "
-                                 f"the {_describe(second, n, lines)}")
+            raise WallsCross(f"{path}: the walls cross themselves: the {_describe(first, n, lines)} crosses "
+                             f"the {_describe(second, n, lines)} ({CROSSING_HELP})",
+                             Track(left, right, closed=closed, name=name),
+                             ((a[first], b[first]), (a[second], b[second])))
 
 
 def _describe(segment: int, n: int, lines: list[int]) -> str:

@@ -195,3 +195,23 @@ def test_the_documented_track_commands_run(tmp_path):
     bad = write(tmp_path, HEADER + "0,0,10,10\n")
     result = zygote.run(["tracks.py", "check", str(bad)], cwd=ROOT, env=ENV, timeout=120)
     assert result.returncode == 2 and "1 point(s); a track needs at least 3" in result.stderr
+
+
+def test_a_figure_eight_is_refused_with_why_and_shown_with_its_crossing(tmp_path, capsys):
+    """A circuit whose centre line crosses itself (a bridge, as Suzuka's) was refused by every tool with no
+    word of why, and tracks.py show would not draw it: the refusal now says why such a circuit cannot be a
+    track here, and show draws the refused file with the crossing marked (status 2: the file is refused)."""
+    import tracks
+
+    t = np.linspace(0, 2 * np.pi, 240, endpoint=False)
+    rows = np.stack([600 * np.sin(t), 300 * np.sin(2 * t), np.full_like(t, 5.0), np.full_like(t, 5.0)], axis=1)
+    path = tmp_path / "eight.csv"
+    path.write_text("# x_m,y_m,w_tr_right_m,w_tr_left_m\n" + "\n".join(",".join(f"{v:.4f}" for v in r) for r in rows))
+    with pytest.raises(TrackFileError, match="a circuit that passes over itself") as refused:
+        load_track(path)
+    assert "the walls cross themselves" in str(refused.value)
+    pytest.importorskip("matplotlib", reason="drawing needs the render extra")
+    assert tracks.main(["show", str(path), "--out", str(tmp_path / "eight.png")]) == 2
+    out, err = capsys.readouterr()
+    assert (tmp_path / "eight.png").stat().st_size > 0 and "crossing marked in red" in out
+    assert len(err.strip().splitlines()) == 1 and "figure-eight" in err
