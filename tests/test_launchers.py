@@ -164,3 +164,21 @@ def test_an_export_edited_by_hand_is_refused_not_run_under_the_commits_name(tmp_
     (code_dir / "engine" / "__pycache__" / "runner.cpython-311.pyc").write_bytes(b"planted")
     assert clean_sweep.export(commit, code_dir) == code_dir
     assert not (code_dir / "engine" / "__pycache__").exists()
+
+
+def test_an_ad_hoc_sweep_run_again_continues_in_its_folder(tmp_path):
+    """``train.py -m ...`` without a folder went to a new dated folder each time, so running the same sweep
+    again trained it again; its folder is now named by its command line, and the second run skips its runs."""
+    from hydra_plugins.racing_launcher.sweeper import sweep_folder_name
+    from tests.test_train import run_train
+
+    args = ["-m", "algo=spg_p,ppo", "er=recent", "seed=2067791", "episodes=2", "progress=false", "logger=none",
+            "hydra/launcher=basic"]
+    first = run_train(*args, cwd=tmp_path)
+    assert first.returncode == 0, first.stderr[-3000:]
+    sweeps = list((tmp_path / "outputs" / "sweeps").iterdir())
+    assert [p.name for p in sweeps] == [sweep_folder_name(args[1:-1])]  # the task overrides (not hydra/...)
+    again = run_train(*args, cwd=tmp_path)
+    assert again.returncode == 0 and again.stderr.count("already completed") == 2, again.stderr[-3000:]
+    assert list((tmp_path / "outputs" / "sweeps").iterdir()) == sweeps
+    assert sweep_folder_name(["a=1,2"]) != sweep_folder_name(["a=1", "2"]) and "/" not in sweep_folder_name(["x=/y"])

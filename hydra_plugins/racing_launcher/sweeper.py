@@ -82,10 +82,25 @@ class _SweepSignals:
             signal.signal(number, handler)
 
 
+DATED_SWEEP_DIR = "outputs/sweeps/${now:%Y-%m-%d_%H-%M-%S}"  # Hydra's usual default, which conf/config.yaml keeps
+
+
+def sweep_folder_name(arguments: list[str]) -> str:
+    """The folder of an ad-hoc sweep, named by its command line: the same command, the same folder (so
+    running it again continues it), readable, and short enough for any file system."""
+    import hashlib
+    import re
+
+    text = " ".join(arguments) or "defaults"
+    readable = re.sub(r"[^A-Za-z0-9._+-]+", "_", text.replace("=", "-").replace(",", "+")).strip("._") or "sweep"
+    return f"{readable[:80]}-{hashlib.sha256(text.encode()).hexdigest()[:8]}"
+
+
 class CheckedSweeper(BasicSweeper):
     def sweep(self, arguments: list[str]) -> Any:
         assert self.config is not None and self.launcher is not None and self.hydra_context is not None
         getattr(sys.stderr, "pass_through", lambda: None)()  # composed: train.py's stderr is the sweep's now
+        _name_the_folder(self.config, arguments)
         parser = OverridesParser.create(config_loader=self.hydra_context.config_loader)
         self.overrides = self.split_arguments(parser.parse_overrides([*self._parse_config(), *arguments]),
                                               self.max_batch_size)
@@ -248,3 +263,16 @@ def _folder_problem(rundir, RunConfig, run_cfg, settings: dict, folder: Path, me
         if holder:
             return holder
     return None
+
+
+def _name_the_folder(config, arguments: list[str]) -> None:
+    """A sweep left at the dated default folder (no ``hydra.sweep.dir`` given, by the command or its
+    experiment) goes to ``outputs/sweeps/<its command line>`` instead (``sweep_folder_name``), given to its
+    jobs as if on the command line."""
+    given = OmegaConf.to_container(config.hydra.sweep, resolve=False).get("dir")
+    if given != DATED_SWEEP_DIR:
+        return
+    folder = f"outputs/sweeps/{sweep_folder_name(arguments)}"
+    with open_dict(config):
+        config.hydra.sweep.dir = folder
+        config.hydra.overrides.hydra.append(f"hydra.sweep.dir={folder}")
