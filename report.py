@@ -19,6 +19,10 @@ Writes into ``SWEEP_DIR/report/``:
   unseen-track scores and their gap, for fixed- and random-track training; ``normalised.md`` (if
   the oracle scored the runs' tracks): each cell's final performance on the oracle's scale, 0 for a
   car that stands still and 1 for the oracle (``evaluate.py --oracle``) on the run's track;
+- ``statistics.md``, ``profiles.png``, ``improvement.png``: the cells as rliable reports them
+  (``analysis/statistics.py``): IQM, mean, median and optimality gap with stratified bootstrap
+  intervals, performance profiles, and the probability of improvement for the pairs the paper's
+  conclusions compare;
 - ``curves_*.png``: learning curves, mean over tracks with a ±1 SE band, per algorithm and per
   replay mode; ``paper_tracks.png``; ``agent.png``, a frame of the best run's policy.
 Lists runs that are partial (killed or running), damaged (with the file and the reason;
@@ -105,8 +109,11 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"  {r.path} ({len(r.rewards)} episodes in metrics.csv)"
                       + (f": {r.problem}" if r.problem else ""))
     extra = []
+    from analysis.statistics import statistics_markdown
+
     for name, text in (("beyond.md", beyond_markdown(every)), ("generalisation.md", generalisation_markdown(every)),
-                       ("normalised.md", normalised_markdown(runs, oracle))):
+                       ("normalised.md", normalised_markdown(runs, oracle)),
+                       ("statistics.md", statistics_markdown(runs, oracle))):
         if text:
             files.write_text(out / name, versions_markdown(versions) + "\n" + text)
             print(text)
@@ -119,11 +126,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{sum(r.status == 'completed' for r in every)} completed runs; wrote {out}/table.md, table.csv, "
           "runs.csv, conclusions.md, collapse.md" + "".join(f", {name}" for name in extra))
     if not args.no_figures:
-        write_figures(runs, out)
+        write_figures(runs, out, oracle)
     return 0
 
 
-def write_figures(runs, out: Path) -> None:
+def write_figures(runs, out: Path, oracle: dict[int, float] | None = None) -> None:
     try:
         from analysis import figures as figures
         from racing.figures import import_pyplot
@@ -142,6 +149,9 @@ def write_figures(runs, out: Path) -> None:
     written = figures.learning_curve_figures(runs, out)
     frontier = figures.frontier_figure(runs, read_oracle(), out / "curves_beyond.png")
     written += [frontier] if frontier is not None else []
+    from analysis.statistics import statistics_figures
+
+    written += statistics_figures(runs, oracle or {}, out)
     written += [p for p in (figures.iqm_figure(rows, out / "iqm.png"),
                             figures.paper_tracks_figure(out / "paper_tracks.png")) if p is not None]
     written += agent_frame(runs, out, figures)

@@ -235,3 +235,22 @@ def test_the_end_screen_stays_until_the_window_is_closed(monkeypatch):
     closer.start()
     drive.play(str(example("oval")), max_steps=3, fps=10000, oracle=False, hold=True)
     assert time.perf_counter() - start >= 0.5
+
+
+def test_the_documented_board_from_committed_scores(tmp_path):
+    """docs/benchmark.md's ``--scores`` line: the committed boards' scores in one board, with the agents as
+    rliable reports them; every row of the committed leaderboard comes out the same from its scores."""
+    from benchmark import leaderboard
+
+    lines = [a for a in readme_commands("-m benchmark.leaderboard") if "--scores" in a]
+    assert lines
+    for args in lines:
+        args = args[:args.index("--out")] + ["--out", str(tmp_path)]
+        assert leaderboard.main(args) == 0
+    board = (tmp_path / "leaderboard.md").read_text().splitlines()
+    committed = (ROOT / "docs" / "results" / "benchmark" / "leaderboard.md").read_text().splitlines()
+    assert set(committed) <= set(board)  # the same scores, the same intervals
+    statistics = (tmp_path / "statistics.md").read_text()
+    assert "| SPG-p, multiple epochs, memory | 3 |" in statistics and "(ref)" in statistics
+    assert "| NAF, memory | 3 |" in statistics and "| reference: oracle | 1 | 1.000 | 1.000 | 0.000 |" in statistics
+    assert (tmp_path / "profiles.png").stat().st_size > 0  # the render extra is in the dev install
