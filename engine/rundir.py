@@ -240,9 +240,10 @@ def _mismatch(folder: Path, summary: dict) -> str | None:
                 return f"{path} differs from the file its summary records (its SHA-256)"
         return None
     weights = ("model.zip",) if str(summary["algo"]).startswith("sb3_") else WEIGHT_FILES  # baseline.py's
-    needed = (METRICS_FILE, *(weights if summary["status"] == "completed" else ()))
-    for name in needed:  # summaries from before the record
+    for name in (METRICS_FILE, *weights):  # summaries from before the record: the metrics, and weights if kept
         path = folder / name
+        if name != METRICS_FILE and not os.path.lexists(path):
+            continue  # not kept (archives keep the actor, or nothing): whoever needs it says it is missing
         if not files.is_file(path) or path.stat().st_size == 0:
             return f"{path} is {'missing' if not os.path.lexists(path) else 'empty or not a regular file'}"
     return None

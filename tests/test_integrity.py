@@ -564,3 +564,17 @@ def test_an_archive_without_the_critic_is_finished_and_its_actor_scores(tmp_path
     (folder / "critic.pt").unlink()
     (folder / "metrics.csv").unlink()  # the run's data is never optional
     assert state(folder).kind == "damaged" and "metrics.csv is missing" in state(folder).problem
+
+
+def test_a_committed_archive_of_summaries_and_metrics_reads_as_finished_runs(tmp_path):
+    """docs/results/wide_grid/runs.tar.xz keeps each run's summary and metrics, no weights, and its summaries
+    are from before they recorded their files: the report reads them as finished runs (it had called all
+    375 damaged, "actor.pt is missing"); weights that are present must still be whole."""
+    import subprocess
+
+    subprocess.run(["tar", "-C", str(tmp_path), "-xJf", str(ROOT / "docs/results/wide_grid/runs.tar.xz"),
+                    "./ppo/recent/seed2067791"], check=True)
+    folder = tmp_path / "ppo" / "recent" / "seed2067791"
+    assert rundir.state(folder).kind == "finished", rundir.state(folder).problem
+    (folder / "actor.pt").write_bytes(b"")
+    assert rundir.state(folder).kind == "damaged" and "actor.pt is empty" in rundir.state(folder).problem
