@@ -20,7 +20,7 @@ Writes into ``SWEEP_DIR/report/``:
   the oracle scored the runs' tracks): each cell's final performance on the oracle's scale, 0 for a
   car that stands still and 1 for the oracle (``evaluate.py --oracle``) on the run's track;
 - ``statistics.md``, ``profiles.png``, ``improvement.png``: the cells as rliable reports them
-  (``analysis/statistics.py``): IQM, mean, median and optimality gap with stratified bootstrap
+  (``analysis/statistics.py``): IQM, mean and optimality gap with stratified bootstrap
   intervals, performance profiles, and the probability of improvement for the pairs the paper's
   conclusions compare;
 - ``curves_*.png``: learning curves, mean over tracks with a ±1 SE band, per algorithm and per

@@ -3,7 +3,7 @@
 
 Each cell's completed runs on fixed tracks are its scores, on the oracle's scale of each run's track
 where the oracle scored every one of them (else in total reward), one task of many runs (a run here is
-one track; the cells of Table 1 have one run per track): the IQM, mean, median and optimality gap with
+one track; the cells of Table 1 have one run per track): the IQM, mean and optimality gap with
 95% stratified bootstrap intervals over runs; the performance profile (the fraction of runs above each
 score); and the probability of improvement for the pairs of cells the paper's conclusions compare,
 with its interval. These answer unpaired questions ("how good is this cell", "how often does a run
@@ -61,7 +61,7 @@ def statistics_markdown(runs: list[Run], oracle: dict[int, float], reps: int = a
         return ""
     scale = "the oracle's scale of each run's track (0: a car that stands still, 1: the oracle)" if scaled \
         else "total reward (the oracle has not scored every track)"
-    metrics = ("IQM", "mean", "median") + (("optimality gap",) if scaled else ())
+    metrics = ("IQM", "mean") + (("optimality gap",) if scaled else ())  # (rliable's median is over tasks: one here)
     lines = [f"Aggregate metrics as rliable computes them, on {scale}; each cell's runs (one per track) resampled "
              f"with replacement, {reps:,} times (stratified bootstrap), 95% percentile intervals. The optimality "
              "gap is how far below the oracle the runs fall on average.", "",
