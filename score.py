@@ -50,7 +50,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="the film's episode length (default 200); with --laps-on, the step cap")
     parser.add_argument("--laps-on", default=None, metavar="FILE",
                         help="time laps on this circuit (a track file) instead of scoring")
-    parser.add_argument("--laps", type=int, default=3, help="with --laps-on: laps per agent (default 3)")
+    parser.add_argument("--laps", type=int, default=None,
+                        help="with --laps-on: laps per agent (default 3); with --video on a circuit: the film ends "
+                             "after this many laps")
     add_track_options(parser)
     parser.add_argument("--numerics", choices=numerics.MODES, default=None,
                         help="the numerics to run run folders' policies in (default: the one they were trained in)")
@@ -61,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--tracks must be track seeds in [0, 2**32), got {args.tracks}")
     if args.video is not None and args.video.suffix.lower() not in (".gif", ".mp4"):
         parser.error(f"--video must name a .gif or .mp4 file, got {str(args.video)!r}")
-    if args.laps < 1 or (args.max_steps is not None and args.max_steps < 1):
+    if (args.laps is not None and args.laps < 1) or (args.max_steps is not None and args.max_steps < 1):
         parser.error("--laps and --max-steps must be at least 1")
     if args.laps_on is not None and args.video is not None:
         parser.error("give --laps-on or --video, not both")
@@ -94,9 +96,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"score: {err}", file=sys.stderr)
         return 2
     if args.video is not None:
-        return _film(agents, args.video, video_track if video_track is not None else TRACKS[0], args.max_steps)
+        return _film(agents, args.video, video_track if video_track is not None else TRACKS[0], args.max_steps,
+                     args.laps)
     if args.laps_on is not None:
-        return _lap_times(agents, circuit, args.laps, args.max_steps, args.table)
+        return _lap_times(agents, circuit, args.laps or 3, args.max_steps, args.table)
     if (tracks, episodes) != (TRACKS, EPISODES):
         print(f"note: {len(tracks)} tracks x {episodes} episodes is not the benchmark's protocol "
               f"({len(TRACKS)} x {EPISODES}); the scores are not comparable with docs/benchmark.md")
@@ -145,10 +148,17 @@ def _track(parser, text: str | None, scale: float | None, closed: bool | None, o
         parser.error(str(err))
 
 
-def _film(agents, path: Path, track, max_steps: int | None) -> int:
+def _film(agents, path: Path, track, max_steps: int | None, laps: int | None = None) -> int:
     from benchmark.protocol import film
 
     options = {} if max_steps is None else {"max_steps": max_steps}
+    if laps is not None:
+        from racing.track_file import load_track
+
+        if isinstance(track, int) or not load_track(track.path, track.scale, track.closed).closed:
+            print("score: --laps ends a film on a circuit; the video track is not one", file=sys.stderr)
+            return 2
+        options["laps"] = laps
     for n, agent in enumerate(agents):
         out = path if len(agents) == 1 else path.with_name(f"{path.stem}-{n}{path.suffix}")
         try:
@@ -156,7 +166,8 @@ def _film(agents, path: Path, track, max_steps: int | None) -> int:
         except (RuntimeError, ValueError, TypeError) as err:
             print(f"score: {agent.name}: {err}", file=sys.stderr)
             return 2
-        print(f"wrote {out}: {agent.name} on track {track}, {frames} frames, total reward {total:.1f}")
+        print(f"wrote {out}: {agent.name} on track {track}, {frames} frames ({out.stat().st_size / 1e6:.1f} MB), "
+              f"total reward {total:.1f}")
     return 0
 
 

@@ -361,6 +361,17 @@ class EnvConfig:
                 raise ConfigError(f"env.track_file: {err}") from None
             for warning in track.reading.warnings:  # the car may not fit (tracks.py check says the same)
                 _note(f"env.track_file {self.track_file}: {warning}")
+            from racing.config import RacingConfig
+
+            options = RacingConfig.from_keywords("env.options", **self.options)
+            reach = options.max_steps * options.max_speed  # pixels an episode covers at full speed
+            length = track.centre_line_length()
+            if reach < 0.5 * length:  # the default 200 steps on a real circuit: a few percent of a lap
+                needed = int(-(-length // (0.6 * options.max_speed) // 100) * 100)  # at 60% of full speed
+                _note(f"env.track_file {self.track_file}: an episode of {options.max_steps:,} steps covers at most "
+                      f"{reach / length:.0%} of {'a lap' if track.closed else 'the track'} even at full speed "
+                      f"(centre line {length:,.0f} px); env.options.max_steps={needed:,} gives a driver at 60% of "
+                      f"full speed the whole of it (python tracks.py check {self.track_file} drives a lap)")
             if self.track_file_sha256 != track_file_sha256(self.track_file):
                 raise ConfigError(f"env.track_file {self.track_file} is not the file its run recorded "
                                   "(env.track_file_sha256 differs)")
@@ -457,6 +468,18 @@ class RunConfig:
         if td is not None and td.updates_before(self.episodes, self.env.episode_steps) == 0:
             _note(f"algo.td.warmup_episodes={td.warmup_episodes} with episodes={self.episodes}: no gradient step is "
                   "taken, so the run's policy is its initial one (give more episodes than warm-up ones)")
+        elif td is not None and td.warmup_episodes:
+            scored = min(self.final_window, self.episodes)  # the final performance's episodes: the last ones
+            random_scored = td.warmup_episodes - (self.episodes - scored)
+            steps = td.warmup_episodes * self.env.episode_steps
+            if random_scored > 0:
+                _note(f"the final performance averages the last {scored} episodes, {random_scored} of them warm-up "
+                      f"episodes of uniform random actions (algo.td.warmup_episodes={td.warmup_episodes}); give more "
+                      "episodes, or fewer warm-up ones")
+            elif steps > 10_000:  # warm-up counts episodes: long ones (a circuit's) make it long
+                _note(f"algo.td.warmup_episodes={td.warmup_episodes} of {self.env.episode_steps:,} steps: {steps:,} "
+                      "steps of uniform random actions before the first gradient step (the default 5 episodes are "
+                      "1,000 steps at 200 an episode)")
         _choice("logger", self.logger, LOGGERS)
         if self.logger == "tensorboard":
             import importlib.util

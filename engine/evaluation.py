@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -195,11 +196,14 @@ def drive_episode(act, env: RacingEnv, seed: int, frames: list | None = None, re
             frames.append(env.render())
 
     take_frame()
+    limit = env.unwrapped.config.max_steps
     while not done:
         obs, reward, terminated, truncated, _ = env.step(act(env, obs))
         total += reward
         done = terminated or truncated
         take_frame()
+        if frames is not None and limit > 2 * FILM_PROGRESS_EVERY and len(frames) % FILM_PROGRESS_EVERY == 0:
+            print(f"  filmed {len(frames):,} of at most {limit + 1:,} frames", file=sys.stderr, flush=True)
     return total
 
 
@@ -240,6 +244,15 @@ def check_video_path(path: Path) -> None:
                            "-e '.[render]'") from None
 
 
+def _padded(frame: np.ndarray, block: int) -> np.ndarray:
+    """``frame`` (H, W, 3) with its last rows and columns repeated up to multiples of ``block``."""
+    height, width = frame.shape[:2]
+    return np.pad(frame, ((0, -height % block), (0, -width % block), (0, 0)), mode="edge")
+
+
+FILM_PROGRESS_EVERY = 500  # frames between progress lines while filming a long episode (a circuit's)
+
+
 def write_video(frames: list, path: Path, fps: int = 30) -> int:
     """Frames (RGB arrays) as a GIF or MP4 at ``fps``, encoded in memory and written whole through the
     file door (``racing.files.write_atomic``); returns how many."""
@@ -250,7 +263,8 @@ def write_video(frames: list, path: Path, fps: int = 30) -> int:
     path = Path(path)
     if path.suffix.lower() == ".gif":
         data = imageio.imwrite("<bytes>", frames, extension=".gif", duration=1000 / fps, loop=0)
-    else:
+    else:  # the codec takes sides that are multiples of 16: the frames' edges are repeated to fit, never resized
+        frames = [_padded(frame, 16) for frame in frames]
         data = imageio.imwrite("<bytes>", frames, extension=".mp4", plugin="FFMPEG", fps=fps, macro_block_size=16)
     files.folder(path.parent, path.parent, create=True)
     files.write_atomic(path, data)

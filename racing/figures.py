@@ -47,13 +47,20 @@ def tracks_figure(path: str | Path, seeds: Sequence[int] = PAPER_TRACK_SEEDS,
     tracks = [track_from_seed(s, config) for s in seeds]
     spans = [np.subtract(*reversed(t.bounds())) for t in tracks]
     widths = [max(w / h, 0.2) for w, h in spans]
-    height = min(max(width / sum(widths), 2.0), 6.0)
+    height = min(max(width / sum(widths), 2.0), 6.0) + 0.5  # and the legend
     fig, axes = plt.subplots(1, len(tracks), figsize=(width, height),
                              gridspec_kw={"width_ratios": widths}, squeeze=False)
     for ax, track, seed in zip(axes[0], tracks, seeds):
         draw_track(ax, track)
         ax.set_title(str(seed), fontsize=9)
-    return _save(plt, fig, path)
+    from matplotlib.lines import Line2D
+
+    marks = [Line2D([], [], color="tab:green", linewidth=2, label="start line"),
+             Line2D([], [], color="tab:red", linewidth=2, label="finish line (the episode ends there)"),
+             Line2D([], [], color="0.55", linewidth=6, label="the road: one grey checkpoint after another")]
+    fig.legend(handles=marks, loc="lower center", ncol=3, fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 0.14, 1, 0.9))  # room for the titles above and the legend below
+    return save_figure(fig, path, dpi=120, tight=False)
 
 
 def track_file_figure(track: Track, path: str | Path, title: str | None = None,
@@ -91,7 +98,7 @@ def _save(plt, fig, path: str | Path) -> Path:
     return save_figure(fig, path, dpi=120)
 
 
-def save_figure(fig, path: str | Path, dpi: int = 120) -> Path:
+def save_figure(fig, path: str | Path, dpi: int = 120, tight: bool = True) -> Path:
     """Draw ``fig`` into memory (its format from the suffix), close it, and write it whole through
     the file door (``racing.files.write_atomic``; its folder made if missing)."""
     import io
@@ -99,7 +106,8 @@ def save_figure(fig, path: str | Path, dpi: int = 120) -> Path:
     from racing import files
 
     plt = import_pyplot()
-    fig.tight_layout()
+    if tight:  # (a figure that laid itself out says so)
+        fig.tight_layout()
     path = Path(path)
     buffer = io.BytesIO()
     fig.savefig(buffer, dpi=dpi, format=path.suffix.lstrip(".").lower() or "png")

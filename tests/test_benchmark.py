@@ -254,3 +254,28 @@ def test_the_documented_board_from_committed_scores(tmp_path):
     assert "| SPG-p, multiple epochs, memory | 3 |" in statistics and "(ref)" in statistics
     assert "| NAF, memory | 3 |" in statistics and "| reference: oracle | 1 | 1.000 | 1.000 | 0.000 |" in statistics
     assert (tmp_path / "profiles.png").stat().st_size > 0  # the render extra is in the dev install
+
+
+def test_an_mp4_keeps_its_frames_and_a_circuit_film_ends_at_its_laps(tmp_path, capsys, recwarn):
+    """An .mp4 printed imageio's macro_block_size warning and resized its frames; frames now keep their
+    size, padded with their own edge; ``--laps`` ends a film on a circuit, and its line gives the size."""
+    import warnings
+
+    import score as score_py
+    from engine.evaluation import _padded, write_video
+
+    frame = np.arange(30 * 50 * 3, dtype=np.uint8).reshape(30, 50, 3)
+    padded = _padded(frame, 16)
+    assert padded.shape == (32, 64, 3) and (padded[:30, :50] == frame).all() and (padded[31, 60] == frame[29, 49]).all()
+    pytest.importorskip("imageio_ffmpeg", reason="mp4 needs the render extra's ffmpeg")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert write_video([frame] * 3, tmp_path / "a.mp4") == 3
+    circuit = str(example("oval"))
+    assert score_py.main(["pure_pursuit", "--video", str(tmp_path / "lap.gif"), "--video-track", circuit,
+                          "--laps", "1", "--max-steps", "5000"]) == 0
+    out = capsys.readouterr().out
+    frames = int(out.split(" frames")[0].split(", ")[-1])
+    assert 1 < frames < 5000 and " MB), total reward" in out  # the lap ended it, long before the step cap
+    assert score_py.main(["pure_pursuit", "--video", str(tmp_path / "x.gif"), "--laps", "1"]) == 2
+    assert "--laps ends a film on a circuit" in capsys.readouterr().err

@@ -216,4 +216,14 @@ def test_train_notes_what_the_car_cannot_fit_and_a_run_that_never_learns(monkeyp
     assert "Note: algo.td.warmup_episodes=5 with episodes=2: no gradient step is taken" in err
     RunConfig.compose("env.track=file", f"env.track_file={circuit}", "algo=sac", "episodes=6")
     notes = [line for line in capsys.readouterr().err.splitlines() if line.startswith("Note:")]
-    assert not [n for n in notes if "env.track_file" in n or "warmup" in n], notes  # auto scale fits; 6 > 5
+    assert not [n for n in notes if "the road is" in n or "no gradient step" in n], notes  # auto scale fits; 6 > 5
+    # what a run on a circuit says besides: the default 200 steps cover part of a lap; warm-up episodes among
+    # the final performance's; thousands of random steps when episodes are long
+    assert any(f"env.track_file {circuit}: an episode of 200 steps covers at most" in n and "of a lap even at "
+               "full speed" in n and "env.options.max_steps=" in n for n in notes), notes
+    assert any("the final performance averages the last 6 episodes, 5 of them warm-up episodes" in n for n in notes)
+    RunConfig.compose("env.track=file", f"env.track_file={circuit}", "algo=sac", "env.options.max_steps=3600")
+    notes = [line for line in capsys.readouterr().err.splitlines() if line.startswith("Note:")]
+    assert "Note: algo.td.warmup_episodes=5 of 3,600 steps: 18,000 steps of uniform random actions before the " \
+           "first gradient step (the default 5 episodes are 1,000 steps at 200 an episode)" in notes
+    assert not any("covers at most" in n for n in notes), notes  # 3,600 steps reach round the lap

@@ -190,3 +190,32 @@ def test_module_reexports():
     assert racing.RacingTorchEnv.__name__ == "RacingTorchEnv"
     with pytest.raises(AttributeError):
         racing.NoSuchThing  # noqa: B018
+
+
+def test_a_third_party_scripts_env_stack_runs_through_episode_ends():
+    """docs/usage.md's third-party script (CleanRL's continuous-action PPO for Gymnasium 1.x) builds its
+    vector env from ``gym.make(env_id)`` and Gymnasium's own wrappers, autoresetting in the same step; that
+    stack, built here around the registered env, steps through two episode ends and reports their returns."""
+    def make():
+        env = gym.make(ENV_ID, track_seed=PAPER_TRACK_SEEDS[0])
+        env = gym.wrappers.FlattenObservation(env)
+        env = gym.wrappers.RecordEpisodeStatistics(env)
+        env = gym.wrappers.ClipAction(env)
+        env = gym.wrappers.NormalizeObservation(env)
+        env = gym.wrappers.TransformObservation(env, lambda obs: np.clip(obs, -10, 10), env.observation_space)
+        env = gym.wrappers.NormalizeReward(env, gamma=0.99)
+        return gym.wrappers.TransformReward(env, lambda reward: np.clip(reward, -10, 10))
+
+    envs = gym.vector.SyncVectorEnv([make, make], autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+    assert isinstance(envs.single_action_space, gym.spaces.Box) and envs.single_observation_space.shape == (6,)
+    obs, _ = envs.reset(seed=1)
+    returns = []
+    for _ in range(420):
+        obs, reward, terminated, truncated, infos = envs.step(np.random.default_rng(0).uniform(-1.5, 1.5, (2, 2)))
+        assert np.isfinite(obs).all() and np.isfinite(reward).all()
+        if "final_info" in infos:
+            over = np.nonzero(infos["final_info"]["_episode"])[0]
+            returns += list(infos["final_info"]["episode"]["r"][over])
+            assert (infos["final_info"]["episode"]["l"][over] == 200).all()
+    assert len(returns) == 4  # two cars, two 200-step episodes each
+    envs.close()
