@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from pathlib import Path
 
 import pytest
@@ -66,7 +67,9 @@ def pytest_collection_modifyitems(config, items):
             found.add(item.nodeid)
     whole = config.args in ([], ["tests"], [str(ROOT / "tests")]) and not config.option.keyword
     if whole and not config.option.markexpr and slow - found:
-        raise pytest.UsageError(f"tests/slow_tests.txt lists tests that do not exist: {sorted(slow - found)[:5]}")
+        message = f"tests/slow_tests.txt lists tests that do not exist: {sorted(slow - found)[:5]}"
+        print(message, file=sys.stderr)  # under xdist a worker's UsageError shows only as INTERNALERROR
+        raise pytest.UsageError(message)
     items[:] = heaviest_files_first(items)
 
 
