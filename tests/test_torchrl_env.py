@@ -176,7 +176,7 @@ def test_unknown_keyword_names_the_valid_ones():
         RacingTorchEnv(num_cars=3)
 
 
-@pytest.mark.parametrize("options", [{}, {"history": 3, "privileged": True}, {"memory": 2}, {"track_seeds": None}])
+@pytest.mark.parametrize("options", [{}, {"history": 3, "privileged": True}, {"past_steps": 2}, {"track_seeds": None}])
 def test_step_and_maybe_reset_is_torchrls_own(options):
     """The env's own step_and_maybe_reset (the Collector's step, without TorchRL's per-step checks)
     returns what EnvBase's does, entry for entry, through crashes and time-limit resets; a subclass
