@@ -182,3 +182,14 @@ def test_an_ad_hoc_sweep_run_again_continues_in_its_folder(tmp_path):
     assert again.returncode == 0 and again.stderr.count("already completed") == 2, again.stderr[-3000:]
     assert list((tmp_path / "outputs" / "sweeps").iterdir()) == sweeps
     assert sweep_folder_name(["a=1,2"]) != sweep_folder_name(["a=1", "2"]) and "/" not in sweep_folder_name(["x=/y"])
+
+
+def test_a_sweep_folder_that_cannot_be_resolved_is_one_line(tmp_path):
+    """``hydra.sweep.dir=${hydra:...}`` (set by Hydra only inside a job) gave Hydra's traceback."""
+    from tests.test_train import run_train
+
+    result = run_train("-m", "algo=spg,ppo", "er=recent", "episodes=1", "hydra/launcher=basic",
+                       "hydra.sweep.dir=" + str(tmp_path) + "/${hydra:job.name}", cwd=tmp_path)
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr[-2000:]
+    assert len(lines) == 1 and lines[0].startswith("The sweep was not started: hydra.sweep.dir: "), lines

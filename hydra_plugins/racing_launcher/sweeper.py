@@ -107,6 +107,9 @@ class CheckedSweeper(BasicSweeper):
         jobs = [list(job) for batch in self.overrides for job in batch]
         self.folders: list[list[Path]] = []
         problems = check_jobs(self.hydra_context.config_loader, self.config, jobs, self.folders)
+        if problems and problems[0].startswith("hydra.sweep.dir: "):  # the sweep's own folder, not a job's
+            print(f"The sweep was not started: {problems[0]}", file=sys.stderr)
+            raise SweepRefused(2)
         if problems:
             print(f"The sweep was not started: {len(problems)} of its {len(jobs)} jobs cannot run as given "
                   "(nothing was written):", file=sys.stderr)
@@ -187,7 +190,11 @@ def check_jobs(loader, master, jobs: list[list[str]], folders: list | None = Non
     from engine.limits import check_ram
 
     register_resolvers()
-    sweep_dir = Path(str(master.hydra.sweep.dir))
+    try:
+        sweep_dir = Path(str(master.hydra.sweep.dir))
+    except OmegaConfBaseException as err:  # e.g. ${hydra:...}, which Hydra sets only inside a job
+        return [f"hydra.sweep.dir: {_first_line(err)} (the sweep's folder is resolved before any job: "
+                "give a path, or interpolations of the configuration)"]
     problems: list[str] = []
     owners: dict[Path, str] = {}
     for index, job in enumerate(jobs):
