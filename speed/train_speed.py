@@ -92,7 +92,7 @@ def tanh_table(repeats: int) -> None:
         ours = best_of(lambda: [tanh(x) for _ in range(20)], repeats)
         rows.append([f"{shape[0]} x {shape[1]}", f"{base / 20 * 1e6:.1f}", f"{ours / 20 * 1e6:.1f}",
                      f"{base / ours:.2f}x"])
-    table("Hidden-layer tanh (microseconds per call)", ["input", "torch.tanh", "models.tanh", "speed-up"], rows)
+    table("Hidden-layer tanh (microseconds per call)", ["input", "torch.tanh", "learners.solo.tanh", "speed-up"], rows)
 
 
 def collector_table(episodes: int) -> None:
