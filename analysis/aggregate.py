@@ -28,47 +28,60 @@ REPS = 50_000  # rliable's resamples for interval estimates
 PROFILE_REPS = 2_000  # and for performance profiles
 
 
+# Each estimator once, over a batch of score matrices [k, runs, tasks] -> [k] (the resamples of a bootstrap;
+# the point estimate is a batch of one).
+
+def _iqm(batch: np.ndarray) -> np.ndarray:
+    flat = np.sort(batch.reshape(len(batch), -1), axis=1)
+    cut = flat.shape[1] // 4
+    return flat[:, cut:flat.shape[1] - cut].mean(axis=1)
+
+
+def _mean(batch: np.ndarray) -> np.ndarray:
+    return batch.mean(axis=1).mean(axis=1)
+
+
+def _median(batch: np.ndarray) -> np.ndarray:
+    return np.median(batch.mean(axis=1), axis=1)
+
+
+def _optimality_gap(batch: np.ndarray, gamma: float = 1.0) -> np.ndarray:
+    return gamma - np.minimum(batch, gamma).reshape(len(batch), -1).mean(axis=1)
+
+
 def iqm(scores: np.ndarray) -> float:
     """Interquartile mean of all entries of ``scores`` (rliable's ``aggregate_iqm``)."""
-    flat = np.sort(np.asarray(scores, dtype=np.float64).ravel())
+    flat = np.asarray(scores, dtype=np.float64).ravel()
     if flat.size == 0:
         raise ValueError("iqm of no scores")
-    cut = flat.size // 4
-    return float(flat[cut:flat.size - cut].mean())
+    return float(_iqm(flat[None, :, None])[0])
 
 
 def mean(scores: np.ndarray) -> float:
     """Mean of the per-task means (rliable's ``aggregate_mean``)."""
-    return float(np.mean(np.mean(np.asarray(scores, dtype=np.float64), axis=0)))
+    return float(_mean(np.asarray(scores, dtype=np.float64)[None])[0])
 
 
 def median(scores: np.ndarray) -> float:
     """Median of the per-task means (rliable's ``aggregate_median``)."""
-    return float(np.median(np.mean(np.asarray(scores, dtype=np.float64), axis=0)))
+    return float(_median(np.asarray(scores, dtype=np.float64)[None])[0])
 
 
 def optimality_gap(scores: np.ndarray, gamma: float = 1.0) -> float:
     """How far below ``gamma`` the scores fall on average, each counted up to ``gamma`` (rliable's)."""
-    return float(gamma - np.mean(np.minimum(np.asarray(scores, dtype=np.float64), gamma)))
+    return float(_optimality_gap(np.asarray(scores, dtype=np.float64)[None], gamma)[0])
 
 
 ESTIMATORS: dict[str, Callable[[np.ndarray], float]] = {"IQM": iqm, "mean": mean, "median": median,
                                                        "optimality gap": optimality_gap}
+_BATCHED = {iqm: _iqm, mean: _mean, median: _median, optimality_gap: _optimality_gap}
 
 
 def _batched(statistic, resampled: np.ndarray) -> np.ndarray:
-    """``statistic`` of each resample of ``resampled`` [reps, runs, tasks], vectorised for the estimators
-    above (the same arithmetic, one resample at a time otherwise)."""
-    if statistic is iqm:
-        flat = np.sort(resampled.reshape(len(resampled), -1), axis=1)
-        cut = flat.shape[1] // 4
-        return flat[:, cut:flat.shape[1] - cut].mean(axis=1)
-    if statistic is mean:
-        return resampled.mean(axis=1).mean(axis=1)
-    if statistic is median:
-        return np.median(resampled.mean(axis=1), axis=1)
-    if statistic is optimality_gap:
-        return 1.0 - np.minimum(resampled, 1.0).reshape(len(resampled), -1).mean(axis=1)
+    """``statistic`` of each resample of ``resampled`` [reps, runs, tasks]: the estimators above in one pass,
+    any other function one resample at a time."""
+    if statistic in _BATCHED:
+        return _BATCHED[statistic](resampled)
     return np.array([statistic(r) for r in resampled])
 
 

@@ -110,9 +110,6 @@ def main(argv: list[str] | None = None) -> int:
 
 def _from_scores(paths: list[Path], out: Path) -> int:
     """The board from runs.csv files a leaderboard wrote: one agent per name, its runs' per-track scores."""
-    import csv
-    import io
-
     from benchmark.protocol import TRACKS
     from racing import files
 
@@ -120,11 +117,11 @@ def _from_scores(paths: list[Path], out: Path) -> int:
     rows = []
     for path in paths:
         try:
-            text = files.read_text(path, 64 * 2**20, "a leaderboard's runs.csv")
+            table = files.read_csv(path, 64 * 2**20, "a leaderboard's runs.csv")
         except (OSError, files.FileRefused) as err:
             print(f"leaderboard: {err}", file=sys.stderr)
             return 2
-        for row in csv.DictReader(io.StringIO(text)):
+        for row in table:
             try:
                 runs = cells.setdefault(row["agent"], {}).setdefault(row["run"], {})
                 if int(row["track"]) in runs:  # a reference driver scored in each file: once is enough

@@ -355,15 +355,12 @@ class EnvConfig:
             if "num_segments" in self.options:
                 raise ConfigError("env.options.num_segments comes from the track file; remove it")
             try:
-                track, _ = file_track(self.track_file, dict(self.options), "env.options", self.track_scale,
-                                      self.track_closed)
+                track, options = file_track(self.track_file, dict(self.options), "env.options", self.track_scale,
+                                            self.track_closed)
             except (TrackFileError, TypeError, ValueError) as err:
                 raise ConfigError(f"env.track_file: {err}") from None
             for warning in track.reading.warnings:  # the car may not fit (tracks.py check says the same)
                 _note(f"env.track_file {self.track_file}: {warning}")
-            from racing.config import RacingConfig
-
-            options = RacingConfig.from_keywords("env.options", **self.options)
             reach = options.max_steps * options.max_speed  # pixels an episode covers at full speed
             length = track.centre_line_length()
             if reach < 0.5 * length:  # the default 200 steps on a real circuit: a few percent of a lap

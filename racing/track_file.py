@@ -233,7 +233,7 @@ def load_track(path: Path | str, scale: float | None = None, closed: bool | None
     if closed:
         left_wall, right_wall = np.vstack([left_wall, left_wall[:1]]), np.vstack([right_wall, right_wall[:1]])
     left_wall, right_wall = _pose(left_wall, right_wall, xy[0], tangent[0], config.start_line_y)
-    _check_crossings(path, left_wall, right_wall, lines, closed, path.stem)
+    _check_crossings(path, left_wall, right_wall, lines, closed)
     reading = Reading(str(path), scale, scale_from, closed, closed_from,
                       fit_warnings(xy, right + left, lengths, lines, closed, config))
     return Track(left_wall, right_wall, closed=closed, name=path.stem, reading=reading)
@@ -285,8 +285,7 @@ def _pose(left: np.ndarray, right: np.ndarray, first: np.ndarray, heading: np.nd
     return place(left), place(right)
 
 
-def _check_crossings(path: Path, left: np.ndarray, right: np.ndarray, lines: list[int], closed: bool,
-                     name: str) -> None:
+def _check_crossings(path: Path, left: np.ndarray, right: np.ndarray, lines: list[int], closed: bool) -> None:
     """Refuse walls that cross themselves or each other (neighbouring segments of a wall touch): ``WallsCross``."""
     n = len(left) - 1
     a = np.concatenate([left[:-1], right[:-1]])  # segment k: left wall of checkpoint k; n + k: right wall
@@ -305,7 +304,7 @@ def _check_crossings(path: Path, left: np.ndarray, right: np.ndarray, lines: lis
             first += start
             raise WallsCross(f"{path}: the walls cross themselves: the {_describe(first, n, lines)} crosses "
                              f"the {_describe(second, n, lines)} ({CROSSING_HELP})",
-                             Track(left, right, closed=closed, name=name),
+                             Track(left, right, closed=closed, name=path.stem),
                              ((a[first], b[first]), (a[second], b[second])))
 
 

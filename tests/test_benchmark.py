@@ -278,4 +278,4 @@ def test_an_mp4_keeps_its_frames_and_a_circuit_film_ends_at_its_laps(tmp_path, c
     frames = int(out.split(" frames")[0].split(", ")[-1])
     assert 1 < frames < 5000 and " MB), total reward" in out  # the lap ended it, long before the step cap
     assert score_py.main(["pure_pursuit", "--video", str(tmp_path / "x.gif"), "--laps", "1"]) == 2
-    assert "--laps ends a film on a circuit" in capsys.readouterr().err
+    assert "laps=1 ends an episode after laps of a circuit; these cars drive" in capsys.readouterr().err

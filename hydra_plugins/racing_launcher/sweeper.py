@@ -106,10 +106,11 @@ class CheckedSweeper(BasicSweeper):
                                               self.max_batch_size)
         jobs = [list(job) for batch in self.overrides for job in batch]
         self.folders: list[list[Path]] = []
-        problems = check_jobs(self.hydra_context.config_loader, self.config, jobs, self.folders)
-        if problems and problems[0].startswith("hydra.sweep.dir: "):  # the sweep's own folder, not a job's
-            print(f"The sweep was not started: {problems[0]}", file=sys.stderr)
+        folder_problem = sweep_dir_problem(self.config)  # the sweep's own folder, before any job's
+        if folder_problem:
+            print(f"The sweep was not started: {folder_problem}", file=sys.stderr)
             raise SweepRefused(2)
+        problems = check_jobs(self.hydra_context.config_loader, self.config, jobs, self.folders)
         if problems:
             print(f"The sweep was not started: {len(problems)} of its {len(jobs)} jobs cannot run as given "
                   "(nothing was written):", file=sys.stderr)
@@ -190,11 +191,10 @@ def check_jobs(loader, master, jobs: list[list[str]], folders: list | None = Non
     from engine.limits import check_ram
 
     register_resolvers()
-    try:
-        sweep_dir = Path(str(master.hydra.sweep.dir))
-    except OmegaConfBaseException as err:  # e.g. ${hydra:...}, which Hydra sets only inside a job
-        return [f"hydra.sweep.dir: {_first_line(err)} (the sweep's folder is resolved before any job: "
-                "give a path, or interpolations of the configuration)"]
+    folder_problem = sweep_dir_problem(master)
+    if folder_problem:
+        return [folder_problem]
+    sweep_dir = Path(str(master.hydra.sweep.dir))
     problems: list[str] = []
     owners: dict[Path, str] = {}
     for index, job in enumerate(jobs):
@@ -269,6 +269,17 @@ def _folder_problem(rundir, RunConfig, run_cfg, settings: dict, folder: Path, me
         holder = rundir.in_use(path)
         if holder:
             return holder
+    return None
+
+
+def sweep_dir_problem(master) -> str | None:
+    """Why the sweep's folder cannot be resolved before its jobs (None: it can), e.g. ``${hydra:...}``,
+    which Hydra sets only inside a job."""
+    try:
+        str(master.hydra.sweep.dir)
+    except OmegaConfBaseException as err:
+        return (f"hydra.sweep.dir: {_first_line(err)} (the sweep's folder is resolved before any job: give a "
+                "path, or interpolations of the configuration)")
     return None
 
 
