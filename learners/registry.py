@@ -51,6 +51,7 @@ class LearnerSpec:
     critic: Callable = lambda algo: (1, 1, True)  # (algo) -> (networks, outputs, reads the action): memory estimate
     gaussian_actor: bool = True  # its actor outputs a Gaussian's (loc, scale); else a tanh action
     past_critic: bool = False  # its steps feed the Q-networks the car's true state and past (algo.td.privileged_critic)
+    pessimism: bool = False  # its target and actor combine the Q-networks by algo.td.pessimism (losses.td.q_reduce)
     target_networks: bool = True  # it keeps target networks (algo.td.tau); CrossQ does not
     prioritised: bool = True  # it can train on prioritised replay (off-policy learners: er=prioritised)
     rows: Callable = lambda algo, minibatch: minibatch  # rows a minibatch puts through a network (memory estimate)

@@ -21,6 +21,7 @@ The losses are TorchRL's own; what a population needs on top is small:
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Sequence
 
@@ -123,12 +124,58 @@ class MemberTemperature:
         return self.log_alpha.detach().exp()
 
 
+def q_reduce(values: torch.Tensor, pessimism: float | None) -> torch.Tensor:
+    """The Q-networks' values ``[Q, ...]`` made one value, as the target and the actor read them: their
+    minimum (``pessimism`` None: clipped double Q, TorchRL's), or ``mean - pessimism * std`` over the
+    networks (the population standard deviation, floored at 1e-6 so that its gradient stays finite where
+    the networks agree). With two networks std is half their distance, so 1 is the minimum, 0 their mean,
+    and a negative value optimism (tactical optimism's form, Moskovitz et al., 2021)."""
+    if pessimism is None:
+        return values.min(0)[0]
+    mean = values.mean(0)
+    if pessimism == 0:
+        return mean
+    return mean - pessimism * values.var(0, correction=0).clamp_min(1e-12).sqrt()
+
+
 class MemberSACLoss(MemberTemperature, SACLoss):
     """``torchrl.objectives.SACLoss`` with one entropy temperature per member and the members' own
-    noise (``MemberTemperature``); everything else is TorchRL's."""
+    noise (``MemberTemperature``); everything else is TorchRL's. ``pessimism`` (``algo.td.pessimism``)
+    replaces the minimum over the Q-networks in the target and the actor's objective by ``q_reduce``."""
+
+    def __init__(self, *args, pessimism: float | None = None, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.pessimism = pessimism
 
     def _compute_target_v2(self, tensordict: TensorDictBase) -> torch.Tensor:
-        return self._with_target_alpha(super()._compute_target_v2, tensordict)
+        with self._combined_values():
+            return self._with_target_alpha(super()._compute_target_v2, tensordict)
+
+    def actor_loss(self, tensordict: TensorDictBase):
+        with self._combined_values():
+            return super().actor_loss(tensordict)
+
+    @contextlib.contextmanager
+    def _combined_values(self):
+        """With ``pessimism`` set, TorchRL's target and actor loss receive the Q-networks' values already
+        combined (``q_reduce``, the same value in every network's entry), so the minimum they take is the
+        combination; the critics' own loss, outside this, sees each network's values."""
+        if self.pessimism is None:
+            yield
+            return
+        evaluate, key = self._vmap_qnetworkN0, self.tensor_keys.state_action_value
+
+        def combined(tensordict, params):
+            out = evaluate(tensordict, params)
+            values = out.get(key)
+            out.set(key, q_reduce(values, self.pessimism).unsqueeze(0).expand_as(values))
+            return out
+
+        self._vmap_qnetworkN0 = combined
+        try:
+            yield
+        finally:
+            self._vmap_qnetworkN0 = evaluate
 
 
 def _stackable_critic(loss) -> bool:
@@ -238,13 +285,15 @@ def _soft_td_target(loss, actor_net: nn.Module, batch: TensorDictBase, params: T
     """The soft TD(0) target ``[R, B]`` as TorchRL's SAC and REDQ losses compute it:
     ``r + gamma * (min_j Q_j(s', a') - alpha * log pi(a'|s'))`` (``gamma ** steps`` over n-step
     transitions) with ``a'`` drawn with the noise under ``("next", ACTION_NOISE_KEY)``, the minimum
-    over the Q-networks of ``params`` (``[Q, R, ...]``) and ``alpha`` the temperature ``[R, 1, 1]``;
+    over the Q-networks of ``params`` (``[Q, R, ...]``; ``q_reduce`` with the loss's pessimism) and ``alpha`` the temperature ``[R, 1, 1]``;
     and ``log pi(a'|s')`` ``[R, B]``."""
     following = batch.get("next")
     next_observation = following.get("observation")
     next_action, next_log_prob = _policy_sample(actor_net, next_observation, following.get(ACTION_NOISE_KEY))
     next_values = _stacked_values(loss, q_input(following, next_observation, next_action), params)
-    next_value = (next_values - alpha * next_log_prob.unsqueeze(-1)).min(0)[0]
+    # subtracting the same number from every network's value keeps the minimum's bits: the same as TorchRL's
+    # (next_values - alpha * log_prob).min(0) where no pessimism is set
+    next_value = q_reduce(next_values, getattr(loss, "pessimism", None)) - alpha * next_log_prob.unsqueeze(-1)
     return _td0_target(loss, batch, next_value), next_log_prob
 
 
@@ -288,8 +337,8 @@ def fused_sac_losses(loss: "MemberSACLoss", actor_net: nn.Module,
     td_error = abs(predicted - target)
     loss_qvalue = distance_loss(predicted, target.expand_as(predicted), loss_function=loss.loss_function).sum(0)
     action, log_prob = _policy_sample(actor_net, observation, batch.get(ACTION_NOISE_KEY))
-    min_q = _stacked_values(loss, q_input(batch, observation, action),
-                            loss.qvalue_network_params.detach()).min(0)[0].squeeze(-1)
+    min_q = q_reduce(_stacked_values(loss, q_input(batch, observation, action), loss.qvalue_network_params.detach()),
+                     loss.pessimism).squeeze(-1)
     loss_actor = loss._alpha * log_prob - min_q
     loss_alpha = loss._alpha_loss(log_prob.detach())
     if weights is not None:

@@ -272,13 +272,15 @@ def module_then_fused(step, mode: str):
 @pytest.mark.parametrize("extra", [[], ["er=prioritised", "algo.td.n_step=3", "algo.td.loss_function=smooth_l1"],
                                    ["algo=bro", "er=prioritised", "algo.td.critic_width=48"],
                                    ["algo=droq", "er=prioritised"], ["algo=droq", "algo.td.critic_layer_norm=false"],
-                                   ["algo=tqc"], ["algo=tqc", "er=prioritised", "algo.td.n_step=3", "algo.tqc.critics=3"]])
+                                   ["algo=tqc"], ["algo=tqc", "er=prioritised", "algo.td.n_step=3", "algo.tqc.critics=3"],
+                                   ["algo.td.pessimism=0"], ["er=prioritised", "algo.td.pessimism=-0.5"]])
 def test_fused_sac_step_is_the_torchrl_loss_bit_for_bit(mode, extra):
     """The fused SAC step (plain tensors, the Q-networks in one stacked pass) gives TorchRL's loss
     module's losses, priorities and gradients bit for bit: with importance weights, n-step
     discounts, another critic loss, BRO's residual Q-networks, DroQ's (dropout masks drawn from the
     members' generators in the loss module's order; with and without layer norm), TQC's (its pooled,
-    truncated quantile targets), in both numerics that switch after torch loads."""
+    truncated quantile targets), the Q-networks combined by algo.td.pessimism, in both numerics that
+    switch after torch loads."""
     cfg, t = training("sac", *extra, seeds=(A, B, 7))
     assert t.phases.fused
     data = transitions(3, 256)
@@ -557,6 +559,8 @@ def test_the_sampler_plugs_into_a_torchrl_replay_buffer():
     (["algo=crossq", "er=prioritised"], "does not weight by priority"),
     (["algo=crossq", "compile=true"], "not supported for crossq"),
     (["algo=sac", "algo.td.tau=0"], "tau must be in (0, 1]"),
+    (["algo=td3", "algo.td.pessimism=0"], "algo.td.pessimism is built for the losses sac"),
+    (["algo=sac", "algo.td.pessimism=100"], "must be within [-10, 10] standard deviations"),
     (["algo=sac", "er=prioritised", "er.priority.beta=2"], "beta must be in [0, 1]"),
 ])
 def test_bad_offpolicy_settings_are_refused_with_a_reason(override, message):

@@ -22,6 +22,9 @@ KEYS = ()  # its schedule is in the td: block
 LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
 
 
+PESSIMISM_LIMIT = 10.0  # algo.td.pessimism: standard deviations of the Q-networks
+
+
 @dataclass(frozen=True)
 class TDOptions:
     """The off-policy schedule every learner of the family reads (``algo.td``; ``conf/algo/sac.yaml`` explains each key)."""
@@ -42,6 +45,8 @@ class TDOptions:
     observation_norm: bool = False  # actor and critics see running-normalised observations (learners.networks.ObservationNorm)
     privileged_critic: bool = False  # the Q-networks also see the car's true state (RacingSim.true_state); training only
     critic_history: int = 0  # the Q-networks also see the car's last this-many observations and actions (its own past)
+    pessimism: float | None = None  # the target and the actor combine the Q-networks as mean - this x std
+    #                                 (losses.td.q_reduce); None: their minimum (TorchRL's)
 
     def __post_init__(self) -> None:
         positive("algo.td.updates_per_step", self.updates_per_step)
@@ -62,6 +67,9 @@ class TDOptions:
         at_least("algo.td.critic_history", self.critic_history, 0)
         if self.critic_history > MAX_HISTORY:
             raise ConfigError(f"algo.td.critic_history must be at most {MAX_HISTORY} past steps, got {self.critic_history}")
+        if self.pessimism is not None and not -PESSIMISM_LIMIT <= self.pessimism <= PESSIMISM_LIMIT:
+            raise ConfigError(f"algo.td.pessimism must be within [-{PESSIMISM_LIMIT:g}, {PESSIMISM_LIMIT:g}] standard "
+                              f"deviations of the Q-networks (or null: their minimum), got {self.pessimism}")
         if self.critic_blocks and (self.critic_dropout or self.critic_layer_norm):
             raise ConfigError("algo.td.critic_blocks > 0 makes a residual Q-network, layer-normalised throughout "
                               "and without dropout; set algo.td.critic_dropout: 0.0 and algo.td.critic_layer_norm: "
@@ -252,6 +260,12 @@ def check(algo, learner) -> None:
     if learner.target_networks and td.get("tau", 0.005) is None:
         raise ConfigError(f"algo {algo.name}: loss {algo.loss} updates target networks by algo.td.tau; "
                           "give a value in (0, 1]")
+    if td.get("pessimism") is not None and not learner.pessimism:
+        from learners.registry import LEARNERS
+
+        able = [name for name, spec in LEARNERS.items() if spec.pessimism]
+        raise ConfigError(f"algo {algo.name}: algo.td.pessimism is built for the losses {', '.join(able)} (the way "
+                          f"their target and actor combine the Q-networks); loss {algo.loss} keeps its own: set it to null")
     for key, given in (("privileged_critic", td.get("privileged_critic") is True),
                        ("critic_history", isinstance(td.get("critic_history"), int) and td.get("critic_history") > 0)):
         if not given:

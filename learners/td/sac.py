@@ -11,7 +11,8 @@ from learners.registry import LearnerSpec
 from learners.td import SACOptions
 
 SPEC = LearnerSpec(name="sac", title="SAC", family="td", module=__name__, blocks={"sac": SACOptions},
-                   critic=lambda algo: (2, 1, True), gaussian_actor=True, past_critic=True)
+                   critic=lambda algo: (2, 1, True), gaussian_actor=True, past_critic=True,
+                   pessimism=True)
 METRICS = (("loss_qvalue",), ("loss_actor", "loss_alpha", "alpha"))  # metrics.csv's critic/ and actor/ columns
 
 
@@ -36,7 +37,7 @@ def loss(cfg, networks, generators):
     from losses.td import MemberSACLoss
 
     return MemberSACLoss(networks.actor, networks.qvalues, loss_function=cfg.algo.td.loss_function,
-                         **entropy_loss_options(cfg, networks, generators))
+                         pessimism=cfg.algo.td.pessimism, **entropy_loss_options(cfg, networks, generators))
 
 
 def fused_available(loss, actor_net) -> bool:
