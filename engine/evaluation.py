@@ -45,16 +45,20 @@ class Policy:
             self.history.observe(np.asarray(observation, np.float32)[None], started=[0] if self._start else None)
             self._start = False
             observation = self.history.with_past(self.past_steps)[0]
-        x = torch.as_tensor(observation, dtype=torch.float32).unsqueeze(0)
-        if not self.stacked:  # the paper's learners: the Gaussian's mean, clipped
-            loc, _ = self.net(x)
-            action = loc.clamp(-1.0, 1.0).squeeze(0).numpy()
-        else:
-            out = self.net(x.unsqueeze(0))  # [member, batch, obs]
-            action = (torch.tanh(out[0]) if isinstance(out, tuple) else out).clamp(-1.0, 1.0)[0, 0].numpy()
+        action = self.actions(torch.as_tensor(observation, dtype=torch.float32).unsqueeze(0))[0].numpy()
         if self.history is not None:
             self.history.act(action[None])
         return action
+
+    @torch.no_grad()
+    def actions(self, observations: torch.Tensor) -> torch.Tensor:
+        """The actions ``[N, 2]`` for a batch of network inputs ``[N, inputs]`` (observations, with their past
+        where the run reads past steps: no history is kept here)."""
+        if not self.stacked:  # the paper's learners: the Gaussian's mean, clipped
+            loc, _ = self.net(observations)
+            return loc.clamp(-1.0, 1.0)
+        out = self.net(observations.unsqueeze(0))  # [member, batch, obs]
+        return (torch.tanh(out[0]) if isinstance(out, tuple) else out).clamp(-1.0, 1.0)[0]
 
     def parameters(self):
         return self.net.parameters()

@@ -66,3 +66,88 @@ def test_the_target_and_the_actor_read_the_combined_values(pessimism):
         actor = alpha * log_prob - combined(values(loss.qvalue_network_params, data["observation"], action))
     assert torch.allclose(out["loss_qvalue"], ((predicted - target) ** 2).sum(0), rtol=1e-4, atol=1e-4)
     assert torch.allclose(out["loss_actor"], actor, rtol=1e-4, atol=1e-4)
+
+
+# ------------------------------------------------------------------ python -m analysis.pessimism
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    from engine.config import RunConfig
+    from engine.runner import train_population
+
+    folder = tmp_path_factory.mktemp("pessimism") / "run"
+    settings = RunConfig.compose_mapping("algo=sac", "er=memory", "episodes=2", "algo.td.warmup_episodes=1",
+                                         "algo.td.updates_per_step=0.1", "env.options.max_steps=30", "seed=1001",
+                                         "progress=false", "logger=none")
+    train_population(RunConfig.from_mapping(settings), folder, settings)
+    return folder
+
+
+def test_the_critics_are_the_run_s_q_networks(run):
+    """Each row of the stacked network load_critics builds computes one of the run's Q-networks, here by hand
+    from critic.pt's weights (tanh MLP)."""
+    from analysis.pessimism import load_critics
+    from engine.checkpoint import load_tensors
+    from engine.evaluation import load_policy
+
+    _, settings = load_policy(run)
+    critics = load_critics(run, settings)
+    state = load_tensors(run / "critic.pt", "critic")
+    x = torch.rand(7, 8, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        stacked = critics(x.expand(2, 7, 8))
+    for q in range(2):
+        h = x
+        for i in range(3):
+            h = h @ state[f"module.net.layers.{i}.weight"][q].T + state[f"module.net.layers.{i}.bias"][q]
+            h = torch.tanh(h) if i < 2 else h
+        assert torch.allclose(stacked[q], h, atol=1e-5)
+
+
+def test_a_true_return_is_the_discounted_sum_of_one_car_s_rewards(run):
+    """discounted_returns for the oracle's states equals driving a copy of each car alone, step by step."""
+    import numpy as np
+
+    from analysis.pessimism import discounted_returns, oracle_line
+    from engine.evaluation import load_policy, make_env
+    from racing.oracle import Oracle
+    from racing.sim import RacingSim
+
+    policy, settings = load_policy(run)
+    env = make_env(settings, 1001)
+    line = oracle_line(env, 1, 0, policy)
+    assert len(line["cars"]) == 30 and line["observations"].shape == (30, 6)
+    sim = env.unwrapped.sim
+    batched = discounted_returns(sim, line, line["oracle"], policy, 0.9, 10)
+    for i in (0, 17, 29):
+        car = RacingSim(1, None, sim.config, track=sim.tracks[0])
+        car.seed(0)
+        car.reset()
+        for name in Oracle.STATE:
+            getattr(car, name)[:] = line["cars"][i][name]
+        car.t[:] = 0
+        total, action = 0.0, line["oracle"][i]
+        for step in range(10):
+            reward, terminated, truncated, _ = car.step(np.array([action[0]]), np.array([action[1]]))
+            total += 0.9 ** step * float(reward[0])
+            if terminated[0] or truncated[0]:
+                break
+            action = policy(car.observe()[0])
+        assert batched[i] == pytest.approx(total, abs=1e-9)
+
+
+def test_the_table_holds_a_row_per_run_and_bad_input_is_one_line(run, tmp_path, capsys):
+    import csv
+
+    from analysis import pessimism
+
+    assert pessimism.main([str(run), "--episodes", "1", "--horizon", "10", "--table", str(tmp_path / "p.csv")]) == 0
+    with open(tmp_path / "p.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 1 and rows[0]["loss"] == "sac" and rows[0]["states"] == "30"
+    assert 0 <= float(rows[0]["misranked"]) <= 1 and float(rows[0]["spread_oracle"]) >= 0
+    assert "| critic_gap_min |" in capsys.readouterr().out
+    assert pessimism.main([str(run), "--horizon", "30"]) == 2  # no shorter than the run's 30-step episodes
+    assert "--horizon must be below the episode's 30 steps" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        pessimism.main([str(run), "--episodes", "0"])
+    assert "--episodes must be in [1, 100]" in capsys.readouterr().err

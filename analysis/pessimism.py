@@ -1,0 +1,217 @@
+"""What a trained run's critics think of the oracle's driving: do they rate the faster line lower?
+
+    python -m analysis.pessimism RUN_DIR... [--episodes 2] [--seed 0] [--horizon 60] [--table pessimism.csv]
+
+For each run folder (or every run under a sweep's folder) of an off-policy learner whose Q-networks are
+MLPs of (observation, action) (SAC, TD3, REDQ, TQC's quantiles averaged; not DroQ's, BRO's or CrossQ's
+networks, nor a critic that reads the car's past or true state), the oracle (``racing.oracle``) drives
+``--episodes`` episodes on the run's own track from the start states of ``--seed``, ``--seed + 1``, ...
+At every state s of the oracle's line the run's Q-networks score two actions: the oracle's a* and the
+run's own deterministic action pi(s). The same two are also scored by the simulator: the discounted
+return (the run's own gamma) of taking the action, then following pi for ``--horizon`` steps in all
+(the time limit lifted, as the critics' targets ignore it; crashes cost what they cost), batched over
+every state in one ``RacingSim``.
+
+Per run it prints the mean over the states of:
+
+- ``critic_gap_min``: Q(s, a*) - Q(s, pi(s)) under the minimum over the Q-networks (what SAC's and TD3's
+  targets read), and ``critic_gap_mean`` under their mean: below zero, the critic rates the oracle's
+  action lower than the policy's own;
+- ``true_gap``: the same difference in discounted return (above zero: a* is better, then following pi);
+- ``spread_oracle``, ``spread_policy``: the Q-networks' standard deviation at a* and at pi(s): the
+  pessimism penalty (the minimum is the mean minus this, with two networks) paid by each action;
+- ``misranked``: the share of states where the true returns prefer a* but the minimum prefers pi(s).
+
+SAC's critics estimate soft values (each future step's entropy bonus included) and every critic
+estimates the value of its own noisy policy, so the gaps, not the levels, are compared. Loads torch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+COLUMNS = ("run", "loss", "track", "states", "critic_gap_min", "critic_gap_mean", "true_gap", "spread_oracle",
+           "spread_policy", "misranked")
+
+
+def oracle_line(env, episodes: int, seed: int, policy) -> dict:
+    """The oracle's states (the car's state and observation) and actions over ``episodes`` episodes, and
+    the policy's own action at each of those states."""
+    import numpy as np
+
+    from racing.oracle import Oracle
+
+    planner, sim = Oracle(seed=seed), env.unwrapped.sim
+    cars, observations, oracle_actions = [], [], []
+    for k in range(episodes):
+        observation, _ = env.reset(seed=seed + k)
+        planner.reset()
+        done = False
+        while not done:
+            cars.append({name: np.copy(getattr(sim, name)[0]) for name in Oracle.STATE})
+            observations.append(np.asarray(observation, np.float32))
+            action = planner.act(sim, 0)
+            oracle_actions.append(action)
+            observation, _, terminated, truncated, _ = env.step(action)
+            done = terminated or truncated
+    return {"cars": cars, "observations": np.stack(observations), "oracle": np.stack(oracle_actions)}
+
+
+def discounted_returns(sim, line: dict, first_actions, policy, gamma: float, horizon: int):
+    """The discounted return of taking ``first_actions[i]`` at the oracle's state i and then following
+    ``policy`` (``Policy.actions``) for ``horizon`` steps in all: one batched ``RacingSim`` on ``sim``'s
+    track, the time limit lifted (the step counter restarts at 0), stopped where an episode ends."""
+    import numpy as np
+    import torch
+
+    from racing.oracle import Oracle
+    from racing.sim import RacingSim
+
+    n = len(line["cars"])
+    cars = RacingSim(n, None, sim.config, nearest_ray=sim.nearest_ray, track=sim.tracks[0])
+    cars.seed(0)
+    cars.reset()
+    for name in Oracle.STATE:
+        getattr(cars, name)[:] = np.array([state[name] for state in line["cars"]])
+    cars.t[:] = 0
+    cars.finished[:] = False
+    total, alive, discount = np.zeros(n), np.ones(n, dtype=bool), 1.0
+    actions = np.asarray(first_actions, dtype=np.float64)
+    for step in range(horizon):
+        reward, terminated, truncated, _ = cars.step(actions[:, 0], actions[:, 1])
+        total += np.where(alive, discount * reward, 0.0)
+        alive &= ~(np.asarray(terminated) | np.asarray(truncated))
+        discount *= gamma
+        if not alive.any():
+            break
+        observations = torch.as_tensor(cars.observe(), dtype=torch.float32)
+        actions = policy.actions(observations).double().numpy()
+    return total
+
+
+def load_critics(run: Path, settings: dict):
+    """The run's Q-networks as one stacked network (``[Q, B, obs + action] -> [Q, B, outputs]``): each
+    Q-network's solo weights in ``critic.pt`` are one row of the stack; ``RunFolderError`` for critics
+    this analysis does not read."""
+    from engine.checkpoint import load_tensors
+    from engine.outputs import RunFolderError
+    from learners.networks import StackedCriticNet, load_member_state_dict
+    from racing.config import RacingConfig
+
+    td = settings["algo"].get("td") or {}
+    if settings["env"].get("past_steps") or td.get("critic_history") or td.get("privileged_critic"):
+        raise RunFolderError(f"{run}: its critics read more than (observation, action) (past steps, the car's "
+                             "past or true state); this analysis reads critics of (observation, action) only")
+    try:
+        state = {k.removeprefix("module."): v for k, v in load_tensors(run / "critic.pt", "critic").items()}
+    except ValueError as err:
+        raise RunFolderError(str(err)) from None
+    layers = sorted(int(k.split(".")[2]) for k in state if k.endswith(".weight"))
+    if not layers or any(not k.startswith("net.layers.") for k in state):
+        raise RunFolderError(f"{run / 'critic.pt'}: its Q-networks are not MLPs of network.critic_hidden (DroQ's, "
+                             "BRO's or CrossQ's networks); this analysis reads MLP critics only")
+    first, last = state[f"net.layers.{layers[0]}.weight"], state[f"net.layers.{layers[-1]}.weight"]
+    network, obs_size = settings["network"], RacingConfig(**settings["env"].get("options", {})).obs_size
+    if first.shape[-1] != obs_size + 2:
+        raise RunFolderError(f"{run / 'critic.pt'}: its Q-networks read {first.shape[-1]} inputs, not the "
+                             f"observation and the action ({obs_size + 2})")
+    critics = StackedCriticNet(first.shape[0], obs_size + 2, network["critic_hidden"], network["activation"],
+                               outputs=last.shape[1])
+    try:
+        load_member_state_dict(critics, slice(None), state)
+    except (ValueError, RuntimeError):
+        raise RunFolderError(f"{run / 'critic.pt'}: its Q-networks are not MLPs of network.critic_hidden (DroQ's, "
+                             "BRO's or CrossQ's networks); this analysis reads MLP critics only") from None
+    return critics
+
+
+def measure(run: Path, episodes: int, seed: int, horizon: int) -> dict:
+    import numpy as np
+    import torch
+
+    from engine.evaluation import load_policy, make_env, own_track
+    from engine.outputs import RunFolderError
+
+    policy, settings = load_policy(run)
+    critics = load_critics(run, settings)
+    env = make_env(settings, own_track(settings))
+    if horizon >= env.unwrapped.sim.config.max_steps:
+        raise RunFolderError(f"{run}: --horizon must be below the episode's {env.unwrapped.sim.config.max_steps} "
+                             f"steps, got {horizon}")
+    line = oracle_line(env, episodes, seed, policy)
+    observations = torch.as_tensor(line["observations"])
+    own = policy.actions(observations)
+    oracle = torch.as_tensor(line["oracle"], dtype=torch.float32)
+    networks = next(critics.parameters()).shape[0]
+    with torch.no_grad():
+        def values(actions):  # [Q, N]: each Q-network's value (a quantile critic's mean over its quantiles)
+            x = torch.cat([observations, actions], -1).expand(networks, *observations.shape[:1], -1)
+            return critics(x).mean(-1).double()
+        at_oracle, at_own = values(oracle), values(own)
+    gamma = float(settings["gamma"])
+    sim = env.unwrapped.sim
+    true_oracle = discounted_returns(sim, line, line["oracle"], policy, gamma, horizon)
+    true_own = discounted_returns(sim, line, own.double().numpy(), policy, gamma, horizon)
+    env.close()
+    gap_min = (at_oracle.min(0)[0] - at_own.min(0)[0]).numpy()
+    true_gap = true_oracle - true_own
+    return {"run": str(run), "loss": settings["algo"]["loss"], "track": settings["seed"], "states": len(true_gap),
+            "critic_gap_min": round(float(gap_min.mean()), 4),
+            "critic_gap_mean": round(float((at_oracle.mean(0) - at_own.mean(0)).mean()), 4),
+            "true_gap": round(float(true_gap.mean()), 4),
+            "spread_oracle": round(float(at_oracle.std(0, correction=0).mean()), 4),
+            "spread_policy": round(float(at_own.std(0, correction=0).mean()), 4),
+            "misranked": round(float(np.mean((true_gap > 0) & (gap_min < 0))), 4)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("paths", type=Path, nargs="+", help="run folders, or sweep folders holding them")
+    parser.add_argument("--episodes", type=int, default=2, help="oracle episodes per run (default 2; ~5 s each)")
+    parser.add_argument("--seed", type=int, default=0, help="the first start state's seed (default 0)")
+    parser.add_argument("--horizon", type=int, default=60,
+                        help="steps of each true return (default 60: gamma 0.9 leaves 0.2%% of the value beyond)")
+    parser.add_argument("--table", type=Path, default=None, help="also write the rows as CSV")
+    args = parser.parse_args(argv)
+    from engine.processes import check_outputs
+
+    check_outputs(parser, table=args.table)
+    if not 1 <= args.episodes <= 100:
+        parser.error(f"--episodes must be in [1, 100], got {args.episodes}")
+    if not 0 <= args.seed < 2**32:
+        parser.error(f"--seed must be in [0, 2**32), got {args.seed}")
+    if not 1 <= args.horizon < 200:
+        parser.error(f"--horizon must be in [1, 200) steps, got {args.horizon}")
+    from engine import numerics
+    from engine.outputs import RunFolderError
+    from engine.rundir import find_runs, runs_numerics
+
+    try:
+        runs = find_runs(args.paths)
+        numerics.apply(runs_numerics(runs))  # before torch loads: the runs' own numerics
+        rows = [measure(run, args.episodes, args.seed, args.horizon) for run in runs]
+    except (RunFolderError, numerics.NumericsError) as err:
+        print(f"pessimism: {err}", file=sys.stderr)
+        return 2
+    print("| " + " | ".join(COLUMNS) + " |")
+    print("|" + "---|" * len(COLUMNS))
+    for row in rows:
+        print("| " + " | ".join(str(row[c]) for c in COLUMNS) + " |")
+    if len(rows) > 1:
+        means = {c: round(math.fsum(r[c] for r in rows) / len(rows), 4) for c in COLUMNS[4:]}
+        print("| mean | | | " + str(sum(r["states"] for r in rows)) + " | "
+              + " | ".join(str(means[c]) for c in COLUMNS[4:]) + " |")
+    if args.table is not None:
+        from engine.outputs import write_table
+
+        write_table(args.table, rows)
+    return 0
+
+
+if __name__ == "__main__":
+    from engine.processes import run_tool
+
+    raise SystemExit(run_tool("analysis.pessimism", main))
