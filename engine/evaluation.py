@@ -100,7 +100,7 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
         raise RunFolderError(str(err)) from None
     try:
         policy = make_policy(loss, network, RacingConfig(**env.get("options", {})).obs_size, state_dict,
-                             past_steps=env.get("past_steps", 0))
+                             past_steps=env.get("past_steps", 0), algo=settings["algo"])
     except Exception as err:  # mismatched shapes or keys
         raise RunFolderError(f"{actor_path} is not this run's actor ({first_line(err)})") from None
     if not all(torch.isfinite(p).all() for p in policy.parameters()):
@@ -108,9 +108,11 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
     return policy, settings
 
 
-def make_policy(loss: str, network: dict, obs_size: int, state: dict, past_steps: int = 0) -> Policy:
+def make_policy(loss: str, network: dict, obs_size: int, state: dict, past_steps: int = 0,
+                algo: dict | None = None) -> Policy:
     """The deterministic policy of an actor's saved weights (``actor.pt``) for ``algo.loss``, with the
-    run's ``env.past_steps`` (its networks read ``racing.history.past_size(obs_size, past_steps)`` inputs)."""
+    run's ``env.past_steps`` (its networks read ``racing.history.past_size(obs_size, past_steps)`` inputs)
+    and its ``algo`` settings (a learner whose actor its own options shape reads them)."""
     width = past_size(obs_size, past_steps)
     learner = learners.spec(loss)
     stacked = learners.FAMILIES[learner.family].OFF_POLICY  # the off-policy learners' actors: populations of one
@@ -118,7 +120,7 @@ def make_policy(loss: str, network: dict, obs_size: int, state: dict, past_steps
         from learners.td.learner import make_actor_net
         from learners.networks import NormalisedActor, ObservationNorm, load_member_state_dict
 
-        net = make_actor_net(learner.gaussian_actor, 1, width, 2, network["actor_hidden"], network["activation"])
+        net = make_actor_net(learner, 1, width, 2, network, algo)
         if all(k.startswith("module.") for k in state):  # the layout of TorchRL's parameters (until da21af2)
             state = {k.removeprefix("module."): v for k, v in state.items()}
         if any(k.startswith("norm.") for k in state):  # algo.td.observation_norm: the statistics it acted with

@@ -547,7 +547,8 @@ def _evaluate(cfg: RunConfig, seed: int, actor: dict) -> dict:
     from racing.config import RacingConfig
 
     network = {"actor_hidden": list(cfg.network.actor_hidden), "activation": cfg.network.activation}
-    policy = make_policy(cfg.algo.loss, network, RacingConfig(**cfg.env.options).obs_size, actor, cfg.env.past_steps)
+    policy = make_policy(cfg.algo.loss, network, RacingConfig(**cfg.env.options).obs_size, actor, cfg.env.past_steps,
+                         algo=cfg.algo)
     settings = {"env": {"options": dict(cfg.env.options), "nearest_ray": cfg.env.nearest_ray}}
     settings["env"].update(track=cfg.env.track, track_file=cfg.env.track_file, track_scale=cfg.env.track_scale,
                            track_closed=cfg.env.track_closed)

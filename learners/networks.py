@@ -601,10 +601,11 @@ class NormalisedActor(nn.Module):
 
 def reset_parameters(net: nn.Module, generators: Sequence[torch.Generator | None]) -> nn.Module:
     """Initialise every ``StackedLinear`` of ``net`` in registration order, member by member
-    from its own generator (so a member's weights depend on its generator alone), and every
-    ``StackedLayerNorm`` to unit scale and zero shift."""
+    from its own generator (so a member's weights depend on its generator alone), every
+    ``StackedLayerNorm`` to unit scale and zero shift, and every layer that declares ``stacked_init``
+    (``learners.hyperspherical``'s) by its own ``reset_parameters(generators)``."""
     for layer in net.modules():
-        if isinstance(layer, (StackedLinear, StackedLayerNorm)):
+        if isinstance(layer, (StackedLinear, StackedLayerNorm)) or getattr(layer, "stacked_init", False):
             layer.reset_parameters(generators)
     return net
 

@@ -155,19 +155,25 @@ class MemberSACLoss(MemberTemperature, SACLoss):
         with self._combined_values():
             return super().actor_loss(tensordict)
 
+    def values_of(self, outputs: torch.Tensor) -> torch.Tensor:
+        """The Q-values ``[Q, ..., 1]`` the Q-networks' outputs stand for: the outputs themselves (a
+        distributional critic's loss reads its logits' expected value: ``losses.simbav2``)."""
+        return outputs
+
     @contextlib.contextmanager
     def _combined_values(self):
-        """With ``pessimism`` set, TorchRL's target and actor loss receive the Q-networks' values already
-        combined (``q_reduce``, the same value in every network's entry), so the minimum they take is the
-        combination; the critics' own loss, outside this, sees each network's values."""
-        if self.pessimism is None:
+        """TorchRL's target and actor loss receive the Q-networks' values (``values_of``) combined by
+        ``q_reduce`` (the same value in every network's entry, so the minimum they take is the combination)
+        where ``pessimism`` is set or the outputs are not values; the critics' own loss, outside this, sees
+        each network's outputs. Otherwise TorchRL's code runs as it is."""
+        if self.pessimism is None and type(self).values_of is MemberSACLoss.values_of:
             yield
             return
         evaluate, key = self._vmap_qnetworkN0, self.tensor_keys.state_action_value
 
         def combined(tensordict, params):
             out = evaluate(tensordict, params)
-            values = out.get(key)
+            values = self.values_of(out.get(key))
             out.set(key, q_reduce(values, self.pessimism).unsqueeze(0).expand_as(values))
             return out
 

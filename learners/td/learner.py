@@ -83,16 +83,26 @@ class _Tanh(nn.Module):
         return torch.tanh(x)
 
 
-def make_actor_net(gaussian: bool, members: int, obs_dim: int, action_dim: int, hidden: Sequence[int],
-                   activation: str) -> nn.Module:
-    """The members' stacked actor: ``gaussian`` (the learner's ``SPEC.gaussian_actor``: SAC's, TQC's, CrossQ's,
-    REDQ's, Trust-PCL's) ``[R, ..., obs] -> (loc, scale)`` of a Gaussian (squashed by tanh when sampled), else
-    (TD3's, NAF's) ``[R, ..., obs] -> tanh action``."""
-    if gaussian:
+def make_actor_net(learner, members: int, obs_dim: int, action_dim: int, network, algo=None) -> nn.Module:
+    """The members' stacked actor of ``learner`` (its ``learners.registry`` spec) with the run's ``network`` and
+    ``algo`` settings (mappings or the run's config): the learner module's own ``actor_network`` where it has
+    one; else an MLP of ``network.actor_hidden``, for a ``gaussian_actor`` (SAC's, TQC's, CrossQ's, REDQ's,
+    Trust-PCL's) ``[R, ..., obs] -> (loc, scale)`` of a Gaussian (squashed by tanh when sampled), else (TD3's,
+    NAF's) ``[R, ..., obs] -> tanh action``."""
+    own = getattr(learner.torch_half(), "actor_network", None)
+    if own is not None:
+        return own(members, obs_dim, action_dim, network, algo)
+    hidden, activation = _setting(network, "actor_hidden"), _setting(network, "activation")
+    if learner.gaussian_actor:
         body = StackedMLP(members, [obs_dim, *hidden, 2 * action_dim], activation, linear_output=True)
         return nn.Sequential(body, NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4))
     body = StackedMLP(members, [obs_dim, *hidden, action_dim], activation, linear_output=True)
     return nn.Sequential(body, _Tanh())
+
+
+def _setting(block, key: str):
+    """``block``'s ``key``: a run's settings are mappings (``summary.json``), its configuration dataclasses."""
+    return block[key] if isinstance(block, dict) else getattr(block, key)
 
 
 def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
@@ -104,8 +114,7 @@ def make_networks(cfg, env, generators: Sequence[torch.Generator]) -> Networks:
     obs_dim = env.observation_spec["observation"].shape[-1]
     action_dim = env.action_spec.shape[-1]
     device = generators[0].device
-    actor_net = make_actor_net(learner.gaussian_actor, members, obs_dim, action_dim, net.actor_hidden,
-                               net.activation).to(device)
+    actor_net = make_actor_net(learner, members, obs_dim, action_dim, net, algo).to(device)
     actor = steps.actor(actor_net)
     reset_parameters(actor_net, generators)
     norm = ObservationNorm(members, obs_dim).to(device) if algo.td.observation_norm else None
@@ -371,6 +380,9 @@ class TDPhaseRunner:
             self.set_target_entropy(episode)
         if self.td.reset_every and episode > 0 and episode % self.td.reset_every == 0:
             self.reset_networks()
+        before = getattr(self.steps_of, "before_steps", None)
+        if before is not None and todo:  # what the learner sets from the memory before its steps (SimbaV2's reward scale)
+            before(self, data)
         phase = getattr(self.steps_of, "phase", None)
         if phase is not None:  # a learner that draws its own minibatches (Trust-PCL's sub-episodes)
             if todo:
