@@ -55,6 +55,10 @@ RECIPES = {  # name: (overrides of the recipe, shown as given)
     "tqc": ["algo=tqc"],
     "crossq": ["algo=crossq"],
     "td3": ["algo=td3"],
+    "simbav2": ["algo=simbav2", "er=prioritised"],  # algo=simbav2's defaults (widths 64, one block)
+    "simbav2-critics2": ["algo=simbav2", "er=prioritised", "algo.simbav2.critics=2"],
+    "simbav2-128": ["algo=simbav2", "er=prioritised", "algo.simbav2.actor_width=128",
+                    "algo.simbav2.critic_width=128"],
 }
 
 
