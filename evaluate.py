@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
         return _film_agent(str(agents[0]), args)  # any agent filmed: the oracle, a driver, a model.zip, ...
     try:
         runs = find_runs(args.paths)
-        numerics.apply(args.numerics or runs_numerics(runs))  # before torch loads
+        numerics.apply(args.numerics or runs_numerics(runs, "--numerics"))  # before torch loads
     except (RunFolderError, numerics.NumericsError) as err:
         print(f"evaluate: {err}", file=sys.stderr)
         return 2

@@ -197,7 +197,7 @@ def _lap_times(agents, circuit, laps: int, max_steps: int | None, table: Path | 
 def _runs_numerics(folders: list[Path]) -> str:
     from engine.rundir import runs_numerics
 
-    return runs_numerics(folders)
+    return runs_numerics(folders, "--numerics")
 
 
 if __name__ == "__main__":

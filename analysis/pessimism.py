@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -109,15 +110,17 @@ def load_critics(run: Path, settings: dict):
         state = {k.removeprefix("module."): v for k, v in load_tensors(run / "critic.pt", "critic").items()}
     except ValueError as err:
         raise RunFolderError(str(err)) from None
-    layers = sorted(int(k.split(".")[2]) for k in state if k.endswith(".weight"))
-    if not layers or any(not k.startswith("net.layers.") for k in state):
-        raise RunFolderError(f"{run / 'critic.pt'}: its Q-networks are not MLPs of network.critic_hidden (DroQ's, "
-                             "BRO's or CrossQ's networks); this analysis reads MLP critics only")
+    layer = re.compile(r"net\.layers\.(\d+)\.(weight|bias)")
+    if not state or not all(layer.fullmatch(k) for k in state):
+        raise RunFolderError(f"{run}: its Q-networks ({settings['algo']['loss']}) are not MLPs of network.critic_hidden "
+                             "(DroQ's, BRO's, CrossQ's or SimbaV2's networks); this analysis reads MLP critics only")
+    layers = sorted({int(layer.fullmatch(k).group(1)) for k in state})
     first, last = state[f"net.layers.{layers[0]}.weight"], state[f"net.layers.{layers[-1]}.weight"]
     network, obs_size = settings["network"], RacingConfig(**settings["env"].get("options", {})).obs_size
     if first.shape[-1] != obs_size + 2:
-        raise RunFolderError(f"{run / 'critic.pt'}: its Q-networks read {first.shape[-1]} inputs, not the "
-                             f"observation and the action ({obs_size + 2})")
+        raise RunFolderError(f"{run}: its critic ({settings['algo']['loss']}) reads {first.shape[-1]} inputs, not the "
+                             f"observation and the action ({obs_size + 2}): a value network of the state (the paper's "
+                             "learners', NAF's, Trust-PCL's); this analysis reads Q-networks of (observation, action)")
     critics = StackedCriticNet(first.shape[0], obs_size + 2, network["critic_hidden"], network["activation"],
                                outputs=last.shape[1])
     try:
@@ -158,7 +161,9 @@ def measure(run: Path, episodes: int, seed: int, horizon: int) -> dict:
     env.close()
     gap_min = (at_oracle.min(0)[0] - at_own.min(0)[0]).numpy()
     true_gap = true_oracle - true_own
-    return {"run": str(run), "loss": settings["algo"]["loss"], "track": settings["seed"], "states": len(true_gap),
+    track = own_track(settings)
+    return {"run": str(run), "loss": settings["algo"]["loss"], "track": track if isinstance(track, int) else str(track),
+            "states": len(true_gap),
             "critic_gap_min": round(float(gap_min.mean()), 4),
             "critic_gap_mean": round(float((at_oracle.mean(0) - at_own.mean(0)).mean()), 4),
             "true_gap": round(float(true_gap.mean()), 4),
@@ -192,9 +197,20 @@ def main(argv: list[str] | None = None) -> int:
     try:
         runs = find_runs(args.paths)
         numerics.apply(runs_numerics(runs))  # before torch loads: the runs' own numerics
-        rows = [measure(run, args.episodes, args.seed, args.horizon) for run in runs]
     except (RunFolderError, numerics.NumericsError) as err:
         print(f"pessimism: {err}", file=sys.stderr)
+        return 2
+    rows, skipped, seen = [], 0, set()
+    for run in runs:  # a run this analysis cannot read is named and skipped; the others are measured
+        if Path(run).resolve() in seen:
+            continue
+        seen.add(Path(run).resolve())
+        try:
+            rows.append(measure(run, args.episodes, args.seed, args.horizon))
+        except RunFolderError as err:
+            print(f"pessimism: skipped {err}", file=sys.stderr)
+            skipped += 1
+    if not rows:
         return 2
     print("| " + " | ".join(COLUMNS) + " |")
     print("|" + "---|" * len(COLUMNS))
@@ -208,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
         from engine.outputs import write_table
 
         write_table(args.table, rows)
-    return 0
+    return 2 if skipped else 0
 
 
 if __name__ == "__main__":

@@ -382,9 +382,10 @@ def find_runs(paths: list[Path]) -> list[Path]:
     return runs
 
 
-def runs_numerics(runs: list[Path]) -> str:
+def runs_numerics(runs: list[Path], choose: str | None = None) -> str:
     """The numerics mode the finished runs were trained in (runs from before the modes: native;
-    damaged runs are skipped later, with their reason)."""
+    damaged runs are skipped later, with their reason). ``choose``: the tool's option that picks a mode
+    (named when the runs differ), if it has one."""
     from engine import numerics
 
     found = [state(run) for run in runs]
@@ -393,5 +394,5 @@ def runs_numerics(runs: list[Path]) -> str:
         return numerics.DEFAULT
     if len(modes) > 1:
         raise RunFolderError(f"the runs were trained under different numerics ({sorted(modes)}); "
-                             "choose one with --numerics")
+                             + (f"choose one with {choose}" if choose else "give runs of one numerics mode at a time"))
     return modes.pop()

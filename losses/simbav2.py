@@ -25,11 +25,12 @@ from torchrl.objectives.sac import compute_rsample_log_prob
 from losses.td import MemberSACLoss
 
 
-def categorical_projection(probs: torch.Tensor, atoms: torch.Tensor, support: torch.Tensor) -> torch.Tensor:
-    """The distribution of mass ``probs`` ``[..., K]`` at the points ``atoms`` ``[..., K]`` on the evenly spaced
-    ``support`` ``[K]``: each atom, clipped to the support's range, splits its mass between the two support
-    points around it in proportion to its closeness to each (an atom on a point keeps its mass there)."""
-    v_min, v_max, points = float(support[0]), float(support[-1]), support.numel()
+def categorical_projection(probs: torch.Tensor, atoms: torch.Tensor, v_min: float, v_max: float) -> torch.Tensor:
+    """The distribution of mass ``probs`` ``[..., K]`` at the points ``atoms`` ``[..., K]`` on the support of K
+    evenly spaced points from ``v_min`` to ``v_max``: each atom, clipped to that range, splits its mass between
+    the two support points around it in proportion to its closeness to each (an atom on a point keeps its mass
+    there)."""
+    points = probs.shape[-1]
     position = ((atoms.clamp(v_min, v_max) - v_min) / ((v_max - v_min) / (points - 1))).clamp(0, points - 1)
     lower, upper = position.floor(), position.ceil()
     to_lower = probs * (upper + (lower == upper).to(probs.dtype) - position)
@@ -54,6 +55,7 @@ class DistributionalSACLoss(MemberSACLoss):
                 params.set(key, nn.Parameter(value.detach().clone(), requires_grad=value.requires_grad))
             params.lock_()
         v_min, v_max, bins = support
+        self.v_min, self.v_max = float(v_min), float(v_max)
         self.register_buffer("support", torch.linspace(v_min, v_max, bins))
         self.register_buffer("reward_scale", torch.ones(self.members))
 
@@ -83,7 +85,7 @@ class DistributionalSACLoss(MemberSACLoss):
             gamma = gamma ** steps.view_as(reward)
         going = (~following.get(keys.terminated)).to(reward.dtype)
         atoms = reward + gamma * going * (self.support - (self._alpha * next_log_prob).unsqueeze(-1))
-        return categorical_projection(probs, atoms, self.support)
+        return categorical_projection(probs, atoms, self.v_min, self.v_max)
 
     def qvalue_v2_loss(self, tensordict: TensorDictBase):
         weights = self._maybe_get_priority_weight(tensordict)

@@ -151,3 +151,36 @@ def test_the_table_holds_a_row_per_run_and_bad_input_is_one_line(run, tmp_path, 
     with pytest.raises(SystemExit):
         pessimism.main([str(run), "--episodes", "0"])
     assert "--episodes must be in [1, 100]" in capsys.readouterr().err
+
+
+def test_a_run_it_cannot_read_is_named_and_skipped_and_the_others_measured(run, tmp_path, capsys):
+    """A SimbaV2 run's critic (not an MLP) beside a SAC run: one line naming it, the SAC run's row written,
+    exit 2 (something was skipped); a run given twice is measured once."""
+    import csv
+
+    from analysis import pessimism
+    from engine.config import RunConfig
+    from engine.runner import train_population
+
+    other = tmp_path / "simbav2"
+    settings = RunConfig.compose_mapping("algo=simbav2", "er=memory", "episodes=2", "algo.td.warmup_episodes=1",
+                                         "algo.td.updates_per_step=0.1", "env.options.max_steps=30",
+                                         "er.buffer_size=300", "algo.minibatch_size=16", "seed=1001",
+                                         "progress=false", "logger=none")
+    train_population(RunConfig.from_mapping(settings), other, settings)
+    table = tmp_path / "p.csv"
+    assert pessimism.main([str(other), str(run), str(run), "--episodes", "1", "--horizon", "5",
+                           "--table", str(table)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "are not MLPs of network.critic_hidden" in err[0] and str(other) in err[0]
+    with open(table, newline="") as f:
+        assert [r["run"] for r in csv.DictReader(f)] == [str(run)]
+
+
+def test_an_output_inside_a_run_folder_is_refused_before_any_work(run, capsys):
+    from analysis import pessimism
+
+    with pytest.raises(SystemExit):
+        pessimism.main([str(run), "--table", str(run / "summary.json")])
+    assert "is inside the run folder" in capsys.readouterr().err
+    assert (run / "summary.json").read_text().startswith("{")

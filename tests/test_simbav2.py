@@ -73,15 +73,14 @@ def test_the_embedder_and_a_lerp_block_compute_simbav2_s_formulas():
 
 # ------------------------------------------------------------------ the categorical critic
 def test_the_projection_splits_each_atom_between_its_two_neighbours():
-    support = torch.tensor([-1.0, 0.0, 1.0])
     probs = torch.tensor([0.2, 0.5, 0.3])
     atoms = torch.tensor([-1.5, 0.25, 0.5])  # clipped to -1; 3/4 and 1/4; half and half
-    assert torch.allclose(categorical_projection(probs, atoms, support), torch.tensor([0.2, 0.525, 0.275]))
+    assert torch.allclose(categorical_projection(probs, atoms, -1.0, 1.0), torch.tensor([0.2, 0.525, 0.275]))
     on_points = torch.tensor([0.0, 1.0, 7.0])  # an atom on a point keeps its mass there
-    assert torch.allclose(categorical_projection(probs, on_points, support), torch.tensor([0.0, 0.2, 0.8]))
+    assert torch.allclose(categorical_projection(probs, on_points, -1.0, 1.0), torch.tensor([0.0, 0.2, 0.8]))
     many = torch.rand(4, 6, 11, generator=torch.Generator().manual_seed(0))
     probs = many.softmax(-1)
-    projected = categorical_projection(probs, many * 30 - 15, torch.linspace(-5, 5, 11))
+    projected = categorical_projection(probs, many * 30 - 15, -5.0, 5.0)
     assert torch.allclose(projected.sum(-1), torch.ones(4, 6)) and (projected >= 0).all()
 
 
@@ -123,7 +122,7 @@ def test_the_critic_loss_is_the_cross_entropy_to_the_projected_target(critics):
         going = (~nxt["terminated"]).float()
         atoms = (nxt["reward"] / torch.tensor([2.0, 0.5]).view(2, 1, 1)
                  + cfg.gamma * going * (support - (alpha * next_log_prob).unsqueeze(-1)))
-        target = categorical_projection(chosen, atoms, support)
+        target = categorical_projection(chosen, atoms, -5.0, 5.0)
         predicted = logits(loss.qvalue_network_params, data["observation"], data["action"]).log_softmax(-1)
         action, log_prob = sample(data["observation"], data[ACTION_NOISE_KEY])
         values = (logits(loss.qvalue_network_params, data["observation"], action).softmax(-1) * support).sum(-1)
