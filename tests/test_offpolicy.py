@@ -582,7 +582,8 @@ def test_train_py_trains_two_episodes(tmp_path, algo, er):
     assert {"actor", "critic"} <= {p.stem for p in tmp_path.glob("*.pt")}
 
 
-@pytest.mark.parametrize("algo, er", [("sac", "prioritised"), ("crossq", "memory"), ("td3", "memory")])
+@pytest.mark.parametrize("algo, er", [("sac", "prioritised"), ("crossq", "memory"), ("td3", "memory"),
+                                     ("simbav2", "prioritised")])
 def test_an_interrupted_population_resumes_exactly(tmp_path, algo, er):
     run = [f"algo={algo}", f"er={er}", *FAST, "episodes=5", "checkpoint_every=2", f"seeds=[{A},{B}]"]
     train_population(load(*run), tmp_path / "reference")
@@ -596,7 +597,7 @@ def test_an_interrupted_population_resumes_exactly(tmp_path, algo, er):
 
 
 @pytest.mark.parametrize("algo, er", [("sac", "memory"), ("tqc", "prioritised"), ("crossq", "memory"),
-                                     ("td3", "prioritised")])
+                                     ("td3", "prioritised"), ("simbav2", "prioritised")])
 def test_each_member_equals_its_solo_run(tmp_path, algo, er):
     """Every draw (minibatches, priorities, the losses' noise) comes from the member's own generator;
     the run's deterministic policy loads for evaluation."""
@@ -607,7 +608,7 @@ def test_each_member_equals_its_solo_run(tmp_path, algo, er):
             == (tmp_path / "solo" / "metrics.csv").read_bytes())
     cfg = load(*run)
     policy = make_policy(algo, {"actor_hidden": cfg.network.actor_hidden, "activation": cfg.network.activation}, 6,
-                         torch.load(tmp_path / "solo" / "actor.pt"))
+                         torch.load(tmp_path / "solo" / "actor.pt"), algo=cfg.algo)
     assert policy(np.zeros(6)).shape == (2,)
 
 

@@ -69,17 +69,7 @@ def test_the_target_and_the_actor_read_the_combined_values(pessimism):
 
 
 # ------------------------------------------------------------------ python -m analysis.pessimism
-@pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    from engine.config import RunConfig
-    from engine.runner import train_population
-
-    folder = tmp_path_factory.mktemp("pessimism") / "run"
-    settings = RunConfig.compose_mapping("algo=sac", "er=memory", "episodes=2", "algo.td.warmup_episodes=1",
-                                         "algo.td.updates_per_step=0.1", "env.options.max_steps=30", "seed=1001",
-                                         "progress=false", "logger=none")
-    train_population(RunConfig.from_mapping(settings), folder, settings)
-    return folder
+from tests.test_driving import run  # noqa: E402,F401  (a tiny finished SAC run on track 1001, 30-step episodes)
 
 
 def test_the_critics_are_the_run_s_q_networks(run):

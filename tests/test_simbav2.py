@@ -1,6 +1,6 @@
 """algo=simbav2: hyperspherical networks (learners.hyperspherical), the categorical critic's projection and
-loss (losses.simbav2), the reward scale (learners.td.simbav2), each against hand-computed values; then whole
-runs: a member equals its solo run, an interrupted run resumes exactly, train.py trains and evaluates."""
+loss (losses.simbav2), the reward scale (learners.td.simbav2), each against hand-computed values; train.py
+trains and evaluates (a member equals its solo run and a run resumes exactly: tests/test_offpolicy.py)."""
 
 import json
 import math
@@ -10,16 +10,13 @@ import pytest
 import torch
 
 from engine.config import ConfigError
-from engine.evaluation import load_policy
-from engine.runner import train_population
 from learners.base import MetricTotals
 from learners.hyperspherical import (EPS, HyperEmbedder, HyperLERPBlock, StackedHyperLinear, hyper_weights,
                                      l2normalise, project)
 from losses.simbav2 import categorical_projection
 from losses.td import ACTION_NOISE_KEY
 from tests.test_config import load
-from tests.test_offpolicy import A, B, FAST, training, transitions
-from tests.test_resilience import interrupted_after
+from tests.test_offpolicy import A, B, training, transitions
 from tests.test_train import read_rows, run_train
 
 
@@ -173,34 +170,8 @@ def test_bad_settings_are_refused_with_a_reason(override, message):
         load("algo=simbav2", *override)
 
 
-# ------------------------------------------------------------------ whole runs
-SMALL = ["algo=simbav2", "er=prioritised", *FAST, "algo.td.updates_per_step=0.1"]
-
-
-def test_each_member_equals_its_solo_run_and_its_policy_loads(tmp_path):
-    from engine.config import RunConfig
-
-    settings = RunConfig.compose_mapping(*SMALL, f"seed={B}")
-    train_population(RunConfig.from_mapping(settings), tmp_path / "solo", settings)
-    train_population(load(*SMALL, f"seeds=[{B},{A}]"), tmp_path / "pair")
-    assert ((tmp_path / "pair" / f"seed{B}" / "metrics.csv").read_bytes()
-            == (tmp_path / "solo" / "metrics.csv").read_bytes())
-    policy, _ = load_policy(tmp_path / "solo")
-    assert policy(np.zeros(6)).shape == (2,)
-
-
-def test_an_interrupted_population_resumes_exactly(tmp_path):
-    run = [*SMALL, "episodes=5", "checkpoint_every=2", f"seeds=[{A},{B}]"]
-    train_population(load(*run), tmp_path / "reference")
-    with interrupted_after(3):
-        train_population(load(*run), tmp_path / "run")
-    summaries = train_population(load(*run), tmp_path / "run")
-    assert [s["resumed_at"] for s in summaries] == [2, 2]
-    for seed in (A, B):
-        assert ((tmp_path / "run" / f"seed{seed}" / "metrics.csv").read_bytes()
-                == (tmp_path / "reference" / f"seed{seed}" / "metrics.csv").read_bytes())
-
-
+# ------------------------------------------------------------------ whole runs (member == solo run, exact
+# resume: tests/test_offpolicy.py's, parametrised with simbav2)
 def test_train_py_trains_and_evaluates(tmp_path):
     result = run_train("algo=simbav2", "seed=3", "episodes=2", "algo.td.warmup_episodes=1",
                        "algo.td.updates_per_step=0.05", "progress=false", f"hydra.run.dir={tmp_path}")
