@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
-from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives.sac import compute_rsample_log_prob
 
@@ -43,17 +42,6 @@ def categorical_projection(probs: torch.Tensor, atoms: torch.Tensor, v_min: floa
 class DistributionalSACLoss(MemberSACLoss):
     def __init__(self, *args, support: tuple[float, float, int], **kwargs):
         super().__init__(*args, **kwargs)
-        # TorchRL takes a list of one Q-network as an expanded view of that network's parameters: not leaves,
-        # so the optimiser given them would see no gradient. Each becomes a parameter of its own, as the
-        # entries of a list of several Q-networks are.
-        params = self.qvalue_network_params
-        views = [key for key, value in params.items(True, True) if not value.is_leaf]
-        if views:
-            params.unlock_()
-            for key in views:
-                value = params.get(key)
-                params.set(key, nn.Parameter(value.detach().clone(), requires_grad=value.requires_grad))
-            params.lock_()
         v_min, v_max, bins = support
         self.v_min, self.v_max = float(v_min), float(v_max)
         self.register_buffer("support", torch.linspace(v_min, v_max, bins))

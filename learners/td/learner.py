@@ -253,8 +253,23 @@ class OffPolicySampler(BlockSampler):
 def make_loss(cfg, networks: Networks, generators: Sequence[torch.Generator]):
     """The learner's loss module (its module's ``loss``), with its value estimator, on the members' device."""
     loss = learner_spec(cfg.algo.loss).torch_half().loss(cfg, networks, generators)
+    _own_parameters(getattr(loss, "qvalue_network_params", None))
     loss.make_value_estimator(gamma=cfg.gamma)
     return loss.to(generators[0].device)
+
+
+def _own_parameters(params: TensorDictBase | None) -> None:
+    """TorchRL's losses take a list of ONE Q-network as an expanded view of that network's parameters: not
+    leaves, so an optimiser given them would see no gradient. Each becomes a parameter of its own, as the
+    entries of a list of several Q-networks are (a learner with one Q-network: ``algo.simbav2.critics=1``)."""
+    views = [] if params is None else [key for key, value in params.items(True, True) if not value.is_leaf]
+    if not views:
+        return
+    params.unlock_()
+    for key in views:
+        value = params.get(key)
+        params.set(key, nn.Parameter(value.detach().clone(), requires_grad=value.requires_grad))
+    params.lock_()
 
 
 def critic_layout(loss) -> tuple[str, int]:
