@@ -475,6 +475,9 @@ def build(cfg, env, generators: Sequence[torch.Generator], memory: ReplayMemory)
     for one member per generator."""
     networks = make_networks(cfg, env, generators)
     loss = make_loss(cfg, networks, generators)
+    own = getattr(learner_spec(cfg.algo.loss).torch_half(), "acting_policy", None)
+    if own is not None:  # an acting policy that reads the trained loss (a planner: its model and Q-networks)
+        networks.sampler = own(cfg, networks, loss)
     optimisers = make_optimisers(cfg, loss)
     phases = TDPhaseRunner(cfg, loss, optimisers, generators, memory if cfg.er.priority else None,
                            actor_net=networks.actor_net, qvalue_nets=networks.qvalue_nets, norm=networks.norm)

@@ -1,0 +1,206 @@
+"""A TD-MPC2-style planner (Hansen et al., 2024): a latent model (``learners.latent.LatentModel``: encoder,
+latent dynamics, reward head, policy prior) and an ensemble of Q-networks on its latent states, trained on
+sub-episodes of the replay memory by TD-MPC2's losses (``losses.tdmpc2.TDMPC2Loss``), acting by MPPI in the
+latent space at every step (``learners.latent.plan``), the prior's trajectories among the samples and the
+previous step's plan as the warm start.
+
+Its steps (``phase``): per gradient step, a minibatch of ``algo.minibatch_size`` sub-episodes of
+``algo.tdmpc2.horizon`` steps per member (``collectors.sample_sub_episodes``), the prior's draws from each
+member's generator, one step of every loss, the target Q-networks following by ``algo.td.tau``.
+
+Its acting policy (``acting_policy``): ``PlanningSampler``, or with ``algo.tdmpc2.planning: false`` the prior's
+draws as SAC acts (the same learner without planning: what planning adds is measured against it). The saved actor (``actor.pt``) is the whole model;
+``evaluate.py`` and the leaderboard score the prior's deterministic action tanh(loc) (the planner also needs
+the Q-networks, ``critic.pt``: planning at evaluation is not built).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from learners.options import ConfigError, at_least, capped, positive
+from learners.registry import LearnerSpec
+from learners.td import critic_options_given
+
+
+@dataclass(frozen=True)
+class TDMPC2Options:
+    """``algo.tdmpc2`` (``conf/algo/tdmpc2.yaml`` explains each key)."""
+
+    latent: int = capped((65_536, "units"))
+    group: int  # the latent state's units are groups of this many, each a softmax (SimNorm)
+    width: int = capped((65_536, "units"))
+    critics: int = capped((1_000, "Q-networks"))
+    bins: int = capped((10_000, "support points"))
+    v_max: float  # the support is [-v_max, v_max] in symlog units
+    horizon: int = capped((1_000, "steps"))
+    rho: float
+    consistency_weight: float
+    reward_weight: float
+    value_weight: float
+    entropy: float
+    scale_tau: float
+    samples: int = capped((100_000, "trajectories"))
+    policy_samples: int
+    elites: int
+    iterations: int = capped((1_000, "iterations"))
+    temperature: float
+    min_std: float
+    max_std: float
+    planning: bool = True  # act by MPPI (False: by sampling the prior, as SAC samples its actor)
+
+    def __post_init__(self) -> None:
+        for key in ("latent", "group", "width", "critics", "horizon", "samples", "elites", "iterations"):
+            at_least(f"algo.tdmpc2.{key}", getattr(self, key), 1)
+        at_least("algo.tdmpc2.bins", self.bins, 2)
+        at_least("algo.tdmpc2.policy_samples", self.policy_samples, 0)
+        for key in ("v_max", "temperature", "min_std", "scale_tau"):
+            positive(f"algo.tdmpc2.{key}", getattr(self, key))
+        for key in ("consistency_weight", "reward_weight", "value_weight", "entropy"):
+            at_least(f"algo.tdmpc2.{key}", getattr(self, key), 0)
+        if self.latent % self.group:
+            raise ConfigError(f"algo.tdmpc2.latent ({self.latent}) must be a multiple of algo.tdmpc2.group "
+                              f"({self.group}): the latent state is made of groups of that many units")
+        if not 0 < self.rho <= 1:
+            raise ConfigError(f"algo.tdmpc2.rho must be in (0, 1], got {self.rho}")
+        if self.scale_tau > 1:
+            raise ConfigError(f"algo.tdmpc2.scale_tau must be in (0, 1], got {self.scale_tau}")
+        if self.max_std < self.min_std:
+            raise ConfigError(f"algo.tdmpc2.max_std ({self.max_std}) is below algo.tdmpc2.min_std ({self.min_std})")
+        if self.policy_samples >= self.samples:
+            raise ConfigError(f"algo.tdmpc2.policy_samples ({self.policy_samples}) must be below algo.tdmpc2.samples "
+                              f"({self.samples}): the rest are the Gaussian's samples")
+        if self.elites > self.samples:
+            raise ConfigError(f"algo.tdmpc2.elites ({self.elites}) must be at most algo.tdmpc2.samples ({self.samples})")
+
+
+def _check(algo) -> None:
+    td = algo.td or {}
+    if critic_options_given(algo):
+        raise ConfigError(f"algo {algo.name}: loss tdmpc2's networks are its own (algo.tdmpc2: latent, width); set "
+                          "algo.td.critic_dropout: 0.0, algo.td.critic_layer_norm: false and algo.td.critic_blocks: 0")
+    if td.get("n_step", 1) != 1:
+        raise ConfigError(f"algo {algo.name}: loss tdmpc2 rolls its model over sub-episodes of one-step transitions; "
+                          f"set algo.td.n_step: 1 (got {td.get('n_step')})")
+    if td.get("loss_function", "l2") != "l2":
+        raise ConfigError(f"algo {algo.name}: loss tdmpc2's value and reward losses are cross-entropies; keep "
+                          f"algo.td.loss_function: l2 (got {td.get('loss_function')})")
+
+
+def _check_run(cfg) -> None:
+    algo, er, steps = cfg.algo, cfg.er, cfg.env.episode_steps
+    if er.priority is not None:
+        raise ConfigError(f"algo {algo.name}: loss tdmpc2 draws whole sub-episodes, not prioritised transitions; "
+                          "use er=memory")
+    if er.buffer_size % steps:
+        raise ConfigError(f"algo {algo.name}: loss tdmpc2 keeps whole episodes in its memory; er.buffer_size "
+                          f"({er.buffer_size}) must be a multiple of the episode's {steps} steps")
+    if algo.tdmpc2.horizon > steps:
+        raise ConfigError(f"algo {algo.name}: algo.tdmpc2.horizon ({algo.tdmpc2.horizon}) is longer than an "
+                          f"episode ({steps} steps)")
+    if cfg.compile:
+        raise ConfigError(f"algo {algo.name}: loss tdmpc2 runs eagerly; set compile: false")
+
+
+SPEC = LearnerSpec(name="tdmpc2", title="TD-MPC2-style planner", family="td", module=__name__,
+                   blocks={"tdmpc2": TDMPC2Options}, check=_check, check_run=_check_run,
+                   critic=lambda algo: (algo.tdmpc2.critics, algo.tdmpc2.bins, True), gaussian_actor=True,
+                   prioritised=False, rows=lambda algo, minibatch: minibatch * 2 * algo.tdmpc2.horizon)
+METRICS = (("loss_value", "loss_consistency", "loss_reward"), ("loss_actor", "q_scale"))
+
+
+def _options(algo) -> TDMPC2Options:
+    """``algo.tdmpc2`` from a run's configuration or from its settings (a mapping: ``summary.json``)."""
+    block = algo["tdmpc2"] if isinstance(algo, dict) else algo.tdmpc2
+    return TDMPC2Options(**block) if isinstance(block, dict) else block
+
+
+def _support(options: TDMPC2Options):
+    from learners.latent import Support
+
+    return Support(options.v_max, options.bins)
+
+
+def actor_network(members, obs_dim, action_dim, network, algo):
+    """The latent model: what acts (through the planner), is saved and evaluated (its prior)."""
+    from learners.latent import LatentModel
+
+    options = _options(algo)
+    activation = network["activation"] if isinstance(network, dict) else network.activation
+    return LatentModel(members, obs_dim, action_dim, options.latent, options.width, options.bins, options.group,
+                       activation)
+
+
+def actor(actor_net):
+    return actor_net  # the loss trains the model itself
+
+
+def critics(cfg, inputs, generators):
+    """The Q-networks Q(z, a) -> the support's logits, two hidden layers of ``width`` units, layer-normalised."""
+    from learners.networks import StackedCriticNet, reset_parameters
+    from learners.td.learner import q_modules
+
+    options, members = cfg.algo.tdmpc2, len(generators)
+    nets = []
+    for _ in range(options.critics):
+        q = StackedCriticNet(members, options.latent + inputs.action, [options.width, options.width],
+                             cfg.network.activation, outputs=options.bins, layer_norm=True).to(generators[0].device)
+        reset_parameters(q, generators)
+        nets.append(q)
+    return nets, q_modules(nets, inputs)
+
+
+def exploration_noise(cfg) -> None:
+    return None
+
+
+def loss(cfg, networks, generators):
+    from losses.tdmpc2 import TDMPC2Loss
+
+    o = cfg.algo.tdmpc2
+    return TDMPC2Loss(networks.actor_net, networks.qvalues, support=_support(o), horizon=o.horizon, rho=o.rho,
+                      consistency_weight=o.consistency_weight, reward_weight=o.reward_weight,
+                      value_weight=o.value_weight, entropy=o.entropy, scale_tau=o.scale_tau,
+                      members=len(generators), generators=generators)
+
+
+def acting_policy(cfg, networks, loss):
+    """MPPI with the model and the loss's Q-networks as they stand (``PlanningSampler``), from the off-policy
+    sampler ``networks.sampler`` (its warm-up, observation statistics and generators); without
+    ``algo.tdmpc2.planning``, that sampler itself (the prior's draws, as SAC acts)."""
+    from learners.latent import PlanningSampler, PlanOptions
+
+    o = cfg.algo.tdmpc2
+    if not o.planning:
+        return networks.sampler
+    options = PlanOptions(horizon=o.horizon, samples=o.samples, policy_samples=o.policy_samples, elites=o.elites,
+                          iterations=o.iterations, temperature=o.temperature, min_std=o.min_std, max_std=o.max_std,
+                          gamma=cfg.gamma)
+    return PlanningSampler.wrap(networks.sampler, loss.planning_value, options, _support(o))
+
+
+def prepare(runner) -> None:
+    runner.objective = lambda batch: losses(runner, batch)
+
+
+def losses(runner, batch):
+    out = runner.loss(batch)
+    return {key: out[key] for key in ("loss_consistency", "loss_reward", "loss_value", "loss_actor", "q_scale")}
+
+
+def phase(runner, data, minibatch_size: int, totals, episode: int, todo: int) -> None:
+    """Per step: a minibatch of sub-episodes per member, the prior's draws, one step of every loss (the model and
+    Q-networks by the critic's optimiser and the actor's, the prior by the actor's), the target Q-networks
+    follow by ``td.tau``."""
+    from collectors import sample_sub_episodes
+
+    horizon = runner.cfg.algo.tdmpc2.horizon
+    for _ in range(todo):
+        batch = runner.normalised(sample_sub_episodes(data, minibatch_size, horizon, runner.steps, runner.generators))
+        runner.loss.draw(batch)
+        values = runner.objective(batch)
+        model = values["loss_consistency"] + values["loss_reward"] + values["loss_value"]
+        runner.minimise(model + values["loss_actor"], runner.optimisers.critic, runner.optimisers.actor)
+        runner.updater.step()
+        totals.add("critic", {key: values[key] for key in ("loss_value", "loss_consistency", "loss_reward")})
+        totals.add("actor", {"loss_actor": values["loss_actor"], "q_scale": values["q_scale"]})
