@@ -21,8 +21,9 @@ class Policy:
     """A trained run's deterministic policy: ``observation (numpy) -> action in [-1, 1]``.
 
     The paper's algorithms act with the Gaussian's mean (clipped); SAC, TQC, CrossQ and REDQ with tanh of
-    their Gaussian's mean; TD3 and NAF with their actor's output. Their actors are rebuilt as a
-    population of one (``learners.td.learner``), the networks they were trained as.
+    their Gaussian's mean; TD3 and NAF with their actor's output; a planning learner by planning
+    without exploration noise (its module's ``evaluation_policy``: the TD-MPC2-style planner's MPPI). Their
+    actors are rebuilt as a population of one (``learners.td.learner``), the networks they were trained as.
 
     A run trained with ``env.past_steps=k`` keeps its own history of the episode (``racing.history.History``):
     call ``reset()`` at each episode's start (``drive_episode`` does), then the policy once per step;
@@ -36,8 +37,12 @@ class Policy:
         self._start = True
 
     def reset(self) -> None:
-        """The next observation is an episode's first (a policy without past steps ignores it)."""
+        """The next observation is an episode's first (a policy without past steps ignores it; a planning
+        network restarts its plan and its draws)."""
         self._start = True
+        restart = getattr(self.net, "reset", None)
+        if callable(restart):
+            restart()
 
     @torch.no_grad()
     def __call__(self, observation: np.ndarray) -> np.ndarray:
@@ -98,9 +103,20 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
         state_dict = load_tensors(actor_path, "actor")
     except ValueError as err:
         raise RunFolderError(str(err)) from None
+    critic = None
+    if _plans(loss):  # its deterministic policy reads its Q-networks too
+        critic_path = run_dir / "critic.pt"
+        if not critic_path.exists():
+            raise RunFolderError(f"{run_dir} holds no critic.pt: {learners.spec(loss).title}'s policy plans with its "
+                                 "Q-networks")
+        try:
+            critic = load_tensors(critic_path, "critic")
+        except ValueError as err:
+            raise RunFolderError(str(err)) from None
     try:
         policy = make_policy(loss, network, RacingConfig(**env.get("options", {})).obs_size, state_dict,
-                             past_steps=env.get("past_steps", 0), algo=settings["algo"])
+                             past_steps=env.get("past_steps", 0), algo=settings["algo"], critic=critic,
+                             gamma=settings.get("gamma"))
     except Exception as err:  # mismatched shapes or keys
         raise RunFolderError(f"{actor_path} is not this run's actor ({first_line(err)})") from None
     if not all(torch.isfinite(p).all() for p in policy.parameters()):
@@ -108,11 +124,23 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
     return policy, settings
 
 
+def _plans(loss) -> bool:
+    """Whether learner ``loss``'s deterministic policy is more than its actor (its module's ``evaluation_policy``);
+    False for a name no learner has (``make_policy`` says so)."""
+    try:
+        learner = learners.spec(loss)
+    except ValueError:
+        return False
+    return learners.FAMILIES[learner.family].OFF_POLICY and hasattr(learner.torch_half(), "evaluation_policy")
+
+
 def make_policy(loss: str, network: dict, obs_size: int, state: dict, past_steps: int = 0,
-                algo: dict | None = None) -> Policy:
+                algo: dict | None = None, critic: dict | None = None, gamma: float | None = None) -> Policy:
     """The deterministic policy of an actor's saved weights (``actor.pt``) for ``algo.loss``, with the
     run's ``env.past_steps`` (its networks read ``racing.history.past_size(obs_size, past_steps)`` inputs)
-    and its ``algo`` settings (a learner whose actor its own options shape reads them)."""
+    and its ``algo`` settings (a learner whose actor its own options shape reads them). A learner whose
+    deterministic policy is more than its actor (a planner: its module's ``evaluation_policy``) also reads
+    the run's critic weights ``critic`` (``critic.pt``) and discount ``gamma``."""
     width = past_size(obs_size, past_steps)
     learner = learners.spec(loss)
     stacked = learners.FAMILIES[learner.family].OFF_POLICY  # the off-policy learners' actors: populations of one
@@ -126,6 +154,9 @@ def make_policy(loss: str, network: dict, obs_size: int, state: dict, past_steps
         if any(k.startswith("norm.") for k in state):  # algo.td.observation_norm: the statistics it acted with
             net = NormalisedActor(ObservationNorm(1, width), net)
         load_member_state_dict(net, 0, state)
+        own = getattr(learner.torch_half(), "evaluation_policy", None)
+        if own is not None:
+            net = own(net, critic, network, algo, gamma)
     else:
         net = GaussianPolicyNet(width, 2, network["actor_hidden"], network["activation"])
         net.load_state_dict(state)

@@ -509,7 +509,7 @@ def _train(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_setting
             else:  # non-finite weights are of no use; no stale file from an earlier run either
                 files.remove(path)
         window = member.rewards[-cfg.final_window:]
-        evaluation = (_evaluate(cfg, member.seed, weights["actor"])
+        evaluation = (_evaluate(cfg, member.seed, weights)
                       if cfg.eval_seeds is not None and member.status == "completed" else None)
         summary = {
             "algo": cfg.algo.name, "er": cfg.er.name, "seed": member.seed,
@@ -541,14 +541,15 @@ def _numerics_record(segments: list[dict]) -> dict:
     return {"mode": "mixed", "kernels": effect.get("kernels"), "segments": segments}
 
 
-def _evaluate(cfg: RunConfig, seed: int, actor: dict) -> dict:
-    """The final deterministic policy's mean total reward on its own track and on ``cfg.eval_seeds``."""
+def _evaluate(cfg: RunConfig, seed: int, weights: dict) -> dict:
+    """The final deterministic policy's mean total reward on its own track and on ``cfg.eval_seeds`` (``weights``:
+    the member's {"actor": ..., "critic": ...})."""
     from engine.evaluation import evaluate, make_policy, own_track
     from racing.config import RacingConfig
 
     network = {"actor_hidden": list(cfg.network.actor_hidden), "activation": cfg.network.activation}
-    policy = make_policy(cfg.algo.loss, network, RacingConfig(**cfg.env.options).obs_size, actor, cfg.env.past_steps,
-                         algo=cfg.algo)
+    policy = make_policy(cfg.algo.loss, network, RacingConfig(**cfg.env.options).obs_size, weights["actor"],
+                         cfg.env.past_steps, algo=cfg.algo, critic=weights["critic"], gamma=cfg.gamma)
     settings = {"env": {"options": dict(cfg.env.options), "nearest_ray": cfg.env.nearest_ray}}
     settings["env"].update(track=cfg.env.track, track_file=cfg.env.track_file, track_scale=cfg.env.track_scale,
                            track_closed=cfg.env.track_closed)

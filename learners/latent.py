@@ -245,3 +245,51 @@ class PlanningSampler(OffPolicySampler):
                             self._uniform[:, step], self.options, self.support)
         self._mean = shifted(mean)
         return action
+
+
+class PlanningActor(nn.Module):
+    """A planning run's deterministic policy for evaluation, ``[1, N, obs] -> [1, N, A]`` (a population of one, as
+    ``engine.evaluation.Policy`` calls its off-policy actors): ``plan`` with the saved model (``net``: the
+    ``LatentModel``, behind its observation statistics where it kept them) and Q-networks (``qvalues``: the run's
+    Q-networks stacked on the first dimension), without the executed action's noise. Its draws come from a
+    generator seeded 0 at every episode's start (``reset``), so an episode from the same start drives the same
+    actions; the plan carries over from step to step within an episode when one observation comes at a time
+    (several at once: each planned alone, from no warm start)."""
+
+    def __init__(self, net: nn.Module, qvalues: nn.Module, options: PlanOptions, support: Support):
+        super().__init__()
+        self.net, self.qvalues, self.options, self.support = net, qvalues, options, support
+        self.reset()
+
+    @property
+    def model(self) -> LatentModel:
+        return getattr(self.net, "net", self.net)
+
+    def reset(self) -> None:
+        self._generator = torch.Generator().manual_seed(0)
+        self._mean: torch.Tensor | None = None
+
+    def q_value(self, z: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """The Q-networks' mean value ``[1, ..., 1]`` at (z, a) ``[1, ..., L + A]``."""
+        x = torch.cat([z, action], -1)
+        critics = self.qvalues.net.layers[0].weight.shape[0]
+        return self.support.value(self.qvalues(x.expand(critics, *x.shape[1:]))).mean(0, keepdim=True)
+
+    @torch.no_grad()
+    def forward(self, observations: torch.Tensor) -> torch.Tensor:
+        norm = getattr(self.net, "norm", None)
+        rows = norm(observations) if norm is not None else observations
+        actions, single = [], rows.shape[1] == 1
+        action_dim = self.model.action_dim
+        for n in range(rows.shape[1]):
+            mean = self._mean if single and self._mean is not None else rows.new_zeros(1, self.options.horizon,
+                                                                                        action_dim)
+            draws = torch.randn(1, self.options.draws_per_step(action_dim), generator=self._generator)
+            uniform = torch.rand(1, generator=self._generator)
+            action, mean = plan(self.model, self.q_value, self.model.encode(rows[:, n]), mean,
+                                split_draws(draws, self.options, action_dim), uniform, self.options, self.support,
+                                noisy=False)
+            if single:
+                self._mean = shifted(mean)
+            actions.append(action)
+        return torch.stack(actions, 1)

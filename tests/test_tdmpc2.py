@@ -244,7 +244,8 @@ def test_a_planning_member_equals_its_solo_run_resumes_exactly_and_its_model_loa
     assert "critic/loss_consistency" in solo.splitlines()[0]
     cfg = load(*run)
     policy = make_policy("tdmpc2", {"actor_hidden": cfg.network.actor_hidden, "activation": cfg.network.activation},
-                         6, torch.load(tmp_path / "solo" / "actor.pt"), algo=cfg.algo)
+                         6, torch.load(tmp_path / "solo" / "actor.pt"), algo=cfg.algo,
+                         critic=torch.load(tmp_path / "solo" / "critic.pt"), gamma=cfg.gamma)
     assert policy(np.zeros(6)).shape == (2,)
 
 
@@ -264,3 +265,35 @@ def test_a_planning_member_equals_its_solo_run_resumes_exactly_and_its_model_loa
 def test_tdmpc2_s_settings_are_checked(override, message):
     with pytest.raises(ConfigError, match=message):
         load("algo=tdmpc2", "er=memory", *override)
+
+
+def test_a_planning_run_s_policy_plans_with_its_saved_model_and_q_networks(tmp_path):
+    """load_policy reads actor.pt and critic.pt: the policy plans (not the prior's tanh(loc)), drives the same
+    actions in every episode from the same start (its draws restart with the episode), and evaluation in
+    train.py (eval_seeds) scores it as evaluate.py does."""
+    import json
+
+    from engine.evaluation import evaluate, load_policy
+
+    from tests.test_train import run_train
+
+    result = run_train("algo=tdmpc2", *SHORT, "episodes=3", f"seed={A}", "eval_seeds=[11]", "eval_episodes=1",
+                       f"hydra.run.dir={tmp_path}")
+    assert result.returncode == 0, result.stderr[-3000:]
+    policy, settings = load_policy(tmp_path)
+    assert type(policy.net).__name__ == "PlanningActor"
+    obs = np.linspace(0.1, 0.6, 6)
+    policy.reset()
+    first = [policy(obs) for _ in range(3)]
+    policy.reset()
+    again = [policy(obs) for _ in range(3)]
+    assert all(np.array_equal(a, b) for a, b in zip(first, again))
+    with torch.no_grad():
+        prior = torch.tanh(policy.net.net(torch.as_tensor(obs, dtype=torch.float32)[None, None])[0])[0, 0].numpy()
+    assert not np.allclose(first[0], prior)  # MPPI's action, not the prior's mean
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    scores = evaluate(policy, settings, [11], 1)
+    assert summary["evaluation"]["tracks"]["11"] == pytest.approx(scores[11], abs=1e-4)
+    (tmp_path / "critic.pt").unlink()
+    with pytest.raises(Exception, match="holds no critic.pt"):
+        load_policy(tmp_path)

@@ -9,9 +9,10 @@ Its steps (``phase``): per gradient step, a minibatch of ``algo.minibatch_size``
 member's generator, one step of every loss, the target Q-networks following by ``algo.td.tau``.
 
 Its acting policy (``acting_policy``): ``PlanningSampler``, or with ``algo.tdmpc2.planning: false`` the prior's
-draws as SAC acts (the same learner without planning: what planning adds is measured against it). The saved actor (``actor.pt``) is the whole model;
-``evaluate.py`` and the leaderboard score the prior's deterministic action tanh(loc) (the planner also needs
-the Q-networks, ``critic.pt``: planning at evaluation is not built).
+draws as SAC acts (the same learner without planning: what planning adds is measured against it). The saved
+actor (``actor.pt``) is the whole model; a planning run's deterministic policy (``evaluate.py``, the
+leaderboard, ``eval_seeds``) plans with it and the Q-networks (``critic.pt``) without the executed action's
+noise (``evaluation_policy``).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ class TDMPC2Options:
     """``algo.tdmpc2`` (``conf/algo/tdmpc2.yaml`` explains each key)."""
 
     latent: int = capped((65_536, "units"))
-    group: int  # the latent state's units are groups of this many, each a softmax (SimNorm)
+    group: int = capped((65_536, "units"))  # the latent state's units are groups of this many, each a softmax (SimNorm)
     width: int = capped((65_536, "units"))
     critics: int = capped((1_000, "Q-networks"))
     bins: int = capped((10_000, "support points"))
@@ -41,8 +42,8 @@ class TDMPC2Options:
     entropy: float
     scale_tau: float
     samples: int = capped((100_000, "trajectories"))
-    policy_samples: int
-    elites: int
+    policy_samples: int = capped((100_000, "trajectories"))
+    elites: int = capped((100_000, "trajectories"))
     iterations: int = capped((1_000, "iterations"))
     temperature: float
     min_std: float
@@ -177,6 +178,31 @@ def acting_policy(cfg, networks, loss):
                           iterations=o.iterations, temperature=o.temperature, min_std=o.min_std, max_std=o.max_std,
                           gamma=cfg.gamma)
     return PlanningSampler.wrap(networks.sampler, loss.planning_value, options, _support(o))
+
+
+def evaluation_policy(net, critic: dict | None, network, algo, gamma: float | None):
+    """The network a run's deterministic policy calls (``engine.evaluation.make_policy``): when it planned, MPPI
+    with its saved model ``net`` and Q-networks ``critic`` (``critic.pt``'s weights) without the executed
+    action's noise (``learners.latent.PlanningActor``), discounting by the run's ``gamma``; else ``net`` (the
+    prior's tanh(loc))."""
+    from learners.latent import PlanningActor, PlanOptions
+    from learners.networks import StackedCriticNet
+
+    o = _options(algo)
+    if not o.planning:
+        return net
+    if critic is None or gamma is None:
+        raise ValueError("a planning run's policy plans with its Q-networks and its discount: give its critic.pt's "
+                         "weights and the run's gamma")
+    first = critic["module.net.layers.0.weight"]
+    activation = network["activation"] if isinstance(network, dict) else network.activation
+    qvalues = StackedCriticNet(first.shape[0], first.shape[-1], [o.width, o.width], activation,
+                               outputs=o.bins, layer_norm=True)
+    qvalues.load_state_dict({key.removeprefix("module."): value for key, value in critic.items()})
+    options = PlanOptions(horizon=o.horizon, samples=o.samples, policy_samples=o.policy_samples, elites=o.elites,
+                          iterations=o.iterations, temperature=o.temperature, min_std=o.min_std, max_std=o.max_std,
+                          gamma=float(gamma))
+    return PlanningActor(net, qvalues.eval(), options, _support(o))
 
 
 def prepare(runner) -> None:
