@@ -297,3 +297,19 @@ def test_a_planning_run_s_policy_plans_with_its_saved_model_and_q_networks(tmp_p
     (tmp_path / "critic.pt").unlink()
     with pytest.raises(Exception, match="holds no critic.pt"):
         load_policy(tmp_path)
+
+
+def test_without_planning_it_acts_and_evaluates_by_its_prior(tmp_path):
+    from learners.latent import PlanningSampler
+
+    cfg, t = training("tdmpc2", "algo.tdmpc2.planning=false", seeds=(A,))
+    assert not isinstance(t.sampler, PlanningSampler)
+    run = ["algo=tdmpc2", *SHORT, "episodes=2", "algo.tdmpc2.planning=false", f"seed={A}"]
+    train_population(load(*run), tmp_path)
+    cfg = load(*run)
+    policy = make_policy("tdmpc2", {"actor_hidden": cfg.network.actor_hidden, "activation": cfg.network.activation},
+                         6, torch.load(tmp_path / "actor.pt"), algo=cfg.algo)  # no critic needed: the prior's tanh(loc)
+    obs = torch.linspace(0.1, 0.6, 6)
+    with torch.no_grad():
+        expected = torch.tanh(policy.net(obs[None, None])[0])[0, 0].clamp(-1, 1).numpy()
+    np.testing.assert_array_equal(policy(obs.numpy()), expected)
