@@ -214,30 +214,21 @@ class PlanningSampler(OffPolicySampler):
         sampler._uniform, sampler._mean = None, None
         return sampler
 
-    @torch.no_grad()
-    def __call__(self, observation: torch.Tensor) -> torch.Tensor:
-        if self._paused:
-            return self.deterministic(observation)
-        if self.norm is not None:
-            self.norm.update(observation)
-            observation = self.norm(observation)
-        if self._step == self.block:
-            self._warmup = self.blocks < self.warmup_blocks
-            count = self.action_dim if self._warmup else self.options.draws_per_step(self.action_dim)
-            draws, uniform = [], []
-            for g in self.generators:
-                if self._warmup:
-                    draws.append(torch.rand(self.block, count, generator=g, device=g.device) * 2 - 1)
-                else:
-                    draws.append(torch.randn(self.block, count, generator=g, device=g.device))
-                    uniform.append(torch.rand(self.block, generator=g, device=g.device))
-            self._draws, self._uniform = torch.stack(draws), torch.stack(uniform) if uniform else None
-            self._step, self._mean = 0, None
-            self.blocks += 1
-        step = self._step
-        self._step += 1
+    def draw_block(self) -> None:
+        """An episode's draws per member: uniform actions in the warm-up (``OffPolicySampler``'s), else every
+        step's N(0, 1) draws for ``plan`` (``PlanOptions.draws_per_step``) and its uniform draw; the plan
+        restarts."""
         if self._warmup:
-            return self._draws[:, step]
+            super().draw_block()
+            return
+        count = self.options.draws_per_step(self.action_dim)
+        draws, uniform = [], []
+        for g in self.generators:
+            draws.append(torch.randn(self.block, count, generator=g, device=g.device))
+            uniform.append(torch.rand(self.block, generator=g, device=g.device))
+        self._draws, self._uniform, self._mean = torch.stack(draws), torch.stack(uniform), None
+
+    def act(self, observation: torch.Tensor, step: int) -> torch.Tensor:
         if self._mean is None:
             self._mean = observation.new_zeros(observation.shape[0], self.options.horizon, self.action_dim)
         action, mean = plan(self.net, self.q_value, self.net.encode(observation), self._mean,

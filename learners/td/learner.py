@@ -218,16 +218,26 @@ class OffPolicySampler(BlockSampler):
             self.norm.update(observation)
             observation = self.norm(observation)
         if self._step == self.block:
-            warmup = self.blocks < self.warmup_blocks
-            self._draws = torch.stack([
-                torch.rand(self.block, self.action_dim, generator=g, device=g.device) * 2 - 1 if warmup
-                else torch.randn(self.block, self.action_dim, generator=g, device=g.device) for g in self.generators])
-            self._warmup, self._step = warmup, 0
+            self._warmup = self.blocks < self.warmup_blocks
+            self.draw_block()
+            self._step = 0
             self.blocks += 1
-        draw = self._draws[:, self._step]
+        step = self._step
         self._step += 1
         if self._warmup:
-            return draw
+            return self._draws[:, step]
+        return self.act(observation, step)
+
+    def draw_block(self) -> None:
+        """An episode's draws per member (``_draws``, ``[R, block, ...]``): uniform actions in the warm-up, else
+        the N(0, 1) draws ``act`` reads."""
+        self._draws = torch.stack([
+            torch.rand(self.block, self.action_dim, generator=g, device=g.device) * 2 - 1 if self._warmup
+            else torch.randn(self.block, self.action_dim, generator=g, device=g.device) for g in self.generators])
+
+    def act(self, observation: torch.Tensor, step: int) -> torch.Tensor:
+        """The action at the episode's step ``step`` after the warm-up (``observation`` as the network sees it)."""
+        draw = self._draws[:, step]
         if self.noise is None:  # SAC: a sample of the tanh-squashed Gaussian
             loc, scale = self.net(observation)
             return torch.tanh(loc + scale * draw)
