@@ -113,7 +113,7 @@ def load_critics(run: Path, settings: dict):
     layer = re.compile(r"net\.layers\.(\d+)\.(weight|bias)")
     if not state or not all(layer.fullmatch(k) for k in state):
         raise RunFolderError(f"{run}: its Q-networks ({settings['algo']['loss']}) are not MLPs of network.critic_hidden "
-                             "(DroQ's, BRO's, CrossQ's or SimbaV2's networks); this analysis reads MLP critics only")
+                             "of (observation, action); this analysis reads those critics only")
     layers = sorted({int(layer.fullmatch(k).group(1)) for k in state})
     first, last = state[f"net.layers.{layers[0]}.weight"], state[f"net.layers.{layers[-1]}.weight"]
     network, obs_size = settings["network"], RacingConfig(**settings["env"].get("options", {})).obs_size

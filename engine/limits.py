@@ -58,18 +58,21 @@ def estimate(cfg) -> dict[str, int]:
         critic_layers = [width] * (1 + 2 * algo.td.critic_blocks)
     actor = _mlp_parameters([obs, *net.actor_hidden, 4])
     critic = _mlp_parameters([critic_inputs, *critic_layers, outputs])
+    parameters, widest, layers = actor + critics * critic, max((*net.actor_hidden, *critic_layers)), max(
+        len(net.actor_hidden), len(critic_layers))
+    if algo.learner.networks is not None:  # networks its own options shape (SimbaV2's, the planner's)
+        parameters, widest, layers = algo.learner.networks(algo, obs, 2)
     stored = cfg.er.buffer_size if cfg.er.train_on_memory else 0  # allocated whole, saved whole by checkpoints
     transition = TRANSITION_BYTES + OBSERVATION_BYTES * obs
     minibatch = max(1, round(algo.minibatch_size * cfg.er.minibatch_fraction))
     rows = algo.learner.rows(algo, minibatch)  # SPG scores sampled actions; Trust-PCL's minibatch counts sub-episodes
-    widest = max((*net.actor_hidden, *critic_layers))
-    layers = max(len(net.actor_hidden), len(critic_layers))
     return {
         "replay memory": members * stored * transition,
         "checkpoints": members * stored * transition * CHECKPOINT_COPIES if cfg.checkpoint_every else 0,
         "episodes": members * steps * (EPISODE_STEP_BYTES + 16 * obs),
         "track tables": (members + 8) * TABLE_BYTES * checkpoints**2,
-        "networks": members * (actor + critics * critic) * 4 * PARAMETER_COPIES,
+        "networks": members * parameters * 4 * PARAMETER_COPIES,
+        "acting": members * algo.learner.acting(algo, steps) * 4,
         "activations": members * rows * widest * layers * (critics if algo.td is not None else 1) * 4
         * ACTIVATION_COPIES,
         "process": PROCESS_BYTES,

@@ -167,14 +167,15 @@ def plan(model: LatentModel, q_value, z: torch.Tensor, mean: torch.Tensor, draws
     members, latent = z.shape
     h, p, n, k = options.horizon, options.policy_samples, options.samples, options.elites
     action_dim = mean.shape[-1]
-    pi_actions = []
-    state = z.unsqueeze(1).expand(members, p, latent)
-    for t in range(h):
-        action = prior_action(model, state, draws["prior"][:, t])
-        pi_actions.append(action)
-        if t < h - 1:
-            state = model.next(state, action)
-    pi_actions = torch.stack(pi_actions, 2) if p else z.new_zeros(members, 0, h, action_dim)
+    pi_actions = z.new_zeros(members, 0, h, action_dim)
+    if p:  # the prior's trajectories, rolled through the dynamics
+        state, rolled = z.unsqueeze(1).expand(members, p, latent), []
+        for t in range(h):
+            action = prior_action(model, state, draws["prior"][:, t])
+            rolled.append(action)
+            if t < h - 1:
+                state = model.next(state, action)
+        pi_actions = torch.stack(rolled, 2)
     start = z.unsqueeze(1).expand(members, n, latent)
     std = torch.full_like(mean, options.max_std)
     for i in range(options.iterations):

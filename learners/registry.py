@@ -55,6 +55,11 @@ class LearnerSpec:
     target_networks: bool = True  # it keeps target networks (algo.td.tau); CrossQ does not
     prioritised: bool = True  # it can train on prioritised replay (off-policy learners: er=prioritised)
     rows: Callable = lambda algo, minibatch: minibatch  # rows a minibatch puts through a network (memory estimate)
+    # its own networks' sizes where network.* does not shape them: (algo, obs, action) -> (parameters per member,
+    # widest layer, layers) (memory estimate); None: network.actor_hidden and critic's MLPs
+    networks: Callable | None = None
+    acting: Callable = lambda algo, steps: 0  # floats its acting policy holds per member beyond the action (a
+    #                                           planner's draws for an episode of `steps` and its samples' activations)
 
     def torch_half(self):
         """Its module (imports torch)."""

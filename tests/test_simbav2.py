@@ -182,3 +182,12 @@ def test_train_py_trains_and_evaluates(tmp_path):
     assert summary["paths"][0]["critic"] == "loss module"
     rows = read_rows(tmp_path / "metrics.csv")
     assert float(rows[1]["critic/loss_qvalue"]) > 0 and float(rows[1]["critic/reward_scale"]) > 0
+
+
+def test_the_memory_estimate_sees_simbav2_s_own_widths():
+    from engine.config import RunConfig
+    from engine.limits import check_ram
+
+    with pytest.raises(ConfigError, match="this run needs about "):
+        check_ram(RunConfig.compose("algo=simbav2", "er=memory", "algo.simbav2.critic_width=65536"),
+                  available=16 * 2**30)

@@ -96,6 +96,12 @@ def test_mppi_refits_the_plan_to_its_weighted_elites_and_acts_with_a_chosen_elit
     # member 0's uniform 0.6 lies past the first elite's weight (0.52): the second elite, 0.6, plus std x 0.5;
     # member 1's 0.1 picks the first, 0.3, minus std
     torch.testing.assert_close(action, torch.tensor([[0.6 + std0 * 0.5], [0.3 - std1]]))
+    without_prior = PlanOptions(horizon=1, samples=3, policy_samples=0, elites=2, iterations=1, temperature=1.0,
+                                min_std=0.05, max_std=1.0, gamma=0.9)  # every trajectory the Gaussian's
+    draws0 = torch.tensor([[0.2, 0.6, -0.4, 0.0, 0.0, 0.0, 0.5], [-0.2, 0.3, -0.9, 0.0, 0.0, 0.0, -1.0]])
+    _, mean0_alone = plan(_Prior(), None, torch.zeros(2, 4), torch.zeros(2, 1, 1), split_draws(draws0, without_prior, 1),
+                          torch.tensor([0.6, 0.1]), without_prior, Support(1.0, 3))
+    torch.testing.assert_close(mean0_alone[0, 0, 0], torch.tensor(mean0))  # the same elites as above: 0.2 and 0.6
     noiseless, _ = plan(_Prior(), None, torch.zeros(2, 4), mean, split_draws(draws, options, 1),
                         torch.tensor([0.6, 0.1]), options, Support(1.0, 3), noisy=False)
     torch.testing.assert_close(noiseless, torch.tensor([[0.6], [0.3]]))
@@ -256,6 +262,7 @@ def test_a_planning_member_equals_its_solo_run_resumes_exactly_and_its_model_loa
     (["algo.td.critic_blocks=2"], "networks are its own"),
     (["algo.td.pessimism=0.5"], "algo.td.pessimism is built for"),
     (["algo.tdmpc2.latent=30"], "multiple of algo.tdmpc2.group"),
+    (["algo.tdmpc2.group=1"], "algo.tdmpc2.group must be >= 2"),
     (["algo.tdmpc2.policy_samples=64"], "must be below algo.tdmpc2.samples"),
     (["algo.tdmpc2.elites=65"], "at most algo.tdmpc2.samples"),
     (["algo.tdmpc2.rho=0"], "algo.tdmpc2.rho must be in"),
@@ -313,3 +320,14 @@ def test_without_planning_it_acts_and_evaluates_by_its_prior(tmp_path):
     with torch.no_grad():
         expected = torch.tanh(policy.net(obs[None, None])[0])[0, 0].clamp(-1, 1).numpy()
     np.testing.assert_array_equal(policy(obs.numpy()), expected)
+
+
+@pytest.mark.parametrize("override", [["algo.tdmpc2.latent=65536", "algo.tdmpc2.width=65536"],
+                                      ["algo.tdmpc2.samples=100000", "algo.tdmpc2.elites=100000",
+                                       "algo.tdmpc2.iterations=1000"]])
+def test_the_memory_estimate_sees_the_planner_s_own_sizes(override):
+    from engine.config import RunConfig
+    from engine.limits import check_ram
+
+    with pytest.raises(ConfigError, match="this run needs about "):
+        check_ram(RunConfig.compose("algo=tdmpc2", "er=memory", *override), available=16 * 2**30)

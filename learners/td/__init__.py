@@ -75,10 +75,13 @@ class TDOptions:
                               "and without dropout; set algo.td.critic_dropout: 0.0 and algo.td.critic_layer_norm: "
                               f"false (got {self.critic_dropout} and {self.critic_layer_norm})")
         if not self.critic_blocks and (self.critic_width is not None or self.critic_activation is not None):
+            from learners.registry import LEARNERS
+
+            own = ", ".join(f"algo.{name}" for name, spec in LEARNERS.items() if spec.networks is not None)
             raise ConfigError("algo.td.critic_width and algo.td.critic_activation shape BRO's residual Q-network; "
                               "they need algo.td.critic_blocks >= 1 (the MLP takes network.critic_hidden and "
-                              "network.activation; a learner with its own networks sizes them in its own block, "
-                              "as algo.simbav2.critic_width)")
+                              "network.activation; a learner with its own networks sizes them in its own block: "
+                              f"{own})")
 
     def updates_before(self, episode: int, steps: int) -> int:
         """Gradient steps taken in all, up to the start of episode ``episode`` (``episode`` episodes of

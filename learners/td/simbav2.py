@@ -55,9 +55,24 @@ def _check_run(cfg) -> None:
                           f"er.buffer_size ({capacity}) must be a multiple of the episode's {steps} steps")
 
 
+def _sizes(algo, obs: int, action: int) -> tuple[int, int, int]:
+    """(parameters per member, widest layer, layers) of its hyperspherical networks (the memory estimate):
+    an embedder, LERP blocks four times wider inside, a head; the Q-networks' target copies count in the estimate's
+    per-parameter copies."""
+    o = algo.simbav2
+
+    def net(inputs: int, width: int, blocks: int, outputs: int) -> int:
+        return (inputs + 1) * width + blocks * 8 * width * width + width * outputs + 4 * width
+
+    parameters = net(obs, o.actor_width, o.actor_blocks, 2 * action) + o.critics * net(
+        obs + action, o.critic_width, o.critic_blocks, o.bins)
+    return parameters, max(4 * o.actor_width, 4 * o.critic_width, o.bins), 2 + max(o.actor_blocks, o.critic_blocks) * 2
+
+
 SPEC = LearnerSpec(name="simbav2", title="SimbaV2-style SAC", family="td", module=__name__,
                    blocks={"sac": SACOptions, "simbav2": SimbaV2Options}, check=_check, check_run=_check_run,
-                   critic=lambda algo: (algo.simbav2.critics, algo.simbav2.bins, True), gaussian_actor=True)
+                   critic=lambda algo: (algo.simbav2.critics, algo.simbav2.bins, True), gaussian_actor=True,
+                   networks=_sizes)
 METRICS = (("loss_qvalue", "reward_scale"), sac.METRICS[1])
 actor, exploration_noise = sac.actor, sac.exploration_noise
 

@@ -51,8 +51,9 @@ class TDMPC2Options:
     planning: bool = True  # act by MPPI (False: by sampling the prior, as SAC samples its actor)
 
     def __post_init__(self) -> None:
-        for key in ("latent", "group", "width", "critics", "horizon", "samples", "elites", "iterations"):
+        for key in ("latent", "width", "critics", "horizon", "samples", "elites", "iterations"):
             at_least(f"algo.tdmpc2.{key}", getattr(self, key), 1)
+        at_least("algo.tdmpc2.group", self.group, 2, " (a softmax over one unit is always 1: the state would carry nothing)")
         at_least("algo.tdmpc2.bins", self.bins, 2)
         at_least("algo.tdmpc2.policy_samples", self.policy_samples, 0)
         for key in ("v_max", "temperature", "min_std", "scale_tau"):
@@ -103,10 +104,35 @@ def _check_run(cfg) -> None:
         raise ConfigError(f"algo {algo.name}: loss tdmpc2 runs eagerly; set compile: false")
 
 
+def _sizes(algo, obs: int, action: int) -> tuple[int, int, int]:
+    """(parameters per member, widest layer, layers) of its model and Q-networks (the memory estimate)."""
+    o = algo.tdmpc2
+    latent, width = o.latent, o.width
+
+    def mlp(*sizes: int) -> int:
+        return sum((a + 3) * b for a, b in zip(sizes, sizes[1:]))  # weights, biases, layer norms
+
+    model = (mlp(obs, width, latent) + mlp(latent + action, width, latent) + mlp(latent + action, width, o.bins)
+             + mlp(latent, width, 2 * action))
+    return model + o.critics * mlp(latent + action, width, width, o.bins), max(width, latent, o.bins), 3
+
+
+def _acting(algo, steps: int) -> int:
+    """Floats the planner holds per member: an episode's draws, and each planning iteration's samples through the
+    widest layer (forward values and temporaries)."""
+    o = algo.tdmpc2
+    if not o.planning:
+        return 0
+    h, p, n, i = o.horizon, o.policy_samples, o.samples, o.iterations
+    per_step = h * p * 2 + i * (n - p) * h * 2 + i * n * 2 + 2 + 1
+    return steps * per_step + n * (max(o.width, o.latent, o.bins) * 8 + h * 2 * 4)
+
+
 SPEC = LearnerSpec(name="tdmpc2", title="TD-MPC2-style planner", family="td", module=__name__,
                    blocks={"tdmpc2": TDMPC2Options}, check=_check, check_run=_check_run,
                    critic=lambda algo: (algo.tdmpc2.critics, algo.tdmpc2.bins, True), gaussian_actor=True,
-                   prioritised=False, rows=lambda algo, minibatch: minibatch * 2 * algo.tdmpc2.horizon)
+                   prioritised=False, rows=lambda algo, minibatch: minibatch * 2 * algo.tdmpc2.horizon,
+                   networks=_sizes, acting=_acting)
 METRICS = (("loss_value", "loss_consistency", "loss_reward"), ("loss_actor", "q_scale"))
 
 
@@ -192,8 +218,7 @@ def evaluation_policy(net, critic: dict | None, network, algo, gamma: float | No
     if not o.planning:
         return net
     if critic is None or gamma is None:
-        raise ValueError("a planning run's policy plans with its Q-networks and its discount: give its critic.pt's "
-                         "weights and the run's gamma")
+        raise ValueError("a planning run's policy plans with its Q-networks (critic.pt) and the run's gamma")
     first = critic["module.net.layers.0.weight"]
     activation = network["activation"] if isinstance(network, dict) else network.activation
     qvalues = StackedCriticNet(first.shape[0], first.shape[-1], [o.width, o.width], activation,
