@@ -161,7 +161,7 @@ def test_every_step_puts_the_weights_back_on_the_sphere():
 
 @pytest.mark.parametrize("override, message", [
     (["algo.td.critic_blocks=2"], "loss simbav2's Q-networks are hyperspherical"),
-    (["algo.td.critic_width=32"], "as algo.simbav2.critic_width"),
+    (["algo.td.critic_width=32"], "in its own block: algo.simbav2"),
     (["algo.td.pessimism=0"], "algo.td.pessimism is built for the losses"),
     (["er.buffer_size=1100"], "must be a multiple of the episode's 200 steps"),
     (["algo.simbav2.bins=1"], "algo.simbav2.bins must be"),
