@@ -41,6 +41,20 @@ def training(algo, *extra, seeds=(A, B)):
     return cfg, make_learner(cfg, make_env(cfg, tuple(seeds)), generators)
 
 
+def solo_and_resumed_pair(run: list[str], folder) -> str:
+    """``run`` trained as seed B alone, and as the pair (B, A) interrupted after episode 3 and resumed (checkpoints
+    every 2 episodes): the pair resumed at episode 2 and member B's metrics.csv equals the solo run's, which is
+    returned."""
+    train_population(load(*run, f"seed={B}"), folder / "solo")
+    with interrupted_after(3):
+        train_population(load(*run, f"seeds=[{B},{A}]"), folder / "pair")
+    summaries = train_population(load(*run, f"seeds=[{B},{A}]"), folder / "pair")
+    assert [s["resumed_at"] for s in summaries] == [2, 2]
+    solo = (folder / "solo" / "metrics.csv").read_text()
+    assert (folder / "pair" / f"seed{B}" / "metrics.csv").read_text() == solo
+    return solo
+
+
 def transitions(members, n, seed=0):
     g = torch.Generator().manual_seed(seed)
     return TensorDict({

@@ -18,8 +18,7 @@ from learners import latent
 from learners.latent import PlanOptions, Support, plan, shifted, simnorm, split_draws, symexp, symlog
 from losses.tdmpc2 import PRIOR_NOISE_KEY, TARGET_NOISE_KEY, cross_entropy, two_hot
 from tests.test_config import load
-from tests.test_offpolicy import A, B, training
-from tests.test_resilience import interrupted_after
+from tests.test_offpolicy import A, training, solo_and_resumed_pair
 
 # episodes of 40 steps keep the planner's runs short
 SHORT = ["er=memory", "env.options.max_steps=40", "er.buffer_size=400", "algo.td.warmup_episodes=1",
@@ -240,13 +239,7 @@ def test_the_prior_s_loss_reaches_the_prior_alone_and_the_model_s_losses_leave_i
 # ------------------------------------------------------------------ the learner
 def test_a_planning_member_equals_its_solo_run_resumes_exactly_and_its_model_loads_as_a_policy(tmp_path):
     run = ["algo=tdmpc2", *SHORT, "episodes=5", "checkpoint_every=2"]
-    train_population(load(*run, f"seed={B}"), tmp_path / "solo")
-    with interrupted_after(3):
-        train_population(load(*run, f"seeds=[{B},{A}]"), tmp_path / "pair")
-    summaries = train_population(load(*run, f"seeds=[{B},{A}]"), tmp_path / "pair")
-    assert [s["resumed_at"] for s in summaries] == [2, 2]
-    solo = (tmp_path / "solo" / "metrics.csv").read_text()
-    assert (tmp_path / "pair" / f"seed{B}" / "metrics.csv").read_text() == solo
+    solo = solo_and_resumed_pair(run, tmp_path)
     assert "critic/loss_consistency" in solo.splitlines()[0]
     cfg = load(*run)
     policy = make_policy("tdmpc2", {"actor_hidden": cfg.network.actor_hidden, "activation": cfg.network.activation},

@@ -21,8 +21,7 @@ from learners.td.trust_pcl import recent_returns
 from losses.trust_pcl import (TrustPCLLoss, discounted_sums, path_consistency, relative_entropy_coefficient,
                               trajectory_divergence)
 from tests.test_config import load
-from tests.test_offpolicy import A, B, FAST, training
-from tests.test_resilience import interrupted_after
+from tests.test_offpolicy import A, FAST, solo_and_resumed_pair, training
 
 F64 = torch.float64
 
@@ -225,13 +224,7 @@ def test_the_divergence_reads_the_newest_episodes_of_the_ring_in_the_order_they_
 def test_a_trust_pcl_member_equals_its_solo_run_resumes_exactly_and_its_policy_loads(tmp_path):
     run = ["algo=trust_pcl", *FAST, "algo.td.updates_per_step=0.1", "episodes=5", "checkpoint_every=2",
            "algo.trust_pcl.rollout=4"]
-    train_population(load(*run, f"seed={B}"), tmp_path / "solo")
-    with interrupted_after(3):
-        train_population(load(*run, f"seeds=[{B},{A}]"), tmp_path / "pair")
-    summaries = train_population(load(*run, f"seeds=[{B},{A}]"), tmp_path / "pair")
-    assert [s["resumed_at"] for s in summaries] == [2, 2]
-    solo = (tmp_path / "solo" / "metrics.csv").read_text()
-    assert (tmp_path / "pair" / f"seed{B}" / "metrics.csv").read_text() == solo
+    solo = solo_and_resumed_pair(run, tmp_path)
     assert "actor/lambda" in solo.splitlines()[0]
     cfg = load(*run)
     policy = make_policy("trust_pcl", {"actor_hidden": cfg.network.actor_hidden, "activation": cfg.network.activation},
