@@ -103,8 +103,8 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
         state_dict = load_tensors(actor_path, "actor")
     except ValueError as err:
         raise RunFolderError(str(err)) from None
-    critic, critic_path = None, run_dir / "critic.pt"
-    if _plans(loss) and critic_path.exists():  # its deterministic policy may read its Q-networks too
+    critic, critic_path, plans = None, run_dir / "critic.pt", _plans(loss)
+    if plans and critic_path.exists():  # its deterministic policy may read its Q-networks too
         try:
             critic = load_tensors(critic_path, "critic")
         except ValueError as err:
@@ -114,10 +114,10 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
                              past_steps=env.get("past_steps", 0), algo=settings["algo"], critic=critic,
                              gamma=settings.get("gamma"))
     except Exception as err:  # mismatched shapes or keys
-        if _plans(loss) and critic is None:
+        if plans and critic is None:
             raise RunFolderError(f"{run_dir} holds no critic.pt, which its policy needs ({first_line(err)})") from None
-        raise RunFolderError(f"{actor_path} is not this run's actor or critic ({first_line(err)})"
-                             if critic is not None else f"{actor_path} is not this run's actor ({first_line(err)})") from None
+        what = "actor" if critic is None else "actor or critic"
+        raise RunFolderError(f"{actor_path} is not this run's {what} ({first_line(err)})") from None
     if not all(torch.isfinite(p).all() for p in policy.parameters()):
         raise RunFolderError(f"{actor_path} holds non-finite weights (the run diverged)")
     return policy, settings

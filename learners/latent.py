@@ -70,6 +70,11 @@ class LatentModel(nn.Module):
     def next(self, z: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         return simnorm(self.dynamics(torch.cat([z, action], -1)), self.group)
 
+    def step(self, z: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(the reward head's logits, the next latent state) at (z, a), from one concatenation."""
+        za = torch.cat([z, action], -1)
+        return self.reward(za), simnorm(self.dynamics(za), self.group)
+
     def forward(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The prior's Gaussian (loc, scale) at the encoded observation (its action: tanh of a draw)."""
         return self.pi(self.encode(observation))
@@ -143,9 +148,8 @@ def trajectory_values(model: LatentModel, q_value, z: torch.Tensor, actions: tor
     of ``actions`` ``[R, N, H, A]`` then gamma^H x ``q_value`` (z_H, the prior's action with noise ``terminal``)."""
     total, discount = torch.zeros(z.shape[:-1], device=z.device), 1.0
     for t in range(actions.shape[2]):
-        za = torch.cat([z, actions[:, :, t]], -1)
-        total = total + discount * support.value(model.reward(za))[..., 0]
-        z = simnorm(model.dynamics(za), model.group)
+        logits, z = model.step(z, actions[:, :, t])
+        total = total + discount * support.value(logits)[..., 0]
         discount *= gamma
     final = prior_action(model, z, terminal)
     return total + discount * q_value(z, final)[..., 0]

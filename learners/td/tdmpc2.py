@@ -152,10 +152,11 @@ def actor_network(members, obs_dim, action_dim, network, algo):
     """The latent model: what acts (through the planner), is saved and evaluated (its prior)."""
     from learners.latent import LatentModel
 
+    from learners.td.learner import _setting
+
     options = _options(algo)
-    activation = network["activation"] if isinstance(network, dict) else network.activation
     return LatentModel(members, obs_dim, action_dim, options.latent, options.width, options.bins, options.group,
-                       activation)
+                       _setting(network, "activation"))
 
 
 def actor(actor_net):
@@ -164,17 +165,34 @@ def actor(actor_net):
 
 def critics(cfg, inputs, generators):
     """The Q-networks Q(z, a) -> the support's logits, two hidden layers of ``width`` units, layer-normalised."""
-    from learners.networks import StackedCriticNet, reset_parameters
+    from learners.networks import reset_parameters
     from learners.td.learner import q_modules
 
     options, members = cfg.algo.tdmpc2, len(generators)
     nets = []
     for _ in range(options.critics):
-        q = StackedCriticNet(members, options.latent + inputs.action, [options.width, options.width],
-                             cfg.network.activation, outputs=options.bins, layer_norm=True).to(generators[0].device)
+        q = _q_network(members, options, options.latent + inputs.action, cfg.network.activation).to(generators[0].device)
         reset_parameters(q, generators)
         nets.append(q)
     return nets, q_modules(nets, inputs)
+
+
+def _q_network(members: int, options: TDMPC2Options, inputs: int, activation: str):
+    """One Q-network (z, a) -> the support's logits for ``members`` stacked networks: two layer-normalised hidden
+    layers of ``width`` units."""
+    from learners.networks import StackedCriticNet
+
+    return StackedCriticNet(members, inputs, [options.width, options.width], activation, outputs=options.bins,
+                            layer_norm=True)
+
+
+def _plan_options(options: TDMPC2Options, gamma: float):
+    from learners.latent import PlanOptions
+
+    o = options
+    return PlanOptions(horizon=o.horizon, samples=o.samples, policy_samples=o.policy_samples, elites=o.elites,
+                       iterations=o.iterations, temperature=o.temperature, min_std=o.min_std, max_std=o.max_std,
+                       gamma=float(gamma))
 
 
 def exploration_noise(cfg) -> None:
@@ -195,15 +213,12 @@ def acting_policy(cfg, networks, loss):
     """MPPI with the model and the loss's Q-networks as they stand (``PlanningSampler``), from the off-policy
     sampler ``networks.sampler`` (its warm-up, observation statistics and generators); without
     ``algo.tdmpc2.planning``, that sampler itself (the prior's draws, as SAC acts)."""
-    from learners.latent import PlanningSampler, PlanOptions
+    from learners.latent import PlanningSampler
 
     o = cfg.algo.tdmpc2
     if not o.planning:
         return networks.sampler
-    options = PlanOptions(horizon=o.horizon, samples=o.samples, policy_samples=o.policy_samples, elites=o.elites,
-                          iterations=o.iterations, temperature=o.temperature, min_std=o.min_std, max_std=o.max_std,
-                          gamma=cfg.gamma)
-    return PlanningSampler.wrap(networks.sampler, loss.planning_value, options, _support(o))
+    return PlanningSampler.wrap(networks.sampler, loss.planning_value, _plan_options(o, cfg.gamma), _support(o))
 
 
 def evaluation_policy(net, critic: dict | None, network, algo, gamma: float | None):
@@ -211,23 +226,18 @@ def evaluation_policy(net, critic: dict | None, network, algo, gamma: float | No
     with its saved model ``net`` and Q-networks ``critic`` (``critic.pt``'s weights) without the executed
     action's noise (``learners.latent.PlanningActor``), discounting by the run's ``gamma``; else ``net`` (the
     prior's tanh(loc))."""
-    from learners.latent import PlanningActor, PlanOptions
-    from learners.networks import StackedCriticNet
+    from learners.latent import PlanningActor
+    from learners.td.learner import _setting
 
     o = _options(algo)
     if not o.planning:
         return net
     if critic is None or gamma is None:
         raise ValueError("a planning run's policy plans with its Q-networks (critic.pt) and the run's gamma")
-    first = critic["module.net.layers.0.weight"]
-    activation = network["activation"] if isinstance(network, dict) else network.activation
-    qvalues = StackedCriticNet(first.shape[0], first.shape[-1], [o.width, o.width], activation,
-                               outputs=o.bins, layer_norm=True)
+    first = critic["module.net.layers.0.weight"]  # [Q-networks, width, inputs]: the saved ensemble's layout
+    qvalues = _q_network(first.shape[0], o, first.shape[-1], _setting(network, "activation"))
     qvalues.load_state_dict({key.removeprefix("module."): value for key, value in critic.items()})
-    options = PlanOptions(horizon=o.horizon, samples=o.samples, policy_samples=o.policy_samples, elites=o.elites,
-                          iterations=o.iterations, temperature=o.temperature, min_std=o.min_std, max_std=o.max_std,
-                          gamma=float(gamma))
-    return PlanningActor(net, qvalues.eval(), options, _support(o))
+    return PlanningActor(net, qvalues.eval(), _plan_options(o, gamma), _support(o))
 
 
 def prepare(runner) -> None:
