@@ -93,12 +93,20 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("runs", nargs="+", type=Path, help="finished NAF run folders (or population folders)")
     args = parser.parse_args(argv)
+    from engine import numerics
     from engine.outputs import RunFolderError
+    from engine.rundir import runs_numerics
 
+    runs = run_folders(args.runs)
+    try:
+        numerics.apply(runs_numerics(runs))  # before torch loads: the runs' own numerics
+    except (RunFolderError, numerics.NumericsError) as err:
+        print(f"naf: {err}", file=sys.stderr)
+        return 2
     print("| run | final | tr P median [lowest, highest] | tr P at initialisation | throttle | steering "
           "| pre-tanh throttle | final speed |")
     print("|---|---:|---|---:|---:|---:|---:|---:|")
-    for run in run_folders(args.runs):
+    for run in runs:
         try:
             c = curvature(run)
         except RunFolderError as err:

@@ -91,7 +91,7 @@ def validated(cfg) -> tuple[dict, "RunConfig"]:  # noqa: F821
     except (ConfigError, OmegaConfBaseException) as err:  # e.g. seed=${oops}: an interpolation to nothing
         end(str(err).strip().splitlines()[0], 2, prefix="Invalid configuration: ")
     try:
-        numerics.apply(run_cfg.numerics)
+        numerics.apply(run_cfg.numerics, run_cfg.threads)
     except numerics.NumericsError as err:
         end(str(err), 2)
     return settings, run_cfg

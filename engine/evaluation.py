@@ -11,6 +11,7 @@ import torch
 
 import learners.td
 from learners.solo import GaussianPolicyNet
+from engine import numerics
 from engine.outputs import RunFolderError, first_line  # RunFolderError: part of this module's interface
 from racing.config import RacingConfig
 from racing.gym_env import RacingEnv
@@ -71,7 +72,9 @@ class Policy:
 
 def load_policy(run_dir: Path) -> tuple[Policy, dict]:
     """The run's final policy and its settings (from summary.json); ``RunFolderError`` saying why
-    if the folder does not hold a finished, intact run with an actor (``engine.rundir``)."""
+    if the folder does not hold a finished, intact run with an actor (``engine.rundir``). In a process
+    that set no numerics mode (the tools set one first), the run's own is set (``engine.numerics.apply``:
+    ``NumericsError`` with the remedy if torch loaded under another)."""
     from engine.checkpoint import load_tensors
     from engine.rundir import state
 
@@ -91,6 +94,8 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
     if not actor_path.exists():
         raise RunFolderError(f"{run_dir} holds no actor.pt (its run {found.summary['status']})")
     settings = found.summary["settings"]
+    if numerics.applied() is None:
+        numerics.apply(settings.get("numerics", "native") if isinstance(settings, dict) else "native")
     try:
         network, env, loss = settings["network"], settings["env"], settings["algo"]["loss"]
     except (KeyError, TypeError):

@@ -22,6 +22,13 @@ Three modes (``numerics=`` in ``conf/config.yaml``):
 - ``native``: whatever torch and MKL choose on this machine (the two variables unset): the
   fastest, reproducible on CPUs of the same kind only.
 
+Every mode also fixes torch's intra-op thread count (``threads``, 1 unless a run's ``threads=`` says
+otherwise): how many threads share a reduction or a product changes its rounding, and for these small
+networks, evaluated one observation at a time, more threads only add waiting (``speed/evaluation_speed.py``
+times a saved policy's step on one thread and on torch's default of one per core).
+Tools (``score.py``, ``evaluate.py``, the leaderboard, the analyses) so evaluate on the thread count
+``train.py`` trained and evaluated on.
+
 Both variables are read when torch and MKL load, so ``apply`` must run before ``import torch``;
 after it, ``apply`` only checks that the process already runs the mode's torch settings (``fma``
 and ``portable`` share them, so a process can switch between those two) and says how to fix it
@@ -50,10 +57,16 @@ class NumericsError(RuntimeError):
     """The process cannot run the requested numerics mode (torch loaded under another)."""
 
 
-def apply(mode: str) -> None:
-    """Make this process run ``mode``: set its variables if torch has not loaded yet, or check
-    that the loaded torch already runs it (``NumericsError`` with the remedy if not); then switch
-    the stacked layers' products to the project's kernels (``fma``) or to torch's."""
+THREADS = 1  # torch's intra-op threads unless a run asks for more (conf/config.yaml's threads)
+_applied: str | None = None  # the mode last applied in this process (None: apply never ran)
+
+
+def apply(mode: str, threads: int = THREADS) -> None:
+    """Make this process run ``mode`` on ``threads`` intra-op threads: set its variables if torch has
+    not loaded yet, or check that the loaded torch already runs it (``NumericsError`` with the remedy
+    if not) and set its thread count; then switch the stacked layers' products to the project's
+    kernels (``fma``) or to torch's."""
+    global _applied
     if mode not in MODES:
         raise ValueError(f"numerics must be one of {MODES}, got {mode!r}")
     from learners import kernels
@@ -68,6 +81,7 @@ def apply(mode: str) -> None:
                 os.environ[key] = value
             else:
                 os.environ.pop(key, None)
+        os.environ["OMP_NUM_THREADS"] = str(threads)  # torch's default thread count when it loads
         _warn_if_unportable(mode)
     else:
         current = _torch_mode()
@@ -79,7 +93,15 @@ def apply(mode: str) -> None:
                 + ("no " + " or ".join(PORTABLE_ENV) if mode == "native"
                    else " ".join(f"{k}={v}" for k, v in PORTABLE_ENV.items()))
                 + " in its environment before torch is imported")
+        sys.modules["torch"].set_num_threads(threads)
     _use_products(mode)
+    _applied = mode
+
+
+def applied() -> str | None:
+    """The mode ``apply`` last set in this process; None if it never ran (torch then runs whatever it
+    loaded with, on its default thread count)."""
+    return _applied
 
 
 _fallback: str | None = None  # why numerics=fma, as last applied, runs portable instead (warned once)

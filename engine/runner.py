@@ -126,7 +126,7 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
     as does ``stop_file`` appearing (a sweep's, ``engine.processes.STOP_FILE``); a population split
     over processes passes the stop on to every part, and ends when they all have.
     """
-    numerics.apply(cfg.numerics)  # torch has loaded: a check that it runs the mode asked for
+    numerics.apply(cfg.numerics, cfg.threads)  # torch has loaded: a check that it runs the mode asked for
     keep_freed_memory()  # reuse freed tensors' memory (speed only)
     cfg, compiled = _compile_mode(cfg)
     out_dir = Path(out_dir)
@@ -138,7 +138,6 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
 def _train_locked(cfg: RunConfig, out_dir: Path, folders: list[Path], settings: dict | None, skipped: list | None,
                   on_start, compiled: dict, stop: StopSignals) -> list[dict]:
     start = time.perf_counter()
-    torch.set_num_threads(cfg.threads)
     settings = run_settings(settings) if settings is not None else None
     member_settings = {s: cfg.member_settings(settings, s) if settings is not None else None for s in cfg.members}
 
@@ -350,9 +349,8 @@ def _train_part(cfg: RunConfig, out_dir: Path, seeds: tuple[int, ...], member_se
     """One part of a split population, in a process of its own (it inherits the parent's numerics
     variables, so torch loaded with the same kernels); it ends if the parent dies."""
     exit_with_parent()
-    numerics.apply(cfg.numerics)
+    numerics.apply(cfg.numerics, cfg.threads)
     keep_freed_memory()
-    torch.set_num_threads(cfg.threads)
     start = time.perf_counter()
     payload = checkpoint.load(path) if path.exists() else None
     with StopSignals(shared=_SHARED_STOP) as stop:

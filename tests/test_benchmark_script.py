@@ -182,3 +182,45 @@ def test_the_step_benchmarks_refuse_sizes_they_cannot_measure_in_one_line(args, 
         with pytest.raises(SystemExit) as stop:
             tool.main(args)
         assert stop.value.code == 2 and "expected a whole number from 1 to" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def tiny_sac_run(tmp_path_factory):
+    from tests.test_train import run_train
+
+    folder = tmp_path_factory.mktemp("evaluation_speed") / "sac"
+    result = run_train("algo=sac", "er=memory", "episodes=2", "env.options.max_steps=20", "progress=false",
+                       f"hydra.run.dir={folder}")
+    assert result.returncode == 0, result.stderr
+    return folder
+
+
+def test_evaluation_speed_benchmark_prints_its_table(tiny_sac_run):
+    result = zygote.run(["-m", "speed.evaluation_speed", str(tiny_sac_run), "--steps", "2", "--rounds", "1"],
+                        cwd=ROOT, env=dict(os.environ), timeout=300)
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.splitlines()
+    assert lines[1].split()[:2] == ["run", "1"] and len(lines) == 3
+    assert float(lines[2].split()[-1]) > 0  # the default's time over one thread's
+    refused = zygote.run(["-m", "speed.evaluation_speed", str(tiny_sac_run.parent)], cwd=ROOT,
+                         env=dict(os.environ), timeout=300)
+    assert refused.returncode == 2 and "is not a finished run folder" in refused.stderr
+
+
+def test_a_policy_loaded_without_a_mode_runs_its_runs_numerics_on_one_thread(tiny_sac_run):
+    """A library caller (a notebook) that set no numerics mode gets the run's own from load_policy."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from engine import numerics; from engine.evaluation import load_policy; "
+            "load_policy(sys.argv[1]); import torch; print(numerics.applied(), torch.get_num_threads())")
+    env = {k: v for k, v in os.environ.items() if k not in ("ATEN_CPU_CAPABILITY", "MKL_CBWR")}
+    result = subprocess.run([sys.executable, "-c", code, str(tiny_sac_run)], cwd=ROOT, capture_output=True,
+                            text=True, env=env)
+    # torch loaded before the mode could be set: the run's fma numerics are refused with the remedy
+    assert result.returncode != 0 and "Start a new process" in result.stderr, result.stderr
+    result = subprocess.run([sys.executable, "-c", code, str(tiny_sac_run)], cwd=ROOT, capture_output=True,
+                            text=True, env={**env, "ATEN_CPU_CAPABILITY": "avx2", "MKL_CBWR": "COMPATIBLE",
+                                            "OMP_NUM_THREADS": "2"})
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["fma", "1"]

@@ -189,3 +189,14 @@ def test_train_py_runs_and_records_the_mode_asked_for(tmp_path):
     assert summary["settings"]["numerics"] == "native"
     result = run_train("numerics=fast", f"hydra.run.dir={tmp_path}")
     assert result.returncode == 2 and "numerics must be one of" in result.stderr
+
+
+def test_every_mode_runs_torch_on_one_thread_unless_a_run_asks_for_more():
+    """Tools evaluate on the thread count training uses (``threads=1``), whatever the machine's cores
+    or an inherited OMP_NUM_THREADS; a run's ``threads`` reaches torch through the same ``apply``."""
+    code = ("from engine import numerics; numerics.apply('fma'); import torch; first = torch.get_num_threads(); "
+            "numerics.apply('fma', 3); print(first, torch.get_num_threads(), numerics.applied())")
+    result = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                            env=child_env(OMP_NUM_THREADS="2"))
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["1", "3", "fma"]
