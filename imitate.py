@@ -34,12 +34,9 @@ def _one(args: tuple):
     from engine.processes import exit_with_parent
 
     exit_with_parent()
-    numerics.apply(numerics.DEFAULT)
-    import torch
-
+    numerics.apply(numerics.DEFAULT)  # before torch loads; one thread
     from pupil.dagger import dagger
 
-    torch.set_num_threads(1)
     return dagger(track, settings)
 
 

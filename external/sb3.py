@@ -230,15 +230,12 @@ def _train(algo: str, seed: int, episodes: int, folder: Path, final_window: int,
            settings: dict, random_tracks: bool = False) -> dict:
     import gymnasium as gym
     import stable_baselines3
-    import torch
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.logger import Logger
 
     import racing
     from engine import numerics
     from engine.version import code_version, software_versions
-
-    torch.set_num_threads(1)
 
     # random tracks: a new track per episode, from the env's generator (seeded by the first reset)
     env = gym.make(racing.ENV_ID, track_seed=None if random_tracks else seed)

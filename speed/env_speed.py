@@ -119,7 +119,6 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=2.0, help="time per row")
     parser.add_argument("--max-cars", type=int, default=4096, help="leave out the rows of more cars than this")
     args = parser.parse_args()
-    torch.set_num_threads(1)
 
     first = scalar(False, args.seconds)
     rows = [("scalar Python, first crossing (baseline)", 1, first),

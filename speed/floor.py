@@ -211,7 +211,6 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     import torch
 
-    torch.set_num_threads(1)
     rows = []
     for name in args.learners:
         recipe, off_policy = LEARNERS[name]

@@ -73,7 +73,6 @@ def child_shapes(mode: str, members: list[int]) -> None:
 
     from speed.train_speed import best_of
 
-    torch.set_num_threads(1)
     paths = [p for p in ("avx2", "avx512") if p in kernels.isas()] if mode == "fma" else ["mkl"]
     result = {}
     for name, rows, n_in, n_out in SHAPES:

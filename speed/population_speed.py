@@ -153,7 +153,6 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if 1 not in args.sizes:
         parser.error("--sizes must include 1 (the solo baseline)")
-    torch.set_num_threads(1)
     peaks = matmul_peaks()
     print(f"episodes per run: {args.episodes}; numerics {MODE}; torch {torch.__version__}, one thread; matmul peak here: "
           + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in peaks.items()))

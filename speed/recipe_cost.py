@@ -99,9 +99,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=at_most(5_000), default=40, help="gradient steps measured per recipe and size")
     parser.add_argument("--recipes", nargs="+", default=list(RECIPES), choices=list(RECIPES))
     args = parser.parse_args(argv)
-    import torch
-
-    torch.set_num_threads(1)
     rows = []
     for name in args.recipes:
         for members in args.sizes:

@@ -179,7 +179,6 @@ def main() -> None:
     parser.add_argument("--pairs", type=at_most(100), default=2, help="alternated pairs of whole runs per cell")
     parser.add_argument("--repeats", type=int, default=20, help="repeats of the micro-benchmarks")
     args = parser.parse_args()
-    torch.set_num_threads(1)
     tanh_table(args.repeats)
     collector_table(max(2, args.repeats // 2))
     run_table(args.cells, args.episodes, args.pairs)

@@ -200,3 +200,15 @@ def test_every_mode_runs_torch_on_one_thread_unless_a_run_asks_for_more():
                             env=child_env(OMP_NUM_THREADS="2"))
     assert result.returncode == 0, result.stderr
     assert result.stdout.split() == ["1", "3", "fma"]
+
+
+def test_the_thread_count_is_set_in_one_place():
+    """torch's thread count is part of a process's numerics: only ``engine.numerics.apply`` sets it."""
+    setters = []
+    for path in sorted(ROOT.rglob("*.py")):
+        relative = path.relative_to(ROOT)
+        if relative.parts[0] in (".venv", "outputs", "tests", "build") or relative == Path("engine/numerics.py"):
+            continue
+        if "set_num_threads" in path.read_text():
+            setters.append(str(relative))
+    assert not setters, f"torch's thread count set outside engine.numerics.apply: {setters}"
