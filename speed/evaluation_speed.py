@@ -49,7 +49,7 @@ print(json.dumps({"ms": 1000 * (time.perf_counter() - start) / steps, "threads":
 def measure(run: str, threads: int, steps: int, copies: int) -> tuple[float, int]:
     """Milliseconds per step (the mean of ``copies`` processes run at once) and the threads torch ran."""
     root = Path(__file__).resolve().parent.parent
-    procs = [subprocess.Popen([sys.executable, "-c", MEASURE, run, str(threads), str(steps)], cwd=root,
+    procs = [subprocess.Popen([sys.executable, "-c", MEASURE, str(Path(run).resolve()), str(threads), str(steps)], cwd=root,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(copies)]
     results = []
     for proc in procs:
