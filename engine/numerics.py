@@ -23,11 +23,10 @@ Three modes (``numerics=`` in ``conf/config.yaml``):
   fastest, reproducible on CPUs of the same kind only.
 
 Every mode also fixes torch's intra-op thread count (``threads``, 1 unless a run's ``threads=`` says
-otherwise): how many threads share a reduction or a product changes its rounding, and for these small
-networks, evaluated one observation at a time, more threads only add waiting (``speed/evaluation_speed.py``
-times a saved policy's step on one thread and on torch's default of one per core).
-Tools (``score.py``, ``evaluate.py``, the leaderboard, the analyses) so evaluate on the thread count
-``train.py`` trained and evaluated on.
+otherwise): how many threads share a reduction or a product can change its rounding, so tools
+(``score.py``, ``evaluate.py``, the leaderboard, the analyses) evaluate on the thread count ``train.py``
+trained and evaluated on, whatever the machine's cores. ``speed/evaluation_speed.py`` times a saved
+policy's step on one thread and on torch's default of one per core.
 
 Both variables are read when torch and MKL load, so ``apply`` must run before ``import torch``;
 after it, ``apply`` only checks that the process already runs the mode's torch settings (``fma``
