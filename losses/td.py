@@ -360,7 +360,7 @@ class MemberREDQLoss(MemberTemperature, REDQLoss):
     target networks; the actor ascends the ensemble's mean) for stacked members: one temperature
     per member, bounded as TorchRL bounds it (``alpha``), the members' own noise, and each member's
     own random subset of target networks for each minibatch (``draw``; TorchRL draws one subset
-    from torch's global generator). A population's step is ``redq_losses`` (TorchRL's ``forward``
+    from torch's global generator). A population's step is ``population_losses`` (TorchRL's ``forward``
     takes one subset for the whole minibatch)."""
 
     def __init__(self, *args, subset: int, **kwargs):
@@ -386,65 +386,65 @@ class MemberREDQLoss(MemberTemperature, REDQLoss):
         return self._alpha
 
     def forward(self, tensordict: TensorDictBase):
-        raise NotImplementedError("a population's REDQ losses are losses.td.redq_losses (TorchRL's forward "
-                                  "draws one subset of target networks for all members)")
+        raise NotImplementedError("a population's REDQ losses are MemberREDQLoss.population_losses (TorchRL's "
+                                  "forward draws one subset of target networks for all members)")
+
+    def population_losses(self, actor_net: nn.Module, batch: TensorDictBase,
+                          actor: bool = True) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """REDQ's losses per member and the minibatch's priorities, as TorchRL's ``REDQLoss.forward``
+        computes them (tested) for each member with its own subset of target networks
+        (``self.subsets``, drawn by ``self.draw``) and its own temperature:
+
+        - ``loss_qvalue``: the mean over the ensemble of each Q-network's distance to the target
+          ``r + gamma * (min_{j in subset} Q'_j(s', a') - alpha * log pi(a'|s'))``;
+        - ``loss_actor`` (when ``actor``): the ensemble's mean of ``alpha * log pi(a|s) - Q_i(s, a)``
+          (the Q-networks detached);
+        - ``loss_alpha`` (when ``actor``): ``-alpha * (log pi + target entropy)`` over the actor's and
+          the target's draws, with TorchRL's bounds on alpha (its gradient passes the bounds).
+
+        Two departures from TorchRL's, both for prioritised replay only: the losses are weighted by the
+        minibatch's importance weights (as ``SACLoss`` weights them; ``REDQLoss`` ignores them), and the
+        priority is the largest absolute TD error over the ensemble (SAC's; ``REDQLoss`` writes squared
+        errors)."""
+        _check_no_masks(batch)
+        weights = batch.get(PRIORITY_WEIGHT_KEY, None)
+        observation = batch.get("observation")
+        members = observation.shape[0]
+        if self.subsets is None or self.subsets.shape[1] != members:
+            raise RuntimeError("population_losses needs each member's subset of target networks: call draw(batch) first")
+        rows = torch.arange(members, device=self.subsets.device)
+        chosen = self.target_qvalue_network_params.apply(lambda value: value[self.subsets, rows],  # [subset, R, ...]
+                                                         batch_size=[self.subsets.shape[0]])
+        alpha = self._alpha.reshape(members, 1)
+        target, next_log_prob = _soft_td_target(self, actor_net, batch, chosen, alpha.unsqueeze(-1))
+        predicted = _stacked_values(self, q_input(batch, observation, batch.get("action")),
+                                    self.qvalue_network_params).squeeze(-1)  # [Q, R, B]
+        td_error = abs(predicted - target)
+        loss_qvalue = distance_loss(predicted, target.expand_as(predicted), loss_function=self.loss_function).mean(0)
+        losses = {"loss_qvalue": loss_qvalue}
+        if actor:
+            action, log_prob = _policy_sample(actor_net, observation, batch.get(ACTION_NOISE_KEY))
+            values = _stacked_values(self, q_input(batch, observation, action),
+                                     self.qvalue_network_params.detach()).squeeze(-1)
+            losses["loss_actor"] = -(values - alpha * log_prob).mean(0)
+            log_alpha = self.log_alpha.reshape(members, 1)
+            bounded = log_alpha - log_alpha.detach() + log_alpha.detach().clamp(self.min_log_alpha, self.max_log_alpha)
+            entropy_gap = torch.stack([log_prob.detach(), next_log_prob]) + self.target_entropy  # [2, R, B]
+            # -alpha x gap per member: alpha's gradient then sums each member's own [2, B] (a broadcast over
+            # [2, R, B] would sum over dims 0 and 2 in an order that depends on R: a member would not be its solo run)
+            scale = -bounded.exp()
+            terms = [scale[r] * entropy_gap[:, r].contiguous() for r in range(members)]
+            losses["loss_alpha"] = torch.stack(terms, 1).mean(0)
+        if weights is not None:
+            losses = {key: value * weights for key, value in losses.items()}
+        return {key: member_means(value) for key, value in losses.items()}, td_error.detach().max(0)[0]
 
 
 def redq_available(loss, actor_net: nn.Module) -> bool:
-    """Whether ``redq_losses`` computes ``loss``'s step (plain or residual Q-networks, eager)."""
+    """Whether ``MemberREDQLoss.population_losses`` computes ``loss``'s step (plain or residual Q-networks,
+    eager, the loss's own actor network)."""
     return isinstance(loss, MemberREDQLoss) and loss.deactivate_vmap and _stackable_critic(loss) \
         and _owns_actor(loss, actor_net)
-
-
-def redq_losses(loss: MemberREDQLoss, actor_net: nn.Module, batch: TensorDictBase,
-                actor: bool = True) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
-    """REDQ's losses per member and the minibatch's priorities, as TorchRL's ``REDQLoss.forward``
-    computes them (tested) for each member with its own subset of target networks
-    (``loss.subsets``, drawn by ``loss.draw``) and its own temperature:
-
-    - ``loss_qvalue``: the mean over the ensemble of each Q-network's distance to the target
-      ``r + gamma * (min_{j in subset} Q'_j(s', a') - alpha * log pi(a'|s'))``;
-    - ``loss_actor`` (when ``actor``): the ensemble's mean of ``alpha * log pi(a|s) - Q_i(s, a)``
-      (the Q-networks detached);
-    - ``loss_alpha`` (when ``actor``): ``-alpha * (log pi + target entropy)`` over the actor's and
-      the target's draws, with TorchRL's bounds on alpha (its gradient passes the bounds).
-
-    Two departures from TorchRL's, both for prioritised replay only: the losses are weighted by the
-    minibatch's importance weights (as ``SACLoss`` weights them; ``REDQLoss`` ignores them), and the
-    priority is the largest absolute TD error over the ensemble (SAC's; ``REDQLoss`` writes squared
-    errors)."""
-    _check_no_masks(batch)
-    weights = batch.get(PRIORITY_WEIGHT_KEY, None)
-    observation = batch.get("observation")
-    members = observation.shape[0]
-    if loss.subsets is None or loss.subsets.shape[1] != members:
-        raise RuntimeError("redq_losses needs each member's subset of target networks: call loss.draw(batch) first")
-    rows = torch.arange(members, device=loss.subsets.device)
-    chosen = loss.target_qvalue_network_params.apply(lambda value: value[loss.subsets, rows],  # [subset, R, ...]
-                                                     batch_size=[loss.subsets.shape[0]])
-    alpha = loss._alpha.reshape(members, 1)
-    target, next_log_prob = _soft_td_target(loss, actor_net, batch, chosen, alpha.unsqueeze(-1))
-    predicted = _stacked_values(loss, q_input(batch, observation, batch.get("action")),
-                                loss.qvalue_network_params).squeeze(-1)  # [Q, R, B]
-    td_error = abs(predicted - target)
-    loss_qvalue = distance_loss(predicted, target.expand_as(predicted), loss_function=loss.loss_function).mean(0)
-    losses = {"loss_qvalue": loss_qvalue}
-    if actor:
-        action, log_prob = _policy_sample(actor_net, observation, batch.get(ACTION_NOISE_KEY))
-        values = _stacked_values(loss, q_input(batch, observation, action),
-                                 loss.qvalue_network_params.detach()).squeeze(-1)
-        losses["loss_actor"] = -(values - alpha * log_prob).mean(0)
-        log_alpha = loss.log_alpha.reshape(members, 1)
-        bounded = log_alpha - log_alpha.detach() + log_alpha.detach().clamp(loss.min_log_alpha, loss.max_log_alpha)
-        entropy_gap = torch.stack([log_prob.detach(), next_log_prob]) + loss.target_entropy  # [2, R, B]
-        # -alpha x gap per member: alpha's gradient then sums each member's own [2, B] (a broadcast over
-        # [2, R, B] would sum over dims 0 and 2 in an order that depends on R: a member would not be its solo run)
-        scale = -bounded.exp()
-        terms = [scale[r] * entropy_gap[:, r].contiguous() for r in range(members)]
-        losses["loss_alpha"] = torch.stack(terms, 1).mean(0)
-    if weights is not None:
-        losses = {key: value * weights for key, value in losses.items()}
-    return {key: member_means(value) for key, value in losses.items()}, td_error.detach().max(0)[0]
 
 
 class _QuantileHuber(torch.autograd.Function):

@@ -313,14 +313,14 @@ REDQ = ["algo=redq", "algo.redq.critics=3", "algo.redq.subset=2", "algo.redq.pol
 
 @pytest.mark.parametrize("bounds", [None, (0.1, 10.0)])
 def test_redq_of_a_population_of_one_equals_torchrl_redq_loss(bounds):
-    """``redq_losses`` for one member gives TorchRL's ``REDQLoss`` (values and every gradient) on the
+    """``MemberREDQLoss.population_losses`` for one member gives TorchRL's ``REDQLoss`` (values and every gradient) on the
     same networks, the same subset of target networks and the same N(0, I) draws; with TorchRL's
     bounds on the temperature, a temperature below them is raised in every term and the
     temperature's gradient passes the bound."""
     from torch.distributions.utils import _standard_normal
     from torchrl.objectives import REDQLoss, SoftUpdate
 
-    from losses.td import ACTION_NOISE_KEY, redq_losses
+    from losses.td import ACTION_NOISE_KEY
     from tests.test_offpolicy import _plain_actor
 
     extra = [f"algo.redq.min_alpha={bounds[0]}", f"algo.redq.max_alpha={bounds[1]}"] if bounds else []
@@ -350,7 +350,7 @@ def test_redq_of_a_population_of_one_equals_torchrl_redq_loss(bounds):
     for term in ("loss_qvalue", "loss_actor", "loss_alpha"):
         torch.manual_seed(1)
         theirs = plain(data.clone())[term]
-        ours = redq_losses(t.loss, t.networks.actor_net, mine)[0][term]
+        ours = t.loss.population_losses(t.networks.actor_net, mine)[0][term]
         torch.testing.assert_close(ours[0], theirs, rtol=1e-6, atol=1e-6)
         our_grads = torch.autograd.grad(ours.sum(), ours_params, allow_unused=True)
         their_grads = torch.autograd.grad(theirs, their_params, allow_unused=True)

@@ -21,17 +21,16 @@ activation, on uniform minibatches. Anything else (prioritised replay, other act
 ``numerics`` native or portable, a GPU, ``compile=true``) takes the loss module's path, which stays
 the reference (``learners.monte_carlo.learner.FUSED = False`` forces it). So does a loss the fused
 steps do not know (``loss_refusal``): another setting, parameter or submodule, a subclass, or an edit
-to any function whose arithmetic they mirror (``mirrored_functions``; ``MIRRORED_SOURCES`` holds the
-hash of each one's source as last mirrored), so a change to a loss module is never silently left out:
-the run says so in one line, naming the function, and summary.json's ``paths`` records which path
-ran and why.
+to any code they copy (``learners.fast_paths``, the one guard of every fast path), so a change to a
+loss module is never silently left out: the run says so in one line, naming the function, and
+summary.json's ``paths`` records which path ran and why.
 """
 
 from __future__ import annotations
 
 import torch
 
-from learners import kernels
+from learners import fast_paths, kernels
 from learners.kernels import ops as kernel_ops
 from learners.networks import (_LOG_SQRT_2PI, MemberNormal, StackedCriticNet, StackedGaussianPolicyNet, StackedMLP,
                                fast_tanh)
@@ -55,114 +54,29 @@ KNOWN_INTERNALS = {
     "_non_persistent_buffers_set", "_param_maps", "_parameters", "_state_dict_hooks", "_state_dict_pre_hooks",
     "_tensor_keys", "_value_estimator", "_call_cache", "training", "value_type",
 }
-# The SHA-256 (first 16 hex digits) of the code of each function whose arithmetic the fused steps
-# mirror (``mirrored_functions``; its syntax tree without the docstring), as it was when the fused
-# steps were last checked against it. An edit to what any of them computes turns the fused steps
-# off, said in one line and recorded in summary.json (the loss module computes;
-# tests/test_fused_phases.py fails until the change is mirrored here).
-MIRRORED_SOURCES = {
-    "losses.spg.SPGLoss.actor_loss": "23003025b7f99b7a",
-    "losses.spg.SPGLoss._score": "cc3b1ff3dc053ece",
-    "losses.spg.SPGLoss._perturbations": "18a0971fbad60ec6",
-    "losses.spg.SPGLoss._noise": "91d58dbe97d4835a",
-    "losses.spg.SPGLoss.draw": "649fe1897b8c3729",
-    "losses.ppo.LogClipPPOLoss.actor_loss": "95c1065470eadaad",
-    "losses.ppo.LogClipPPOLoss._log_prob": "5f3dcb4000722793",
-    "losses.common.PhaseLoss.critic_loss": "a2df25a252eabe62",
-    "losses.common.PhaseLoss._entropy": "5ceab1876419054a",
-    "losses.common.PhaseLoss._mean": "a2f650b5725cdc28",
-    "losses.common.PhaseLoss._policy": "54452c1fddffb593",
-    "losses.common.PhaseLoss._value": "1e33586d91d9e07c",
-    "losses.functional.squared_error": "1c5ae6d650c6e725",
-    "losses.functional.weighted_log_likelihood": "e29c2bc403e836fa",
-    "losses.functional.clipped_surrogate": "5ae6ee7c065ea9aa",
-    "losses.functional.ppo_ratio": "fcd35b765f01d86c",
-    "losses.functional.mean": "ed82ad3d8c555d5e",
-    "losses.functional.per_dimension_or_joint": "13971fd4da4c99b0",
-    "losses.functional.per_member": "932af75486e90eeb",
-    "learners.networks.MemberNormal.log_prob": "836cf18ca99ab6a8",
-    "learners.networks.MemberNormal.entropy": "97a045dcd0884e50",
-    "learners.networks.StackedMLP.forward": "1d9fab463d5ae324",
-    "learners.networks.StackedMLP.forward_rows": "d5ded6b3d79ddf05",
-    "learners.networks.StackedMLP.forward_rows_with": "93c827804f91726b",
-    "learners.networks.StackedCriticNet.forward": "9c0fe6b623389420",
-    "learners.networks.StackedGaussianPolicyNet.forward": "20769865e4ee0fba",
-    "learners.networks.fast_tanh": "2b24391dd6ee60af",
-    "learners.networks._EagerTanh.forward": "3b8b15f177957225",
-    "learners.networks._Tanh.backward": "9f9428610b4f5b33",
-    "learners.networks.stacked_linear": "a275bce5adf856a2",
-    "learners.networks._pad_rows": "382fb8d791bedc13",
-    "learners.networks._unpad_rows": "07d844022c385714",
-    "learners.kernels.ops.linear": "4660ec4b12d2c44f",
-    "learners.kernels.ops._Linear.forward": "fd92921f1db344db",
-    "learners.kernels.ops._gradients": "d0cabdecab823279",
-    "learners.base.objective": "b2cd4d471fdc0c26",
-    "collectors.replay.sample_minibatch": "44572d12e990fae3",
-}
-
-
-def mirrored_functions() -> list:
-    """The functions whose arithmetic the fused steps mirror by hand."""
+def copied_functions() -> list:
+    """What the fused steps copy besides the loss's class and its networks' classes (which
+    ``learners.fast_paths`` finds from the built loss): the loss arithmetic's functions, the policy's
+    distribution, tanh's and the kernels' forward and backward, the objective and the minibatch draw."""
     from learners.base import objective
-    from learners.networks import MemberNormal, _EagerTanh, _pad_rows, _unpad_rows, stacked_linear
-    from losses import LogClipPPOLoss, SPGLoss
-    from losses.common import PhaseLoss
+    from learners.networks import MemberNormal, _EagerTanh, _pad_rows, _Tanh, _unpad_rows, stacked_linear
     from collectors.replay import sample_minibatch
 
-    return [SPGLoss.actor_loss, SPGLoss._score, SPGLoss._perturbations, SPGLoss._noise, SPGLoss.draw,
-            LogClipPPOLoss.actor_loss, LogClipPPOLoss._log_prob, PhaseLoss.critic_loss, PhaseLoss._entropy,
-            PhaseLoss._mean, PhaseLoss._policy, PhaseLoss._value, F.squared_error, F.weighted_log_likelihood,
-            F.clipped_surrogate, F.ppo_ratio, F.mean, F.per_dimension_or_joint, F.per_member, MemberNormal.log_prob,
-            MemberNormal.entropy, StackedMLP.forward, StackedMLP.forward_rows, StackedMLP.forward_rows_with,
-            StackedCriticNet.forward, StackedGaussianPolicyNet.forward, fast_tanh, _EagerTanh.forward,
-            _EagerTanh.backward, stacked_linear, _pad_rows, _unpad_rows, kernel_ops.linear, kernel_ops._Linear.forward,
-            kernel_ops._gradients, objective, sample_minibatch]
-
-
-def mirrored_sources() -> dict[str, str | None]:
-    """{module.qualname: the first 16 hex digits of the SHA-256 of its code (None where the source
-    cannot be read)} of ``mirrored_functions``; read once per function object (a function replaced
-    at run time is read again). The code is the function's syntax tree without its docstring, so an
-    edit to a docstring or a comment changes nothing, and any edit to what it computes does."""
-    import ast
-    import hashlib
-    import inspect
-    import textwrap
-
-    found = {}
-    for function in mirrored_functions():
-        if function not in _SOURCE_HASHES:
-            try:
-                (tree,) = ast.parse(textwrap.dedent(inspect.getsource(function))).body
-                body = tree.body
-                if body and isinstance(body[0], ast.Expr) and isinstance(getattr(body[0], "value", None), ast.Constant) \
-                        and isinstance(body[0].value.value, str):
-                    tree.body = body[1:] or [ast.Pass()]
-                _SOURCE_HASHES[function] = hashlib.sha256(ast.dump(tree).encode()).hexdigest()[:16]
-            except (OSError, TypeError, SyntaxError, ValueError):
-                _SOURCE_HASHES[function] = None
-        found[f"{function.__module__}.{function.__qualname__}"] = _SOURCE_HASHES[function]
-    return found
-
-
-_SOURCE_HASHES: dict = {}
-
-
-def edited_functions() -> list[str]:
-    """The mirrored functions whose source is not as the fused steps mirror it (``MIRRORED_SOURCES``)."""
-    now = mirrored_sources()
-    return [name for name, digest in now.items() if digest is None or MIRRORED_SOURCES.get(name) != digest] + \
-        [name for name in MIRRORED_SOURCES if name not in now]
+    return [F.squared_error, F.weighted_log_likelihood, F.clipped_surrogate, F.ppo_ratio, F.mean,
+            F.per_dimension_or_joint, F.per_member, MemberNormal, fast_tanh, _EagerTanh, _Tanh, stacked_linear,
+            _pad_rows, _unpad_rows, kernel_ops.linear, kernel_ops._Linear, kernel_ops._gradients, objective,
+            sample_minibatch]
 
 
 def loss_refusal(loss) -> str | None:
     """Why the fused steps do not compute ``loss``'s steps (None: they do): they compute exactly
     ``SPGLoss`` or ``LogClipPPOLoss`` of a population with the settings they know (not a subclass,
-    which may compute something else), its code as they mirror it (``MIRRORED_SOURCES``)."""
+    which may compute something else), the code they copy as they were checked against it
+    (``learners.fast_paths``: the loss's class, its networks' and ``copied_functions``)."""
     from losses import LogClipPPOLoss, SPGLoss
 
     if type(loss) not in (SPGLoss, LogClipPPOLoss):
-        return f"the loss is {type(loss).__name__}, not SPGLoss or LogClipPPOLoss themselves"
+        return fast_paths.refusal(loss) or f"the loss is {type(loss).__name__}, not SPGLoss or LogClipPPOLoss themselves"
     if loss.members is None:
         return "the loss is not a population's (members=None)"
     name = type(loss).__name__
@@ -174,12 +88,7 @@ def loss_refusal(loss) -> str | None:
         [f"buffer {key}" for key in set(loss._buffers) - {"temperature"}]
     if unknown:
         return f"the {name} has {', '.join(unknown)}, which the fused steps do not know"
-    edited = edited_functions()
-    if edited:
-        more = f" and {len(edited) - 3} more" if len(edited) > 3 else ""
-        return (f"{', '.join(edited[:3])}{more} changed since the fused steps mirrored {'it' if len(edited) == 1 else 'them'} "
-                "(learners/monte_carlo/fused.py)")
-    return None
+    return fast_paths.refusal(loss, copied_functions())
 
 
 def loss_known(loss) -> bool:

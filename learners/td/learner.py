@@ -35,6 +35,7 @@ from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import SoftUpdate
 
 from collectors import ReplayMemory, sample_minibatch
+from learners import fast_paths
 from learners.base import Learner, MetricTotals, Optimisers, diverged_members, freeze_member, prioritised_minibatch
 from learners.networks import (BlockSampler, NormalisedActor, ObservationNorm, StackedCriticNet,
                                StackedMLP, StackedResidualCriticNet, reset_parameters)
@@ -366,19 +367,21 @@ class TDPhaseRunner:
             raise ValueError("td.reset_every needs the actor network and the Q-networks as built")
         available = getattr(steps, "fused_available", None)
         name = self.spec.name
+        # the loss's own code (an edit, a method added, a subclass): said in one line (learners.fast_paths)
+        self.code_refusal = fast_paths.refusal(loss) if available is not None else None
         why = ((f"{name} has no fused step" if available is None else None)
                or ("learners.td.learner.FUSED is off" if not FUSED else None)
                or ("compile=true compiles the loss module's step" if cfg.compile else None)
                or ("the actor network was not given" if actor_net is None else None)
+               or self.code_refusal
                or (None if available(loss, actor_net) else
                    f"the loss or its networks are not those losses.td's fused {name} step computes"))
+        if why != self.code_refusal:
+            self.code_refusal = None  # said only where it is what keeps the fused step off
         self.fused = why is None
-        # summary.json's record of the update path (engine.runner); a learner whose step is its own plain-tensor
-        # function (REDQ) names it (its module's PATH)
-        own = getattr(steps, "PATH", None)
-        path = "fused" if self.fused else own or "loss module"
-        self.path = {"critic": path, "actor": path, **({"why": why} if why and own is None else {})}
-        self.code_refusal = None  # TorchRL's loss modules: the fused steps check their types (losses.td.fused_*_available)
+        # summary.json's record of the update path (engine.runner)
+        path = "fused" if self.fused else "loss module"
+        self.path = {"critic": path, "actor": path, **({"why": why} if why else {})}
         steps.prepare(self)  # its compiled objectives and any check of what was built
 
     def normalised(self, batch: TensorDictBase) -> TensorDictBase:

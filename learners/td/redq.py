@@ -1,6 +1,6 @@
 """REDQ: TorchRL's ``REDQLoss`` (``losses.td.MemberREDQLoss``): an ensemble of Q-networks whose target is
 the minimum over a random subset per member, with SAC's learned temperature; its step is its own
-plain-tensor function (``losses.td.redq_losses``, TorchRL's numbers for one member)."""
+loss module's ``population_losses`` (TorchRL's numbers for one member, each member with its own subset)."""
 
 from __future__ import annotations
 
@@ -28,7 +28,6 @@ SPEC = LearnerSpec(name="redq", title="REDQ", family="td", module=__name__,
                    blocks={"sac": SACOptions, "redq": REDQOptions}, check=_check, check_run=_check_run,
                    critic=lambda algo: (algo.redq.critics, 1, True), gaussian_actor=True, past_critic=True)
 METRICS = sac.METRICS
-PATH = "losses.td.redq_losses"  # summary.json's paths: its own plain-tensor step
 actor, exploration_noise = sac.actor, sac.exploration_noise
 
 
@@ -59,17 +58,15 @@ def prepare(runner) -> None:
 
     if runner.cfg.compile or runner.actor_net is None or not redq_available(runner.loss, runner.actor_net):
         raise ValueError("loss redq runs eagerly (compile=false) on the learner's own actor network and plain or "
-                         "residual Q-networks (losses.td.redq_losses)")
+                         "residual Q-networks (MemberREDQLoss.population_losses)")
 
 
 def step(runner, batch, step, totals):
     """A critic step of the ensemble; every ``policy_delay`` steps the same pass also gives the actor's and
     the temperature's losses (REDQ's one actor step per environment step at ``policy_delay =
     updates_per_step``)."""
-    from losses.td import redq_losses
-
     actor_step = (step + 1) % runner.policy_delay == 0
-    values, priority = redq_losses(runner.loss, runner.actor_net, batch, actor=actor_step)
+    values, priority = runner.loss.population_losses(runner.actor_net, batch, actor=actor_step)
     if actor_step:
         runner.minimise(sum(values.values()), runner.optimisers.critic, runner.optimisers.actor)
         totals.add("actor", {"loss_actor": values["loss_actor"], "loss_alpha": values["loss_alpha"],
