@@ -48,28 +48,9 @@ def conformance() -> dict:
     return load_conformance()
 
 
-SLOW_LIST = Path(__file__).with_name("slow_tests.txt")
-
-
-def _slow_tests() -> set[str]:
-    return {line.strip() for line in SLOW_LIST.read_text().splitlines() if line.strip() and not line.startswith("#")}
-
-
 def pytest_collection_modifyitems(config, items):
-    """Mark the tests of tests/slow_tests.txt ``slow``: ``pytest -m "not slow"`` is the quick tier.
-    On a run of the whole suite a listed test that was not collected is an error (the list must
-    not rot when a test is renamed)."""
-    slow = _slow_tests()
-    found = set()
-    for item in items:
-        if item.nodeid in slow:
-            item.add_marker(pytest.mark.slow)
-            found.add(item.nodeid)
-    whole = config.args in ([], ["tests"], [str(ROOT / "tests")]) and not config.option.keyword
-    if whole and not config.option.markexpr and slow - found:
-        message = f"tests/slow_tests.txt lists tests that do not exist: {sorted(slow - found)[:5]}"
-        print(message, file=sys.stderr)  # under xdist a worker's UsageError shows only as INTERNALERROR
-        raise pytest.UsageError(message)
+    """The heaviest test files first (``heaviest_files_first``). Slow tests (over two seconds) carry
+    ``@pytest.mark.slow`` themselves; ``pytest -m "not slow"`` is the quick tier."""
     items[:] = heaviest_files_first(items)
 
 

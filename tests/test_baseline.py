@@ -32,6 +32,7 @@ def tiny(args: list[str], out) -> list[str]:
     return [*args, "--episodes", "1", "--out", str(out)]
 
 
+@pytest.mark.slow
 def test_the_documented_command_writes_runs_the_report_reads_and_reruns_identically(tmp_path):
     commands = [c for c in readme_commands("baseline.py", include_elsewhere=True) if "--random-tracks" not in c]
     assert commands, "the docs show no baseline.py command on fixed tracks"
@@ -72,6 +73,7 @@ def test_bad_arguments_are_refused_with_a_reason(tmp_path, args, message):
     assert result.returncode == 2 and message in result.stderr and "Traceback" not in result.stderr
 
 
+@pytest.mark.slow
 def test_random_tracks_train_on_a_new_track_each_episode_and_the_benchmark_scores_the_folder(tmp_path):
     """--random-tracks (the benchmark's training): the run's settings say so, its episodes differ
     from the same seed's fixed-track run, and score.py's agent loader takes the run folder."""

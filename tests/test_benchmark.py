@@ -90,6 +90,7 @@ def test_score_py_prints_raw_and_normalised_scores_with_intervals(tmp_path, caps
     assert refused.value.code == 2 and "--tracks must be track seeds" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_any_agent_is_filmed_on_a_seed_or_a_file_track(tmp_path, capsys):
     import evaluate
     import score as score_py
@@ -192,6 +193,7 @@ def _tiny_paths(args: list[str], tmp_path: Path) -> list[str]:
     return args
 
 
+@pytest.mark.slow
 def test_the_leaderboard_scores_every_run_of_a_sweep_beside_the_references(tmp_path, capsys):
     """python -m benchmark.leaderboard on a tiny sweep: one agent per cell, its runs and tracks
     resampled for the interval; a diverged run is left out and named."""
@@ -256,6 +258,7 @@ def test_the_documented_board_from_committed_scores(tmp_path):
     assert (tmp_path / "profiles.png").stat().st_size > 0  # the render extra is in the dev install
 
 
+@pytest.mark.slow
 def test_an_mp4_keeps_its_frames_and_a_circuit_film_ends_at_its_laps(tmp_path, capsys, recwarn):
     """An .mp4 printed imageio's macro_block_size warning and resized its frames; frames now keep their
     size, padded with their own edge; ``--laps`` ends a film on a circuit, and its line gives the size."""

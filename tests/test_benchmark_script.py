@@ -12,6 +12,7 @@ from tests import zygote
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_env_speed_benchmark_prints_its_table():
     result = zygote.run(["-m", "speed.env_speed", "--seconds", "0.01", "--max-cars", "64"],
                         cwd=ROOT, env=dict(os.environ), timeout=300)
@@ -23,6 +24,7 @@ def test_env_speed_benchmark_prints_its_table():
     assert "| 1024 |" not in result.stdout
 
 
+@pytest.mark.slow
 def test_train_speed_benchmark_prints_its_tables():
     result = zygote.run(["-m", "speed.train_speed", "--episodes", "2", "--repeats", "2",
                          "--cells", "ppo/recent", "spg_p/hybrid", "--pairs", "1"],
@@ -35,6 +37,7 @@ def test_train_speed_benchmark_prints_its_tables():
     assert [row[5].strip() for row in runs] == ["yes", "yes"]  # both collectors wrote the same metrics.csv
 
 
+@pytest.mark.slow
 def test_population_speed_benchmark_prints_its_tables():
     from learners.compiling import unavailable_reason
 
@@ -51,6 +54,7 @@ def test_population_speed_benchmark_prints_its_tables():
     assert "| ppo/recent | 1 | compiled |" in result.stdout or "| ppo/recent | 2 | eager |" in result.stdout
 
 
+@pytest.mark.slow
 def test_numerics_speed_benchmark_prints_its_table():
     result = zygote.run(["-m", "speed.numerics_speed", "--episodes", "1",
                          "--members", "2", "--cells", "ppo/recent", "--repeats", "1"],
@@ -84,6 +88,7 @@ def test_oracle_circuit_benchmark_prints_its_table():
     assert rows[1].startswith("circuit (100 points)") and " 100 " in rows[1]
 
 
+@pytest.mark.slow
 def test_recipe_cost_benchmark_prints_its_table():
     result = zygote.run(["-m", "speed.recipe_cost", "--sizes", "1", "--steps", "2",
                          "--recipes", "sac", "sac-module", "droq", "droq-module"], cwd=ROOT, env=dict(os.environ), timeout=300)
@@ -108,6 +113,7 @@ def test_recipe_cost_says_n_a_where_noise_hid_the_step(monkeypatch, capsys):
     assert "| sac | algo=sac | 1 | 1 | 39200 | n/a (noise: more --steps) |" in out and "| 0.0 |" not in out
 
 
+@pytest.mark.slow
 def test_floor_benchmark_prints_its_table():
     result = zygote.run(["-m", "speed.floor", "--sizes", "1", "2", "--steps", "2",
                          "--learners", "sac", "ppo"], cwd=ROOT, env=dict(os.environ), timeout=300)
@@ -149,6 +155,7 @@ def test_floor_records_a_layers_products_and_replays_them():
     assert replay(calls * 50, repeats=1, budget=1) > 0.0  # a chunk per call: memory bounded whatever the steps
 
 
+@pytest.mark.slow
 def test_floor_times_the_paper_phases_fused_and_through_the_loss_module():
     """``--module``'s second row for SPG and PPO is the loss module's phase: the same products (the
     fused steps make the products the module makes), taken without the fused steps."""
@@ -195,6 +202,7 @@ def tiny_sac_run(tmp_path_factory):
     return folder
 
 
+@pytest.mark.slow
 def test_evaluation_speed_benchmark_prints_its_table(tiny_sac_run):
     result = zygote.run(["-m", "speed.evaluation_speed", str(tiny_sac_run), "--steps", "2", "--rounds", "1"],
                         cwd=ROOT, env=dict(os.environ), timeout=300)
@@ -207,6 +215,7 @@ def test_evaluation_speed_benchmark_prints_its_table(tiny_sac_run):
     assert refused.returncode == 2 and "is not a finished run folder" in refused.stderr
 
 
+@pytest.mark.slow
 def test_a_policy_loaded_without_a_mode_runs_its_runs_numerics_on_one_thread(tiny_sac_run):
     """A library caller (a notebook) that set no numerics mode gets the run's own from load_policy."""
     import subprocess

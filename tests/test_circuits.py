@@ -89,6 +89,7 @@ def test_laps_end_an_episode_on_a_circuit_and_only_there():
         racing.RacingConfig(laps=-1)
 
 
+@pytest.mark.slow
 def test_every_tool_takes_the_same_overrides(tmp_path, circuit):
     track = parse_track("--track", str(circuit), 15.0, True)
     assert track == FileTrack(str(circuit), 15.0, True) and str(track) == str(circuit)

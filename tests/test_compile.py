@@ -40,6 +40,7 @@ def rows(folder):
         return list(csv.DictReader(f))
 
 
+@pytest.mark.slow
 @needs_compiler
 def test_a_compiled_member_trains_as_its_compiled_solo_run_and_reruns_identically(tmp_path):
     algo, er = "spg_p_multi", "hybrid"  # SPG-p with replay and recent phases: every loss term and diagnostic
@@ -99,6 +100,7 @@ def test_compile_is_validated():
         load("compile=maybe")
 
 
+@pytest.mark.slow
 @needs_compiler
 @pytest.mark.parametrize("algo", ["sac", "td3"])
 def test_sac_and_td3_train_compiled(tmp_path, algo):

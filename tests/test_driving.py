@@ -23,6 +23,7 @@ def run(tmp_path_factory):
     return folder
 
 
+@pytest.mark.slow
 def test_the_rows_are_the_policy_s_evaluation_and_the_oracle_s_score(run, tmp_path, capsys):
     from racing import oracle
     from racing.config import RacingConfig
@@ -76,6 +77,7 @@ def test_a_folder_without_runs_is_refused_in_one_line(tmp_path, capsys):
     assert "holds no finished train.py run" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_the_documented_command_runs(run, tmp_path):
     """docs/beyond.md's ``python -m analysis.driving <run folder>`` line, on the tiny run (one episode)."""
     from tests.test_readme import readme_commands

@@ -10,6 +10,7 @@ import shutil
 import pytest
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(shutil.which("qemu-x86_64") is None or platform.machine() != "x86_64",
                     reason="needs qemu-x86_64 (apt install qemu-user) on an x86-64 machine to emulate another CPU")
 def test_default_numerics_runs_are_the_same_on_an_emulated_amd_cpu():

@@ -5,7 +5,10 @@ misreported, escaped or hung."""
 
 from __future__ import annotations
 
+import pytest
 
+
+@pytest.mark.slow
 def test_a_sample_of_faults_on_every_family_is_refused_or_survived_exactly(tmp_path):
     from tests.fault_injection import FAMILIES, run, table
 

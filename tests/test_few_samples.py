@@ -118,6 +118,7 @@ def test_dropout_keeps_units_at_its_rate_scaled_and_draws_each_member_alone():
     assert torch.equal(drop(out), out)
 
 
+@pytest.mark.slow
 def test_each_member_equals_its_solo_run(tmp_path):
     run = ["algo=sac", "er=memory", *FAST, "algo.td.updates_per_step=0.1", "algo.td.n_step=3", *DROQ]
     train_population(load(*run, f"seed={B}"), tmp_path / "solo")
@@ -126,6 +127,7 @@ def test_each_member_equals_its_solo_run(tmp_path):
             == (tmp_path / "solo" / "metrics.csv").read_bytes())
 
 
+@pytest.mark.slow
 def test_an_interrupted_droq_run_resumes_exactly(tmp_path):
     """The dropout masks come from the members' generators, which the checkpoint saves."""
     run = ["algo=sac", "er=prioritised", *FAST, "episodes=5", "checkpoint_every=2", f"seeds=[{A},{B}]",
@@ -234,6 +236,7 @@ def test_a_reset_changes_a_run_from_its_episode_on(tmp_path):
     assert plain[5] != reset[5]  # episode 4 trains on reset networks
 
 
+@pytest.mark.slow
 def test_bro_members_equal_their_solo_runs_and_resume_exactly_across_a_reset(tmp_path):
     assert_member_is_solo_and_resumes(tmp_path, [*BRO, "er=prioritised", *FAST, "episodes=5",
                                                  "algo.td.updates_per_step=0.1", "algo.td.reset_every=3"])
@@ -368,6 +371,7 @@ def test_redq_of_a_population_of_one_equals_torchrl_redq_loss(bounds):
         torch.testing.assert_close(t.loss.alpha, torch.tensor([0.1]))  # exp(log 0.1)
 
 
+@pytest.mark.slow
 def test_redq_members_draw_their_own_subsets_and_equal_their_solo_runs(tmp_path):
     """Each member's subset of target networks comes from its generator (members differ); a member
     equals its solo run and an interrupted population resumes exactly (prioritised replay)."""

@@ -74,6 +74,7 @@ def sb3_zip(folder: Path, payload_in: str | None, marker: Path) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_a_downloaded_sb3_model_never_runs_its_code_when_scored_or_filmed(tmp_path):
     """Class: code runs from a file. On 6b09ff3 SB3's load unpickled the zip's settings first."""
     pytest.importorskip("stable_baselines3")
@@ -235,6 +236,7 @@ def test_a_resume_under_other_numerics_is_refused_or_recorded_as_mixed(tmp_path,
     assert summary["numerics"]["segments"][1]["products"].startswith("fma-")
 
 
+@pytest.mark.slow
 def test_a_damaged_compiled_kernel_is_rebuilt_not_loaded(tmp_path, monkeypatch):
     """On 6b09ff3 an altered library gave other numbers, sealed as valid, and 200 flipped bits made
     every later run end in a segfault (exit 139) with no message."""

@@ -7,6 +7,7 @@ import pytest
 from pupil.dagger import DATA_SEED, DaggerSettings
 
 
+@pytest.mark.slow
 def test_imitate_py_teaches_a_network_from_the_oracle_and_scores_it(tmp_path, capsys):
     import imitate
 
@@ -25,6 +26,7 @@ def test_imitate_py_teaches_a_network_from_the_oracle_and_scores_it(tmp_path, ca
     assert "; repeated labels: their variance " in out
 
 
+@pytest.mark.slow
 def test_a_privileged_pupil_sees_the_observation_and_the_car_s_true_state():
     from pupil.dagger import dagger, pupil_input
     from racing.gym_env import RacingEnv
@@ -65,6 +67,7 @@ def test_the_oracle_offers_its_last_elite_mean_beside_its_action():
     assert oracle.elite_mean.shape == action.shape == (2,) and abs(oracle.elite_mean).max() <= 1
 
 
+@pytest.mark.slow
 def test_the_documented_command_runs(tmp_path):
     """Each documented ``python imitate.py`` line, on one track at the smallest size (its other options as
     written: the network's width, the labels)."""

@@ -88,6 +88,7 @@ def test_a_summary_without_its_records_is_damaged_unless_its_commit_predates_the
     assert rundir.state(folder).kind == "finished"
 
 
+@pytest.mark.slow
 def test_the_committed_archives_summaries_are_all_verifiable():
     """Every summary of the committed results (docs/results) still reads: the legacy commits cover them."""
     import tarfile
@@ -116,6 +117,7 @@ def _checkpointed(folder: Path, episodes_done: int = 2) -> None:
     assert (folder / "checkpoint.pt").exists()
 
 
+@pytest.mark.slow
 def test_a_flipped_bit_anywhere_in_a_checkpoint_is_refused_before_it_is_used(tmp_path):
     """A bit flipped inside a tensor of checkpoint.pt resumed silently into other numbers."""
     import random
@@ -232,6 +234,7 @@ OVERSIZED = [  # each passed validation, wrote .hydra/, then ran out of memory
 ]
 
 
+@pytest.mark.slow
 def test_every_size_is_bounded_before_anything_is_written(tmp_path):
     """train.py refuses in one line before writing anything (three values: a process each costs
     seconds); the same checks (RunConfig's ceilings, then check_ram) refuse the others."""
@@ -400,6 +403,7 @@ def test_report_without_matplotlib_writes_its_tables_and_a_cut_last_row_is_left_
     assert "figures skipped: they need matplotlib" in out and (tmp_path / "report" / "table.md").exists()
 
 
+@pytest.mark.slow
 def test_a_refused_partial_run_leaves_its_hydra_record_alone(tmp_path):
     from tests.test_train import run_train
 
@@ -417,6 +421,7 @@ def test_a_refused_partial_run_leaves_its_hydra_record_alone(tmp_path):
         name: f"the first session's {name}\n" for name in ("config.yaml", "overrides.yaml", "hydra.yaml")}
 
 
+@pytest.mark.slow
 def test_sweeps_refuse_aliased_folders_bad_interpolations_and_unknown_groups_in_one_line_each(tmp_path):
     """Folders aliasing through '..' were caught only while running; seed=${oops} gave a traceback;
     algo=doesnotexist gave 'provider=schema, path=structured://'."""
@@ -454,6 +459,7 @@ def test_a_linked_folder_where_a_run_writes_is_refused(tmp_path, name):
     assert not any(outside.iterdir())
 
 
+@pytest.mark.slow
 def test_no_log_file_and_no_link_followed_by_a_sweep(tmp_path):
     """Hydra's train.log (written through a link, and even by refused commands) is not made; a linked
     multirun.yaml is replaced, not written through."""

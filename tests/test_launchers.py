@@ -33,12 +33,14 @@ def basic_sweep(tmp_path_factory):
     return _sweep("basic", tmp_path_factory.mktemp("basic"))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("launcher", ["joblib", "submitit_local"])
 def test_launchers_run_the_same_sweep(tmp_path, basic_sweep, launcher):
     """Same runs, byte-identical results, whichever launcher ran them."""
     assert _sweep(launcher, tmp_path) == basic_sweep
 
 
+@pytest.mark.slow
 def test_a_population_splits_over_processes_inside_a_joblib_worker(tmp_path):
     """processes=2 in a joblib job: the parts are spawned from a loky worker (whose start method
     a spawned child cannot set: engine.processes.spawn_context)."""
@@ -51,6 +53,7 @@ def test_a_population_splits_over_processes_inside_a_joblib_worker(tmp_path):
         assert summary["status"] == "completed" and summary["population"] == {"seeds": [seed], "size": 1}
 
 
+@pytest.mark.slow
 def test_submitit_rerun_skips_finished_runs(tmp_path):
     _sweep("submitit_local", tmp_path)
     summary = tmp_path / "spg" / "recent" / "seed11" / "summary.json"
@@ -78,6 +81,7 @@ def test_joblib_stays_the_default_with_its_own_keys():
     assert cfg.hydra.launcher._target_.endswith("JoblibLauncher") and cfg.hydra.launcher.n_jobs == 2
 
 
+@pytest.mark.slow
 def test_clean_sweep_runs_an_export_of_the_commit(tmp_path):
     """clean_sweep.py runs HEAD's exported code (not the working tree's) and records its commit."""
     import subprocess
@@ -166,6 +170,7 @@ def test_an_export_edited_by_hand_is_refused_not_run_under_the_commits_name(tmp_
     assert not (code_dir / "engine" / "__pycache__").exists()
 
 
+@pytest.mark.slow
 def test_an_ad_hoc_sweep_run_again_continues_in_its_folder(tmp_path):
     """``train.py -m ...`` without a folder went to a new dated folder each time, so running the same sweep
     again trained it again; its folder is now named by its command line, and the second run skips its runs."""
@@ -184,6 +189,7 @@ def test_an_ad_hoc_sweep_run_again_continues_in_its_folder(tmp_path):
     assert sweep_folder_name(["a=1,2"]) != sweep_folder_name(["a=1", "2"]) and "/" not in sweep_folder_name(["x=/y"])
 
 
+@pytest.mark.slow
 def test_a_sweep_folder_that_cannot_be_resolved_is_one_line(tmp_path):
     """``hydra.sweep.dir=${hydra:...}`` (set by Hydra only inside a job) gave Hydra's traceback."""
     from tests.test_train import run_train

@@ -229,6 +229,7 @@ def test_the_pre_tanh_penalty_adds_its_mean_square_to_mus_objective_only():
     assert not none.any()
 
 
+@pytest.mark.slow
 def test_analysis_naf_reads_the_advantages_curvature_along_the_runs_own_track(tmp_path, capsys):
     """``python -m analysis.naf`` (docs/results.md's diagnosis of NAF) on a train.py run and a population."""
     from analysis.naf import curvature, main

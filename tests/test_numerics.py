@@ -96,6 +96,7 @@ def machines_runs(tmp_path_factory) -> dict:
     return runs
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["fma", "portable"])
 def test_exact_modes_give_the_same_runs_on_an_avx2_cpu(machines_runs, mode):
     (effect, here), (effect_avx2, there) = machines_runs[mode, "this CPU"], machines_runs[mode, "an AVX2 CPU"]
@@ -107,6 +108,7 @@ def test_exact_modes_give_the_same_runs_on_an_avx2_cpu(machines_runs, mode):
         assert here[name] == there[name], f"{name}: {mode} metrics.csv differs between the CPUs"
 
 
+@pytest.mark.slow
 def test_fma_runs_differ_from_portable_ones_which_shows_the_products_are_the_projects(machines_runs):
     (_, fma), (_, portable) = machines_runs["fma", "this CPU"], machines_runs["portable", "this CPU"]
     assert [name for name in fma if fma[name] != portable[name]]
@@ -119,6 +121,7 @@ def _amd_cpu() -> bool:
         return False
 
 
+@pytest.mark.slow
 def test_native_runs_differ_there_which_shows_the_test_can_fail(machines_runs):
     if torch.backends.cpu.get_cpu_capability() != "AVX512" and not numpy_wide_targets():
         pytest.skip("this CPU has no AVX-512: the emulated AVX2 CPU is this CPU, so native runs cannot differ")
@@ -130,6 +133,7 @@ def test_native_runs_differ_there_which_shows_the_test_can_fail(machines_runs):
     assert [name for name in here if here[name] != there[name]], "native runs should differ on another CPU"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", numerics.MODES)
 @pytest.mark.parametrize("machine", MACHINES)
 def test_members_equal_their_solo_runs_in_every_mode_on_both_cpus(machines_runs, mode, machine):
@@ -177,6 +181,7 @@ def test_a_mode_torch_was_not_loaded_with_is_refused_with_the_remedy():
         numerics.apply("fast")
 
 
+@pytest.mark.slow
 def test_train_py_runs_and_records_the_mode_asked_for(tmp_path):
     from tests.test_train import run_train
 
@@ -191,6 +196,7 @@ def test_train_py_runs_and_records_the_mode_asked_for(tmp_path):
     assert result.returncode == 2 and "numerics must be one of" in result.stderr
 
 
+@pytest.mark.slow
 def test_every_mode_runs_torch_on_one_thread_unless_a_run_asks_for_more():
     """Tools evaluate on the thread count training uses (``threads=1``), whatever the machine's cores
     or an inherited OMP_NUM_THREADS; a run's ``threads`` reaches torch through the same ``apply``."""

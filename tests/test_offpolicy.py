@@ -405,14 +405,17 @@ def test_fused_crossq_steps_are_the_torchrl_loss_bit_for_bit(mode, extra):
 
 
 @pytest.mark.parametrize("recipe", [["algo=sac", "algo.td.updates_per_step=0.25", "episodes=2"],
-                                    ["algo=crossq", "er=memory", "algo.td.updates_per_step=0.25", "episodes=2"],
-                                    ["algo=td3", "algo.td.updates_per_step=0.25", "episodes=2"],
+                                    pytest.param(["algo=crossq", "er=memory", "algo.td.updates_per_step=0.25",
+                                                  "episodes=2"], marks=pytest.mark.slow),
+                                    pytest.param(["algo=td3", "algo.td.updates_per_step=0.25", "episodes=2"],
+                                                 marks=pytest.mark.slow),
                                     ["algo=tqc", "algo.td.updates_per_step=0.25", "episodes=2"],
                                     ["algo=bro", "algo.td.updates_per_step=0.1", "episodes=4", "algo.td.critic_width=32",
                                      "algo.td.reset_every=3"],
                                     ["algo=droq", "algo.td.updates_per_step=0.25", "episodes=2"],
-                                    ["algo=sac", "algo.td.updates_per_step=0.25", "episodes=2",
-                                     "algo.td.privileged_critic=true", "algo.td.critic_history=2"]])
+                                    pytest.param(["algo=sac", "algo.td.updates_per_step=0.25", "episodes=2",
+                                                  "algo.td.privileged_critic=true", "algo.td.critic_history=2"],
+                                                 marks=pytest.mark.slow)])
 def test_a_run_with_the_fused_sac_step_is_a_run_through_the_loss_module(tmp_path, monkeypatch, recipe):
     """Whole runs (prioritised replay but for CrossQ, two members, 50-60 gradient steps; TD3's; TQC's; CrossQ's; BRO's Q-networks with a
     reset; DroQ's; SAC's Q-networks reading the car's true state and past steps, which TorchRL's SACLoss
@@ -584,6 +587,7 @@ def test_bad_offpolicy_settings_are_refused_with_a_reason(override, message):
 
 
 # ------------------------------------------------------------------------ whole runs
+@pytest.mark.slow
 @pytest.mark.parametrize("algo, er", [("td3", "prioritised"), ("redq", "memory")])  # SAC through train.py: tests/test_readme.py
 def test_train_py_trains_two_episodes(tmp_path, algo, er):
     result = run_train(f"algo={algo}", f"er={er}", "seed=3", "episodes=2", "algo.td.warmup_episodes=1",
@@ -596,6 +600,7 @@ def test_train_py_trains_two_episodes(tmp_path, algo, er):
     assert {"actor", "critic"} <= {p.stem for p in tmp_path.glob("*.pt")}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("algo, er", [("sac", "prioritised"), ("crossq", "memory"), ("td3", "memory"),
                                      ("simbav2", "prioritised")])
 def test_an_interrupted_population_resumes_exactly(tmp_path, algo, er):
@@ -610,8 +615,10 @@ def test_an_interrupted_population_resumes_exactly(tmp_path, algo, er):
                 == (tmp_path / "reference" / f"seed{seed}" / "metrics.csv").read_bytes())
 
 
-@pytest.mark.parametrize("algo, er", [("sac", "memory"), ("tqc", "prioritised"), ("crossq", "memory"),
-                                     ("td3", "prioritised"), ("simbav2", "prioritised")])
+@pytest.mark.parametrize("algo, er", [pytest.param("sac", "memory", marks=pytest.mark.slow),
+                                     pytest.param("tqc", "prioritised", marks=pytest.mark.slow),
+                                     pytest.param("crossq", "memory", marks=pytest.mark.slow), ("td3", "prioritised"),
+                                     pytest.param("simbav2", "prioritised", marks=pytest.mark.slow)])
 def test_each_member_equals_its_solo_run(tmp_path, algo, er):
     """Every draw (minibatches, priorities, the losses' noise) comes from the member's own generator;
     the run's deterministic policy loads for evaluation."""
@@ -645,6 +652,7 @@ def test_a_diverging_sac_member_is_frozen_and_the_other_finishes(tmp_path, monke
     assert len(read_rows(tmp_path / f"seed{B}" / "metrics.csv")) == 4
 
 
+@pytest.mark.slow
 def test_a_population_evaluates_itself_and_evaluate_py_tables_a_sweep(tmp_path, capsys):
     """eval_seeds: each member's summary holds its deterministic policy's scores; evaluate.py on
     the population's folder evaluates every member (SAC's actor rebuilt from actor.pt)."""
@@ -678,6 +686,7 @@ def test_a_population_evaluates_itself_and_evaluate_py_tables_a_sweep(tmp_path, 
     np.testing.assert_array_equal(older(observation), policy(observation))
 
 
+@pytest.mark.slow
 def test_the_generalisation_preset_shares_its_fixed_runs_with_beyond_paper_and_reports(tmp_path):
     """+experiment=generalisation (6 cells x fixed/random tracks), then +experiment=beyond_paper in
     the same folder skips the fixed-track runs already made; report.py writes both tables."""

@@ -53,6 +53,7 @@ def test_the_oracle_is_reproducible_and_beats_the_hand_written_driver():
     assert first > driver + 5, (first, driver)
 
 
+@pytest.mark.slow
 def test_the_oracle_drives_as_it_did_when_its_scores_were_shipped():
     """The first of the five episodes whose mean is analysis/data/oracle_tuning.csv's track 1001
     (174.875741), to the bit as the code that made it drove it."""

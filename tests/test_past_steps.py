@@ -123,7 +123,7 @@ def test_the_history_refuses_to_act_before_it_has_seen_an_observation():
         history.act(np.zeros((1, 2)))
 
 
-@pytest.mark.parametrize("algo", ["sac", "spg_p"])
+@pytest.mark.parametrize("algo", [pytest.param("sac", marks=pytest.mark.slow), "spg_p"])
 def test_a_run_with_past_steps_evaluates_as_it_did_and_the_benchmark_resets_its_history(tmp_path, algo):
     from benchmark.protocol import load_agent, run_episode
     from racing.gym_env import RacingEnv
@@ -158,6 +158,7 @@ def test_a_run_with_past_steps_evaluates_as_it_did_and_the_benchmark_resets_its_
     assert RunConfig.same_run(old["settings"], summary["settings"])
 
 
+@pytest.mark.slow
 def test_members_equal_their_solo_runs_and_resume_exactly_with_past_steps(tmp_path):
     assert_member_is_solo_and_resumes(tmp_path, ["algo=sac", "er=prioritised", *FAST, "episodes=5",
                                                  "algo.td.updates_per_step=0.1", "env.past_steps=2",

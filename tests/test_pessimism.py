@@ -125,6 +125,7 @@ def test_a_true_return_is_the_discounted_sum_of_one_car_s_rewards(run):
         assert batched[i] == pytest.approx(total, abs=1e-9)
 
 
+@pytest.mark.slow
 def test_the_table_holds_a_row_per_run_and_bad_input_is_one_line(run, tmp_path, capsys):
     import csv
 

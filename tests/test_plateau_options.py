@@ -104,11 +104,13 @@ def test_the_entropy_target_falls_linearly_from_the_first_gradient_step_to_the_l
     assert plain.phases.entropy_schedule is None and plain.phases.norm is None
 
 
+@pytest.mark.slow
 def test_members_equal_their_solo_runs_and_resume_exactly_with_both_options(tmp_path):
     assert_member_is_solo_and_resumes(tmp_path, ["algo=sac", "er=prioritised", *FAST, "episodes=5",
                                                  "algo.td.updates_per_step=0.1", *BOTH])
 
 
+@pytest.mark.slow
 def test_the_options_change_the_run_and_their_defaults_do_not(tmp_path):
     run = ["algo=sac", "er=memory", *FAST, "algo.td.updates_per_step=0.1", f"seed={A}"]
     train_population(load(*run), tmp_path / "plain")
@@ -121,7 +123,7 @@ def test_the_options_change_the_run_and_their_defaults_do_not(tmp_path):
         assert (tmp_path / name / "metrics.csv").read_bytes() != plain, name
 
 
-@pytest.mark.parametrize("algo", ["sac", "td3"])
+@pytest.mark.parametrize("algo", [pytest.param("sac", marks=pytest.mark.slow), "td3"])
 def test_the_saved_actor_keeps_its_statistics_and_evaluates_as_the_run_did(tmp_path, algo):
     result = run_train(f"algo={algo}", "er=memory", *FAST[1:], "episodes=4", "algo.td.updates_per_step=0.1",
                        f"seed={B}", "eval_seeds=[1001]", "eval_episodes=1", "algo.td.observation_norm=true",
@@ -243,6 +245,7 @@ def test_the_q_networks_read_the_true_state_and_the_history_and_the_actor_does_n
     assert ("next", "history") in learner.transition_keys
 
 
+@pytest.mark.slow
 def test_privileged_members_equal_their_solo_runs_and_resume_exactly(tmp_path):
     assert_member_is_solo_and_resumes(tmp_path, ["algo=redq", "er=prioritised", *FAST, "episodes=5",
                                                  "algo.td.updates_per_step=0.1", "algo.redq.critics=3",
@@ -268,6 +271,7 @@ def test_bad_settings_are_refused_with_a_reason(override, message):
         load(*override)
 
 
+@pytest.mark.slow
 def test_the_factor_table_pairs_each_configuration_with_the_base_by_track(tmp_path, capsys):
     from analysis.factors import factor_rows, main, t_interval
 

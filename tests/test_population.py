@@ -35,7 +35,7 @@ def seeds(*values):
     return f"seeds=[{','.join(map(str, values))}]"
 
 
-@pytest.mark.parametrize("algo, er", CASES)
+@pytest.mark.parametrize("algo, er", [pytest.param(*CASES[0], marks=pytest.mark.slow), CASES[1]])
 def test_each_member_equals_its_solo_run_in_any_order(tmp_path, algo, er):
     train(load(*common(algo, er), f"seed={B}"), tmp_path / "solo")
     train_population(load(*common(algo, er), seeds(A, B, C)), tmp_path / "abc")
@@ -79,6 +79,7 @@ def test_a_diverging_member_is_frozen_and_the_others_go_on(tmp_path, monkeypatch
             == (tmp_path / "solo" / "metrics.csv").read_bytes())
 
 
+@pytest.mark.slow
 def test_a_population_split_over_processes_killed_and_resumed_gives_its_unsplit_results(tmp_path):
     """processes=2 trains [A, B, C, D] as two populations, (A, B) and (C, D), in two processes, each with its
     own checkpoint. The parent is killed (SIGKILL, it alone) after both parts have saved one: the
@@ -132,6 +133,7 @@ def test_members_split_into_near_equal_parts():
     assert split_members((1,), 4) == [(1,)] and split_members((), 2) == []
 
 
+@pytest.mark.slow
 def test_finished_members_are_skipped(tmp_path):
     """A member whose folder holds the same run, finished (here: trained alone), is not trained
     again; the others are."""
@@ -146,6 +148,7 @@ def test_finished_members_are_skipped(tmp_path):
     assert json.loads((tmp_path / f"seed{B}" / "summary.json").read_text())["population"]["size"] == 1
 
 
+@pytest.mark.slow
 def test_the_default_run_folders(tmp_path):
     """One run: .../<algo>/<er>/seed<seed>; a population: its members' seed<seed>/ under .../<algo>/<er>."""
     result = run_train(*common("ppo", "recent", episodes=1), seeds(A, C), "checkpoint_every=0", cwd=tmp_path)
@@ -157,6 +160,7 @@ def test_the_default_run_folders(tmp_path):
     assert (tmp_path / "outputs" / "runs" / "ppo" / "recent" / f"seed{B}" / "summary.json").exists()
 
 
+@pytest.mark.slow
 def test_a_population_with_a_finished_member_resumes(tmp_path):
     """Member A finished earlier (alone); B is trained, interrupted after a checkpoint, and
     resumed: B equals its uninterrupted run and A's summary is returned untouched."""
@@ -201,6 +205,7 @@ def test_a_population_trains_and_resumes_on_a_gpu(tmp_path):
         assert all(t.device.type == "cpu" for t in weights.values())
 
 
+@pytest.mark.slow
 def test_the_allocator_setting_changes_no_number(tmp_path):
     """keep_freed_memory (engine/processes.py) only changes where memory comes from: a population
     trained in a process that set it equals one trained in a fresh process without it."""

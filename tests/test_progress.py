@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 import io
 import threading
 
@@ -55,6 +57,7 @@ def test_a_terminal_gets_a_bar_with_a_thread_lock():
     assert type(tqdm.get_lock()) is type(threading.RLock())
 
 
+@pytest.mark.slow
 def test_a_piped_run_writes_no_long_lines(tmp_path):
     result = run_train("algo=spg", "er=recent", "seed=3", "episodes=30", "logger=none", f"hydra.run.dir={tmp_path}")
     assert result.returncode == 0, result.stderr[-3000:]

@@ -90,6 +90,7 @@ def test_the_readme_shows_what_these_tests_run():
     assert "clean_sweep.py +experiment=full_grid" in README and "hydra/launcher=slurm" in README
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args", TRAIN, ids=[" ".join(c) or "defaults" for c in TRAIN])
 def test_readme_train_command(tmp_path, args):
     result = run_train(*tiny(args, tmp_path))
@@ -114,6 +115,7 @@ def test_readme_train_command(tmp_path, args):
             assert (path.parent.parent / ".hydra" / "config.yaml").exists()  # the cell's job folder
 
 
+@pytest.mark.slow
 def test_readme_report_and_evaluate_commands(tmp_path, capsys):
     """The README's report and evaluate lines, on a two-run sweep in place of the paper grid."""
     pytest.importorskip("matplotlib", reason="the report's figures and the video need the render extra")
@@ -157,6 +159,7 @@ def _sweep_values(override: str) -> list[str]:
     return [f"{key}={v}" for v in value.split(",")]
 
 
+@pytest.mark.slow
 def test_every_documented_sweep_of_the_current_code_composes():
     """Each ``clean_sweep.py`` line of the README and docs/ that runs the current code (no
     ``--commit`` of an older one) composes, every swept value: a key misspelt in a documented
@@ -176,18 +179,20 @@ def test_every_documented_sweep_of_the_current_code_composes():
     assert checked >= 2  # the README's paper and full grids at least (the journal's sweeps are history: not checked)
 
 
-def test_the_quick_tier_selects_every_test_file_but_the_listed_slow_tests():
-    """The README's quick tier (``-m "not slow"``): it deselects exactly tests/slow_tests.txt and keeps a
-    test of every test file that has a fast one."""
-    from tests.conftest import _slow_tests
-
+@pytest.mark.slow
+def test_the_quick_tier_selects_every_test_file_but_the_marked_slow_tests():
+    """The README's quick tier (``-m "not slow"``): it deselects exactly the tests marked ``slow`` (at the
+    test, or a parameter of it) and keeps a test of every test file that has a fast one."""
     assert '.venv/bin/python -m pytest -m "not slow"' in README
     result = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-m", "not slow", "-p",
                              "no:cacheprovider", "-o", "addopts="], cwd=ROOT, capture_output=True, text=True,
                             timeout=300)
     assert result.returncode == 0, result.stdout[-2000:]
     selected = {line for line in result.stdout.splitlines() if "::" in line}
-    assert not selected & _slow_tests() and len(selected) > 400
+    slow = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-m", "slow", "-p",
+                           "no:cacheprovider", "-o", "addopts="], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    marked = {line for line in slow.stdout.splitlines() if "::" in line}
+    assert not selected & marked and len(marked) > 100 and len(selected) > 400
     assert len({test.split("::")[0] for test in selected}) >= 30
 
 

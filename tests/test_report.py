@@ -202,6 +202,7 @@ def test_report_refuses_a_folder_without_runs(tmp_path, capsys):
     assert "is not a folder" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_tiny_sweep_then_report_and_evaluate(tmp_path, capsys):
     """2 configurations x 2 seeds x 3 episodes, end to end: sweep, report with figures, evaluate."""
     pytest.importorskip("matplotlib", reason="the report's figures need the render extra")

@@ -43,6 +43,7 @@ def uninterrupted(tmp_path, *extra):
     return (out / "metrics.csv").read_bytes()
 
 
+@pytest.mark.slow
 def test_sigkill_then_resume_gives_the_uninterrupted_metrics(tmp_path):
     run_dir = tmp_path / "run"
     cmd = [sys.executable, str(ROOT / "train.py"), *RUN, f"hydra.run.dir={run_dir}"]
@@ -64,6 +65,7 @@ def test_sigkill_then_resume_gives_the_uninterrupted_metrics(tmp_path):
     assert not (run_dir / checkpoint.CHECKPOINT_FILE).exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("collector", ["direct", "torchrl"])
 def test_resume_after_an_interruption_in_process(tmp_path, collector):
     """Stopped after episode 5 (checkpoint at 4): the resumed run equals the uninterrupted one,
@@ -84,6 +86,7 @@ def test_resume_after_an_interruption_in_process(tmp_path, collector):
     assert [(path["from_episode"], path["collector"]) for path in summary["paths"]] == [(0, other), (4, collector)]
 
 
+@pytest.mark.slow
 def test_a_corrupt_checkpoint_is_refused_clearly(tmp_path):
     run_dir = tmp_path / "run"
     run_dir.mkdir()
@@ -94,6 +97,7 @@ def test_a_corrupt_checkpoint_is_refused_clearly(tmp_path):
     assert "Traceback" not in result.stderr
 
 
+@pytest.mark.slow
 def test_a_checkpoint_of_another_configuration_is_refused(tmp_path):
     torch.save({"version": checkpoint.VERSION, "settings": {"seed": 1}}, tmp_path / checkpoint.CHECKPOINT_FILE)
     result = run_train(*RUN, f"hydra.run.dir={tmp_path}")
@@ -122,6 +126,7 @@ def test_divergence_stops_the_run_cleanly(tmp_path):
     assert stored["status"] == "diverged"
 
 
+@pytest.mark.slow
 def test_a_sweep_goes_on_past_a_diverged_run(tmp_path):
     result = run_train("-m", "algo=ppo_log", "er=recent", "episodes=2", "progress=false", "logger=none",
                        "algo.critic_lr=1e30,0.0005", "hydra.sweep.subdir=lr${algo.critic_lr}", "hydra/launcher=basic",

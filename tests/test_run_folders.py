@@ -83,6 +83,7 @@ def fault_plan(rng: random.Random) -> tuple[list[dict], list[dict]]:
     return during, final
 
 
+@pytest.mark.slow
 def test_a_run_killed_at_any_moment_resumes_to_the_uninterrupted_files(tmp_path):
     """At least 20 kills (SIGKILL, SIGTERM, SIGINT) of one run, in checkpoint, metrics and weight
     writes and at random times; after each the folder is never damaged, and the run that is
@@ -131,6 +132,7 @@ def train(overrides: list[str], folder: Path) -> dict:
     return train_population(RunConfig.from_mapping(settings), folder, settings)[0]
 
 
+@pytest.mark.slow
 def test_a_finished_run_is_never_replaced_and_its_record_never_rewritten(tmp_path):
     """Points 1, 5 and the last of 9: a damaged summary is refused (not taken for an unfinished
     run); a refused command leaves .hydra/ as it was; a run ends with one line saying how it went
@@ -216,6 +218,7 @@ def test_evaluation_settings_are_checked_before_training_and_a_checkpoint_takes_
     assert summary["settings"]["eval_seeds"] == [2]
 
 
+@pytest.mark.slow
 def test_a_second_process_on_a_run_folder_is_refused_at_once(tmp_path):
     """Point 4: the folder's lock names its holder; the kernel releases it when the holder dies."""
     folder = tmp_path / "run"
@@ -338,6 +341,7 @@ def test_the_racing_config_keys_of_conf_are_the_simulators():
     assert all(value is None for value in options.values())
 
 
+@pytest.mark.slow
 def test_a_sweep_is_checked_whole_before_its_first_job_and_failures_are_listed_at_the_end(tmp_path):
     """Point 8: every bad job of a sweep is reported at once and nothing runs; two jobs on one
     folder are caught; a job that fails at run time is listed at the end, after the others finished."""
@@ -363,6 +367,7 @@ def test_a_sweep_is_checked_whole_before_its_first_job_and_failures_are_listed_a
     assert json.loads((sweep / "spg" / "recent" / "seed6" / "summary.json").read_text())["status"] == "completed"
 
 
+@pytest.mark.slow
 def test_ctrl_c_ends_a_run_with_one_line_and_the_same_command_resumes(tmp_path):
     """Point 9: SIGINT stops the run at the end of its episode with a checkpoint and one line;
     point 4: the same command started again while it runs is refused, naming its pid."""
@@ -400,6 +405,7 @@ def _can_mount() -> str | None:
     return None
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(_can_mount() is not None, reason=str(_can_mount()))
 def test_a_full_disk_is_reported_as_such_and_leaves_the_last_good_files(tmp_path):
     """Point 7: on a tmpfs too small for the run, the error says no space (the path, the bytes

@@ -5,6 +5,8 @@ with exit status 130 or 143; a signal before training starts is one line too."""
 
 from __future__ import annotations
 
+import pytest
+
 import os
 import signal
 import subprocess
@@ -52,6 +54,7 @@ def _rows(folder: Path) -> int:
     return len((folder / "metrics.csv").read_text().splitlines()) - 1
 
 
+@pytest.mark.slow
 def test_sigterm_to_the_parent_of_a_split_population_stops_every_part_with_its_checkpoint(tmp_path):
     """A population split over processes ignored SIGTERM sent to its parent: 60 s later it still trained."""
     folder = tmp_path / "run"
@@ -69,6 +72,7 @@ def test_sigterm_to_the_parent_of_a_split_population_stops_every_part_with_its_c
     assert sorted(p.name for p in rundir.checkpoints(folder)) == ["checkpoint-1.pt", "checkpoint-2.pt"]
 
 
+@pytest.mark.slow
 def test_sigterm_to_one_part_stops_the_whole_population(tmp_path):
     """SIGTERM sent to a worker directly did not stop the population either."""
     folder = tmp_path / "run"
@@ -83,6 +87,7 @@ def test_sigterm_to_one_part_stops_the_whole_population(tmp_path):
         and "checkpoint-2.pt" in line, line
 
 
+@pytest.mark.slow
 def test_sigterm_to_a_sweep_stops_its_jobs_starts_no_other_and_leaves_no_process(tmp_path):
     """SIGTERM to a sweep's main process left its joblib workers running, orphaned; SIGINT stopped the
     current job only, and the sweep started the next."""
@@ -118,6 +123,7 @@ def test_a_signal_before_training_starts_is_one_line(tmp_path):
         assert line.startswith(f"Stopped by {name} "), line
 
 
+@pytest.mark.slow
 def test_a_scoring_tool_stopped_by_a_signal_says_so_in_one_line(tmp_path):
     """score.py (as evaluate.py, tracks.py, drive.py: engine.processes.run_tool) on SIGTERM or SIGINT:
     one line, status 143 or 130, no traceback, no table."""

@@ -173,6 +173,7 @@ def test_bad_settings_are_refused_with_a_reason(override, message):
 
 # ------------------------------------------------------------------ whole runs (member == solo run, exact
 # resume: tests/test_offpolicy.py's, parametrised with simbav2)
+@pytest.mark.slow
 def test_train_py_trains_and_evaluates(tmp_path):
     result = run_train("algo=simbav2", "seed=3", "episodes=2", "algo.td.warmup_episodes=1",
                        "algo.td.updates_per_step=0.05", "progress=false", f"hydra.run.dir={tmp_path}")

@@ -56,6 +56,7 @@ def rows(path) -> int:
     return max(0, len(path.read_text().splitlines()) - 1) if path.exists() else 0
 
 
+@pytest.mark.slow
 def test_requeued_and_cancelled_jobs_resume_exactly_and_finished_runs_are_skipped(cluster, tmp_path):
     """Job 0 is requeued mid-run (killed, queued and started again: it resumes by itself); job 1
     is cancelled mid-run (reported; the same command again resumes it and skips job 0's
@@ -111,6 +112,7 @@ def test_requeued_and_cancelled_jobs_resume_exactly_and_finished_runs_are_skippe
                 == (tmp_path / "local" / f"seed{seed}" / "metrics.csv").read_bytes())
 
 
+@pytest.mark.slow
 def test_a_refused_job_is_reported_last_in_one_line(cluster, tmp_path):
     """A bad value is refused before anything is submitted (the sweeper checks every job); a job
     that refuses its folder at run time (a checkpoint of another run) is reported at the end."""

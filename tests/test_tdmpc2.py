@@ -237,6 +237,7 @@ def test_the_prior_s_loss_reaches_the_prior_alone_and_the_model_s_losses_leave_i
 
 
 # ------------------------------------------------------------------ the learner
+@pytest.mark.slow
 def test_a_planning_member_equals_its_solo_run_resumes_exactly_and_its_model_loads_as_a_policy(tmp_path):
     run = ["algo=tdmpc2", *SHORT, "episodes=5", "checkpoint_every=2"]
     solo = solo_and_resumed_pair(run, tmp_path)
@@ -267,6 +268,7 @@ def test_tdmpc2_s_settings_are_checked(override, message):
         load("algo=tdmpc2", "er=memory", *override)
 
 
+@pytest.mark.slow
 def test_a_planning_run_s_policy_plans_with_its_saved_model_and_q_networks(tmp_path):
     """load_policy reads actor.pt and critic.pt: the policy plans (not the prior's tanh(loc)), drives the same
     actions in every episode from the same start (its draws restart with the episode), and evaluation in
@@ -299,6 +301,7 @@ def test_a_planning_run_s_policy_plans_with_its_saved_model_and_q_networks(tmp_p
         load_policy(tmp_path)
 
 
+@pytest.mark.slow
 def test_without_planning_it_acts_and_evaluates_by_its_prior(tmp_path):
     from learners.latent import PlanningSampler
 

@@ -30,6 +30,7 @@ def read_rows(path: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
+@pytest.mark.slow
 def test_a_run_leaves_its_outputs(tmp_path):
     result = run_train("algo=spg_p", "er=hybrid", "seed=3", "episodes=3", "progress=false",
                        f"hydra.run.dir={tmp_path}")
@@ -76,6 +77,7 @@ def test_both_collectors_train_identically(tmp_path, algo, er):
     assert (tmp_path / "direct" / "metrics.csv").read_bytes() == (tmp_path / "torchrl" / "metrics.csv").read_bytes()
 
 
+@pytest.mark.slow
 def test_parallel_launcher_reuses_workers_and_stays_deterministic(tmp_path):
     """Four jobs on two joblib workers: each equals the same run made alone in this process."""
     result = run_train("-m", "algo=spg_p,ppo", "er=recent", "seed=11,12", "episodes=2", "progress=false",
@@ -90,6 +92,7 @@ def test_parallel_launcher_reuses_workers_and_stays_deterministic(tmp_path):
             assert swept.read_bytes() == (alone / "metrics.csv").read_bytes(), (algo, seed)
 
 
+@pytest.mark.slow
 def test_a_finished_run_is_skipped_and_a_different_one_refused(tmp_path):
     from engine.outputs import seal
 
@@ -112,6 +115,7 @@ def test_a_finished_run_is_skipped_and_a_different_one_refused(tmp_path):
     assert replaced.returncode == 0 and len(read_rows(tmp_path / "metrics.csv")) == 3
 
 
+@pytest.mark.slow
 def test_a_command_forked_from_the_test_zygote_is_a_new_process_run(tmp_path):
     """tests/zygote.py gives what ``python train.py ...`` gives: the same status, streams and files,
     a finished run and a refused one."""
