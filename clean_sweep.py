@@ -22,7 +22,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from racing import files
+from door import files
 
 ROOT = Path(__file__).resolve().parent
 

@@ -18,7 +18,8 @@ import numpy as np
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # draw without a screen
 
-from racing import PAPER_TRACK_SEEDS, RacingEnv, files  # noqa: E402
+from door import files  # noqa: E402
+from racing import PAPER_TRACK_SEEDS, RacingEnv  # noqa: E402
 from racing.driver import ray_follower  # noqa: E402
 from racing.figures import tracks_figure  # noqa: E402
 from racing.render import import_pygame, track_view  # noqa: E402

@@ -43,7 +43,7 @@ import sys
 from pathlib import Path
 
 from engine import numerics
-from racing import files
+from door import files
 from analysis.beyond import beyond_markdown, generalisation_markdown
 from analysis.report import (cells, code_versions, collapse_markdown, conclusions_markdown, find_runs,
                              normalised_markdown, numerics_groups, read_oracle, read_paper_table, table_markdown,

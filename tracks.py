@@ -137,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             track = load_track(path)
         except TrackFileError as err:
-            from racing import files
+            from door import files
 
             files.remove(path)
             print(f"tracks: the track of seed {args.seed} cannot be a file: {err}", file=sys.stderr)

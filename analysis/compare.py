@@ -31,7 +31,7 @@ def _refuse(message: str) -> None:
 
 def read_runs(path: Path) -> dict[tuple[str, str, int], float]:
     """{(er, algo, seed): final_mean} of the completed runs of a report's ``runs.csv``."""
-    from racing import files
+    from door import files
 
     try:
         rows = files.read_csv(path, 1 << 28, "runs.csv")
@@ -140,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     text = heading + compare(new, old, args.collapse)
     print(text, end="")
     if args.markdown:
-        from racing import files
+        from door import files
 
         files.write_text(args.markdown, text)
     return 0

@@ -152,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     text = markdown(rows)
     print(text, end="")
     if args.markdown:
-        from racing import files
+        from door import files
 
         files.write_text(args.markdown, text)
     if args.table:

@@ -169,7 +169,7 @@ def agent_frame(run_dir: Path, path: Path, step: int = 120) -> Path:
     import imageio.v3 as imageio
 
     from engine.evaluation import load_policy, make_env, run_episode
-    from racing import files
+    from door import files
 
     net, settings = load_policy(run_dir)
     env = make_env(settings, settings["seed"], render_mode="rgb_array")

@@ -17,7 +17,7 @@ from pathlib import Path
 
 from engine.config import algo_titles
 from engine.outputs import METRICS_FILE, ROWS_LIMIT, SUMMARY_FILE
-from racing import files
+from door import files
 
 PAPER_TABLE = Path(__file__).resolve().parent / "data" / "paper_table1.csv"
 EPISODE_STEPS = 200  # racing.RacingConfig.max_steps (not imported: the report reads folders only)
@@ -209,7 +209,7 @@ def _read_csv(path: Path, what: str) -> list[dict]:
 
 
 def _write_csv(path: Path, header: list[str], rows) -> None:
-    """A CSV table written whole (``racing.files.write_atomic``)."""
+    """A CSV table written whole (``door.files.write_atomic``)."""
     text = io.StringIO(newline="")
     writer = csv.writer(text)
     writer.writerow(header)

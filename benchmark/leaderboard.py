@@ -111,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
 def _from_scores(paths: list[Path], out: Path) -> int:
     """The board from runs.csv files a leaderboard wrote: one agent per name, its runs' per-track scores."""
     from benchmark.protocol import TRACKS
-    from racing import files
+    from door import files
 
     cells: dict[str, dict[str, dict[int, float]]] = {}
     rows = []
@@ -164,7 +164,7 @@ def _write_board(cells: dict[str, list[list[float]]], rows: list[dict], out: Pat
     lines = ["| agent | runs | score [95% interval] | oracle-normalised [95% interval] |", "|---|---:|---:|---:|"]
     lines += [f"| {r['agent']} | {r['runs']} | {r['score']:.1f} [{r['low']:.1f}, {r['high']:.1f}] | "
               f"{r['normalised']:.3f} [{r['normalised_low']:.3f}, {r['normalised_high']:.3f}] |" for r in board]
-    from racing import files
+    from door import files
 
     files.write_text(out / "leaderboard.md", "\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -201,7 +201,7 @@ def score(agent: Agent, tracks=TRACKS, episodes: int = EPISODES, first_seed: int
 
 def read_oracle(path: Path = ORACLE_SCORES) -> dict[int, float]:
     """{track: the oracle's mean total reward} for the benchmark tracks (shipped)."""
-    from racing import files
+    from door import files
 
     return {int(row["track"]): float(row["mean_reward"]) for row in files.read_csv(path, 1 << 20, "oracle table")}
 

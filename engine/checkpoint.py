@@ -7,7 +7,7 @@ module (stacked networks and, for SPG, the temperatures), both optimisers, the r
 simulator's state (cars, tracks, random streams), the episode counter, each member's learning
 curve and status (frozen members stay frozen), the run's settings and the code version.
 
-Written atomically (``racing.files.write_atomic``: a temporary file, fsync, rename), so a crash
+Written atomically (``door.files.write_atomic``: a temporary file, fsync, rename), so a crash
 mid-write leaves the previous checkpoint in place and a full disk is reported as such. The file
 is sealed: one line, ``racing-rl checkpoint sha256 <digest>``, then torch's zip, the digest that
 of the zip's bytes, so that a flipped bit anywhere (torch does not check its zip's CRCs) is
@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from racing import files
+from door import files
 from engine.outputs import first_line, write_atomic
 from engine.rundir import checkpoints as in_folder  # noqa: F401 (part of this module's interface)
 

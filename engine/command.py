@@ -117,7 +117,7 @@ class Session:
         from hydra.core.hydra_config import HydraConfig
         from omegaconf import OmegaConf
 
-        from racing import files
+        from door import files
 
         record = files.folder(self.out_dir / ".hydra", self.out_dir, create=True)  # a real folder, not a link
         hydra_cfg = HydraConfig.get()
@@ -148,7 +148,7 @@ def session(cfg, settings: dict):
     from engine.checkpoint import CheckpointError
     from engine.config import ConfigError
     from engine.processes import STOP_FILE, RunStopped, idle_between_jobs, read_stop_file, write_stop_file
-    from racing.files import DiskFull, FileRefused
+    from door.files import DiskFull, FileRefused
 
     global _trained
     out_dir = Path(HydraConfig.get().runtime.output_dir)

@@ -37,9 +37,9 @@ def seed_dir(seeds, seed) -> str:
 def run_path(algo, er, seeds, seed) -> str:
     """A run's folder below ``outputs/runs/`` or a sweep's folder (``conf/config.yaml``):
     ``<algo>/<er>/seed<seed>`` for one run, ``<algo>/<er>`` for a population. The names are checked
-    as names (``racing.files.name``: no separator, no ``..``) before Hydra makes the folder, so a
+    as names (``door.files.name``: no separator, no ``..``) before Hydra makes the folder, so a
     configuration value never makes a folder outside ``outputs/``."""
-    from racing import files
+    from door import files
 
     parts = [files.name(algo, "algo.name"), files.name(er, "er.name")]
     return "/".join(parts) + seed_dir(seeds, seed)
@@ -143,7 +143,7 @@ def track_file_sha256(path) -> str | None:
     track file may have, or cannot be read: validation then says why)."""
     import hashlib
 
-    from racing import files
+    from door import files
     from racing.track_file import MAX_BYTES
 
     try:
@@ -263,7 +263,7 @@ def algo_titles() -> dict[str, str]:
     joins them by itself."""
     import yaml
 
-    from racing import files
+    from door import files
 
     titles = {}
     for path in sorted((CONF_DIR / "algo").glob("*.yaml")):

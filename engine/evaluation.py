@@ -296,10 +296,10 @@ FILM_PROGRESS_EVERY = 500  # frames between progress lines while filming a long 
 
 def write_video(frames: list, path: Path, fps: int = 30) -> int:
     """Frames (RGB arrays) as a GIF or MP4 at ``fps``, encoded in memory and written whole through the
-    file door (``racing.files.write_atomic``); returns how many."""
+    file door (``door.files.write_atomic``); returns how many."""
     import imageio.v3 as imageio
 
-    from racing import files
+    from door import files
 
     path = Path(path)
     if path.suffix.lower() == ".gif":

@@ -82,7 +82,7 @@ def estimate(cfg) -> dict[str, int]:
 def available_bytes() -> int | None:
     """Memory this process may still take: MemAvailable (``/proc/meminfo``), or the cgroup's limit
     less its usage if that is lower; None where neither can be read (not Linux)."""
-    from racing import files
+    from door import files
 
     def system(path: str) -> str:
         return files.read_text(path, 1 << 16, "system file", follow=True)

@@ -123,7 +123,7 @@ def _portable_kernels_available() -> bool:
 
     if platform.machine().lower() not in ("x86_64", "amd64"):
         return False
-    from racing import files
+    from door import files
 
     try:
         text = files.read_text("/proc/cpuinfo", 1 << 24, "system file", follow=True)

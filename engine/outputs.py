@@ -12,8 +12,8 @@ import os
 from pathlib import Path
 from typing import Any
 
-from racing import files
-from racing.files import DiskFull, FileRefused, free_bytes  # noqa: F401 (part of this module's interface)
+from door import files
+from door.files import DiskFull, FileRefused, free_bytes  # noqa: F401 (part of this module's interface)
 
 METRICS_FILE = "metrics.csv"
 SUMMARY_FILE = "summary.json"
@@ -160,7 +160,7 @@ def _format(value: Any) -> Any:
 
 def make_torchrl_logger(kind: str, out_dir: Path, scalars: list[str] = ()):
     """A ``torchrl.record.loggers`` logger writing under ``out_dir/logs`` (``None`` for "none"). Its
-    folder is checked whole first (``racing.files.check_tree``); the CSV logger's file of each of
+    folder is checked whole first (``door.files.check_tree``); the CSV logger's file of each of
     ``scalars`` is opened through the file door and handed to it (its ``experiment.files``), so it
     writes through the door, never opening a file of its own; TensorBoard's logger writes one new
     event file of a fresh name into the checked folder."""
@@ -205,7 +205,7 @@ def write_table(path: Path, rows: list[dict]) -> None:
     print(f"wrote {path} ({len(rows)} rows)")
 
 
-write_atomic = files.write_atomic  # the door's (racing/files.py)
+write_atomic = files.write_atomic  # the door's (door/files.py)
 
 
 def write_json_atomic(path: Path, data: dict) -> None:

@@ -28,10 +28,10 @@ def run_tool(name: str, main) -> int:
     imitate.py, baseline.py): SIGINT or SIGTERM ends it with one line and status 130 or 143 instead
     of a traceback. The readers write their files whole at their end, so nothing is left half
     written; baseline.py's interrupted run folder stays unfinished (no summary), as train.py's.
-    A file the tool may not read or write (``racing.files.FileRefused``: a FIFO, a link, a folder
+    A file the tool may not read or write (``door.files.FileRefused``: a FIFO, a link, a folder
     where a file goes, a read-only disk, a name too long) ends it with that one line and status 2
     (1 for a full disk)."""
-    from racing.files import DiskFull, FileRefused
+    from door.files import DiskFull, FileRefused
 
     readable_output()
 
@@ -51,7 +51,7 @@ def run_tool(name: str, main) -> int:
 
 # The project's own packages (pyproject.toml's list; tests/test_signals.py keeps the two equal):
 # code of theirs is where a stop may raise, wherever the project is installed.
-PROJECT_PACKAGES = ("racing", "losses", "collectors", "learners", "engine", "analysis", "benchmark",
+PROJECT_PACKAGES = ("door", "racing", "losses", "collectors", "learners", "engine", "analysis", "benchmark",
                     "external", "pupil", "hydra_plugins")
 
 
@@ -114,10 +114,10 @@ RUN_MARKERS = ("summary.json", "checkpoint.pt")  # a folder holding one is a run
 
 def check_outputs(parser, **outputs) -> None:
     """Before a tool's work: each output file its command line names (``table=args.table``, ...) can
-    be written (``racing.files.check_target``) and lies outside every run folder (a folder holding a
+    be written (``door.files.check_target``) and lies outside every run folder (a folder holding a
     run's summary or a population's checkpoint, or below one: those hold only the run's own files, and
     an output there would replace one of them or damage the run), else ``parser.error`` with one line."""
-    from racing import files
+    from door import files
 
     for option, path in outputs.items():
         if path is None:
@@ -298,7 +298,7 @@ def idle_between_jobs() -> None:
 
 def read_stop_file(path: Path) -> str | None:
     """The signal named by a sweep's stop file (None: there is none)."""
-    from racing import files
+    from door import files
 
     try:
         text = files.read_text(path, 64, "stop file").strip()
@@ -311,7 +311,7 @@ def read_stop_file(path: Path) -> str | None:
 
 def write_stop_file(path: Path, name: str) -> None:
     """Ask every job of a sweep to stop (``StopSignals``'s ``stop_file``), never through a link."""
-    from racing import files
+    from door import files
 
     try:
         files.write_atomic(path, (name + "\n").encode())  # replaces a link there, never writes through it
@@ -333,7 +333,7 @@ def stop_at_once(pids: list[int]) -> None:
 
 def descendants(pid: int | None = None) -> list[int]:
     """The processes started by ``pid`` (default: this one) and theirs, from /proc (Linux; [] elsewhere)."""
-    from racing import files
+    from door import files
 
     pid = os.getpid() if pid is None else pid
     children: dict[int, list[int]] = {}

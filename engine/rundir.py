@@ -32,7 +32,7 @@ import stat
 from dataclasses import dataclass
 from pathlib import Path
 
-from racing import files
+from door import files
 from engine.outputs import (DIGEST_KEY, FINAL_STATUSES, METRICS_FILE, SUMMARY_FILE, RunFolderError, file_digest,
                             first_line, read_summary)
 
@@ -97,7 +97,7 @@ def linked_file(folder: Path) -> str | None:
     """What is where a run keeps its own files and is not one of them (None: nothing): a symbolic
     link, a FIFO, a device or a folder at a file's name, a file at a folder's name, or anything
     below ``logs/`` or ``.hydra/`` that is a link, a special file or a hard link (TorchRL's loggers
-    open their files themselves: their folder is checked whole, ``racing.files.check_tree``)."""
+    open their files themselves: their folder is checked whole, ``door.files.check_tree``)."""
     folder = Path(folder)
     for path in _run_files(folder):
         try:
@@ -261,7 +261,7 @@ def clear(folder: Path) -> None:
 
 
 def remove_temporaries(folder: Path) -> None:
-    """Temporary files a killed writer left behind (``racing.files.write_atomic``'s
+    """Temporary files a killed writer left behind (``door.files.write_atomic``'s
     ``<name>.<8 hex>.tmp``, or an older ``<name>.tmp``), for the files a run writes only: a user's own
     ``*.tmp`` stays."""
     for path in Path(folder).glob("*.tmp"):
@@ -277,7 +277,7 @@ _held: dict[Path, list] = {}  # folder -> [file descriptor, depth]: a process ma
 def lock(folders, root=None) -> None:
     """Hold the lock of every folder (created if missing) for the block; ``RunFolderBusy`` at once
     if another process holds one of them. Re-entrant within a process. Every folder from ``root``
-    (default: each folder itself) down to each folder is checked first (``racing.files.folder``):
+    (default: each folder itself) down to each folder is checked first (``door.files.folder``):
     a member's folder that is a link to another folder is refused, never written through."""
     taken: list[Path] = []
     try:

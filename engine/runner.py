@@ -40,7 +40,7 @@ from tensordict import TensorDictBase
 from collectors import add_monte_carlo_returns, n_step_transitions
 from engine import checkpoint, numerics, setup
 from engine import rundir
-from racing import files
+from door import files
 from engine.processes import (RunStopped, StopSignals, descendants, exit_with_parent, keep_freed_memory,
                               spawn_context, stop_at_once)
 from engine.config import ConfigError, RunConfig, settings_difference
@@ -121,7 +121,7 @@ def train_population(cfg: RunConfig, out_dir: Path, settings: dict | None = None
     process on the folder, a damaged folder, a finished run or checkpoint of other settings) comes
     before anything is written, and ``on_start()`` (if given) is called once the run is sure to
     train. Every folder from ``root`` (a sweep's folder; default ``out_dir``) down to each member's is
-    a real folder, never a link (``racing.files.folder``), checked before anything is written.
+    a real folder, never a link (``door.files.folder``), checked before anything is written.
     SIGINT or SIGTERM stops it at the end of the episode with a checkpoint (``RunStopped``),
     as does ``stop_file`` appearing (a sweep's, ``engine.processes.STOP_FILE``); a population split
     over processes passes the stop on to every part, and ends when they all have.

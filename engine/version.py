@@ -19,10 +19,10 @@ import hashlib
 import subprocess
 from pathlib import Path
 
-from racing import files as door
+from door import files as door
 
 ROOT = Path(__file__).resolve().parent.parent
-SOURCE_PATHS = ("racing", "losses", "collectors", "learners", "engine", "analysis", "conf", "train.py")
+SOURCE_PATHS = ("door", "racing", "losses", "collectors", "learners", "engine", "analysis", "conf", "train.py")
 SOURCE_SUFFIXES = (".py", ".yaml", ".csv", ".cpp", ".h")  # the C++ kernels compute every product under fma
 COMMIT_FILE = Path(__file__).resolve().parent / "COMMIT"
 

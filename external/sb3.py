@@ -68,7 +68,7 @@ def load_model(path) -> tuple[object, str]:
     import zipfile
 
     from engine.checkpoint import load_tensors_from
-    from racing import files
+    from door import files
     from racing.gym_env import RacingEnv
 
     try:

@@ -58,7 +58,7 @@ def inductor_cache() -> str:
     ``$TORCHINDUCTOR_CACHE_DIR``, or ``inductor`` beside the project's kernel cache, made private
     (mode 0700), checked to be this user's and not a link. ``RuntimeError`` saying why otherwise."""
     from learners.kernels import cache_dir
-    from racing import files
+    from door import files
 
     chosen = os.environ.get("TORCHINDUCTOR_CACHE_DIR")
     if chosen:

@@ -181,7 +181,7 @@ def digests(units) -> dict[str, str | None]:
 
 
 def _recorded() -> dict[str, str]:
-    from racing import files  # the one door (stdlib only)
+    from door import files  # the one door (stdlib only)
 
     return json.loads(files.read_text(RECORD, 2_000_000, "fast-path record"))["digests"]
 
@@ -250,7 +250,7 @@ def main(argv=None) -> int:
 
     now = record_now()
     if args.record:
-        from racing import files
+        from door import files
 
         text = json.dumps({"torchrl": torchrl.__version__, "digests": now}, indent=1) + "\n"
         files.write_text(RECORD, text)

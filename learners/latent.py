@@ -13,7 +13,6 @@ step's plan as the warm start; ``PlanningSampler``: the acting policy that plans
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import torch
@@ -23,6 +22,7 @@ from torch import nn
 from learners.networks import StackedCriticNet
 from learners.td.learner import OffPolicySampler
 from losses.functional import per_member
+from losses.tdmpc2 import Support, prior_action
 
 
 def simnorm(x: torch.Tensor, group: int) -> torch.Tensor:
@@ -30,16 +30,6 @@ def simnorm(x: torch.Tensor, group: int) -> torch.Tensor:
     shape = x.shape
     return per_member(lambda t: t.reshape(*t.shape[:-1], -1, group).softmax(-1).reshape(t.shape),
                       x.reshape(shape[0], -1, group)).reshape(shape)
-
-
-def symlog(x: torch.Tensor) -> torch.Tensor:
-    """sign(x) log(1 + |x|)."""
-    return x.sign() * per_member(torch.log1p, x.abs())
-
-
-def symexp(x: torch.Tensor) -> torch.Tensor:
-    """sign(x) (exp(|x|) - 1), the inverse of ``symlog``."""
-    return x.sign() * per_member(torch.expm1, x.abs())
 
 
 class LatentModel(nn.Module):
@@ -80,27 +70,6 @@ class LatentModel(nn.Module):
         return self.pi(self.encode(observation))
 
 
-@functools.lru_cache(maxsize=16)
-def _points(v_max: float, bins: int, device: torch.device) -> torch.Tensor:
-    return torch.linspace(-v_max, v_max, bins, device=device)
-
-
-@dataclass(frozen=True)
-class Support:
-    """The categorical support of rewards and values: ``bins`` points evenly from -v_max to v_max in symlog
-    space."""
-
-    v_max: float
-    bins: int
-
-    def points(self, device=None) -> torch.Tensor:
-        return _points(self.v_max, self.bins, torch.device(device) if device is not None else torch.device("cpu"))
-
-    def value(self, logits: torch.Tensor) -> torch.Tensor:
-        """The distribution's expected symlog value, back in real units: ``[..., bins] -> [..., 1]``."""
-        return symexp((logits.softmax(-1) * self.points(logits.device)).sum(-1, keepdim=True))
-
-
 @dataclass(frozen=True)
 class PlanOptions:
     """MPPI's settings (``algo.tdmpc2``)."""
@@ -135,11 +104,6 @@ def split_draws(draws: torch.Tensor, options: PlanOptions, action_dim: int) -> d
         out[key] = draws[:, start:start + count].reshape(draws.shape[0], *shape)
         start += count
     return out
-
-
-def prior_action(model: LatentModel, z: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
-    loc, scale = model.pi(z)
-    return torch.tanh(loc + scale * noise)
 
 
 def trajectory_values(model: LatentModel, q_value, z: torch.Tensor, actions: torch.Tensor, terminal: torch.Tensor,

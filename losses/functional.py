@@ -118,3 +118,13 @@ def weighted_log_likelihood(log_prob: torch.Tensor, weight: torch.Tensor | None,
                             members: bool = False) -> torch.Tensor:
     """Mean of weight * log pi(target | s) (SPG: no weight; SPG-p: weight = Q gain, [B, 1])."""
     return mean(log_prob if weight is None else weight * log_prob, members)
+
+
+def symlog(x: torch.Tensor) -> torch.Tensor:
+    """sign(x) log(1 + |x|)."""
+    return x.sign() * per_member(torch.log1p, x.abs())
+
+
+def symexp(x: torch.Tensor) -> torch.Tensor:
+    """sign(x) (exp(|x|) - 1), the inverse of ``symlog``."""
+    return x.sign() * per_member(torch.expm1, x.abs())

@@ -26,16 +26,48 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import functools
+from dataclasses import dataclass
+
 import torch
+from torch import nn
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule
 from torchrl.objectives import LossModule
 
-from learners.latent import LatentModel, Support, prior_action, symlog
+from losses.functional import symexp, symlog
 from losses.td import DrawnTanhNormal, _stacked_values
 
 TARGET_NOISE_KEY = "tdmpc2_target_noise"  # [R, B, H, A]: the prior's draws at h(s'_t) for the TD target
 PRIOR_NOISE_KEY = "tdmpc2_prior_noise"  # [R, B, H, A]: the prior's draws at z_0 .. z_(H-1) for its loss
+
+
+@functools.lru_cache(maxsize=16)
+def _points(v_max: float, bins: int, device: torch.device) -> torch.Tensor:
+    return torch.linspace(-v_max, v_max, bins, device=device)
+
+
+@dataclass(frozen=True)
+class Support:
+    """The categorical support of rewards and values: ``bins`` points evenly from -v_max to v_max in symlog
+    space."""
+
+    v_max: float
+    bins: int
+
+    def points(self, device=None) -> torch.Tensor:
+        return _points(self.v_max, self.bins, torch.device(device) if device is not None else torch.device("cpu"))
+
+    def value(self, logits: torch.Tensor) -> torch.Tensor:
+        """The distribution's expected symlog value, back in real units: ``[..., bins] -> [..., 1]``."""
+        return symexp((logits.softmax(-1) * self.points(logits.device)).sum(-1, keepdim=True))
+
+
+def prior_action(model: nn.Module, z: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+    """The policy prior's action at latent states ``z``: tanh(loc + scale * noise), (loc, scale) from the
+    model's prior head (``learners.latent.LatentModel.pi``)."""
+    loc, scale = model.pi(z)
+    return torch.tanh(loc + scale * noise)
 
 
 def two_hot(x: torch.Tensor, support: Support) -> torch.Tensor:
@@ -60,7 +92,7 @@ class TDMPC2Loss(LossModule):
     """The module's docstring. ``model`` is the members' ``LatentModel`` (trained as built: its parameters are the
     acting policy's), ``qvalue_networks`` the Q-networks Q(z, a) -> ``bins`` logits (TensorDict modules)."""
 
-    actor_network: LatentModel
+    actor_network: nn.Module  # the members' latent model (learners.latent.LatentModel)
     actor_network_params: TensorDictParams
     target_actor_network_params: TensorDictParams
     qvalue_network: TensorDictModule
@@ -68,7 +100,7 @@ class TDMPC2Loss(LossModule):
     target_qvalue_network_params: TensorDictParams
     out_keys = ["loss_consistency", "loss_reward", "loss_value", "loss_actor", "q_scale"]
 
-    def __init__(self, model: LatentModel, qvalue_networks: Sequence, *, support: Support, horizon: int,
+    def __init__(self, model: nn.Module, qvalue_networks: Sequence, *, support: Support, horizon: int,
                  rho: float, consistency_weight: float, reward_weight: float, value_weight: float,
                  entropy: float, scale_tau: float, members: int, generators: Sequence[torch.Generator]):
         super().__init__()
@@ -87,7 +119,7 @@ class TDMPC2Loss(LossModule):
         self.gamma = float(hyperparams.get("gamma", self.gamma))
 
     @property
-    def model(self) -> LatentModel:
+    def model(self) -> nn.Module:
         return self.actor_network
 
     def q_logits(self, z: torch.Tensor, action: torch.Tensor, params: TensorDictBase) -> torch.Tensor:

@@ -100,10 +100,10 @@ def _save(plt, fig, path: str | Path) -> Path:
 
 def save_figure(fig, path: str | Path, dpi: int = 120, tight: bool = True) -> Path:
     """Draw ``fig`` into memory (its format from the suffix), close it, and write it whole through
-    the file door (``racing.files.write_atomic``; its folder made if missing)."""
+    the file door (``door.files.write_atomic``; its folder made if missing)."""
     import io
 
-    from racing import files
+    from door import files
 
     plt = import_pyplot()
     if tight:  # (a figure that laid itself out says so)

@@ -49,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from racing import files
+from door import files
 from racing.config import RacingConfig
 from racing.track import Track
 

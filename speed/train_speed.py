@@ -37,7 +37,7 @@ from collectors import ActingPolicy, make_collector  # noqa: E402
 from engine.config import RunConfig  # noqa: E402
 from learners.solo import GaussianPolicyNet, make_sampler, tanh  # noqa: E402
 from engine.runner import train  # noqa: E402
-from racing import files  # noqa: E402
+from door import files  # noqa: E402
 from racing.torchrl_env import RacingTorchEnv  # noqa: E402
 
 DEFAULT_CELLS = ["ppo/recent", "ppo_log/memory", "spg/hybrid", "spg_multi/hybrid", "spg_p/hybrid",

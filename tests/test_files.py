@@ -1,4 +1,4 @@
-"""The one door's rules (racing/files.py), each tested once here for every caller: what reaches a
+"""The one door's rules (door/files.py), each tested once here for every caller: what reaches a
 file goes through these functions (tests/test_one_door.py checks that), so a rule held here holds
 for every tool. Special files are made in tmp_path; an alarm ends any test that would block."""
 
@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from racing import files
-from racing.files import FileRefused
+from door import files
+from door.files import FileRefused
 
 
 class Hung(AssertionError):

@@ -1,4 +1,4 @@
-"""One door for every file: no module of the project but racing/files.py opens, writes, replaces,
+"""One door for every file: no module of the project but door/files.py opens, writes, replaces,
 renames or deletes a file itself (docs/guarantees.md, "One door").
 
 The check reads every Python file of the project (tests aside) and refuses any call that touches
@@ -15,7 +15,7 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-DOOR = ROOT / "racing" / "files.py"
+DOOR = ROOT / "door" / "files.py"
 SKIP_PARTS = {".venv", "tests", "outputs", "build", ".git", "__pycache__"}
 
 # attribute calls that touch a file by name, on any receiver (Path methods, os functions)
@@ -60,7 +60,7 @@ def violations(path: Path) -> list[str]:
         func, args = node.func, node.args
         receiver = func.value.id if isinstance(func, ast.Attribute) and isinstance(func.value, ast.Name) else None
         what = None
-        if receiver in ("files", "door"):  # the door's own functions (racing.files, imported as files or door)
+        if receiver in ("files", "door"):  # the door's own functions (door.files, imported as files or door)
             continue
         if isinstance(func, ast.Name) and func.id in ("open", "ZipFile", "TarFile"):
             if not (func.id == "ZipFile" and args and _buffer(args[0], buffers)):
@@ -100,7 +100,7 @@ def project_files() -> list[Path]:
 
 def test_no_module_but_the_door_touches_a_file_by_name():
     found = [line for path in project_files() for line in violations(path)]
-    assert not found, ("these calls touch files outside racing/files.py (the one door; docs/guarantees.md): "
+    assert not found, ("these calls touch files outside door/files.py (the one door; docs/guarantees.md): "
                        "read, write, replace or delete through it instead:\n" + "\n".join(found))
 
 

@@ -16,7 +16,7 @@ from engine.config import block_names
 from learners.registry import LEARNERS, MODULES
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("racing", "losses", "collectors", "learners", "engine", "analysis", "benchmark", "external", "pupil",
+PACKAGES = ("door", "racing", "losses", "collectors", "learners", "engine", "analysis", "benchmark", "external", "pupil",
             "hydra_plugins", "speed")
 
 

@@ -15,7 +15,9 @@ from engine.config import ConfigError
 from engine.evaluation import make_policy
 from engine.runner import train_population
 from learners import latent
-from learners.latent import PlanOptions, Support, plan, shifted, simnorm, split_draws, symexp, symlog
+from learners.latent import PlanOptions, plan, shifted, simnorm, split_draws
+from losses.functional import symexp, symlog
+from losses.tdmpc2 import Support
 from losses.tdmpc2 import PRIOR_NOISE_KEY, TARGET_NOISE_KEY, cross_entropy, two_hot
 from tests.test_config import load
 from tests.test_offpolicy import A, training, solo_and_resumed_pair

@@ -2,7 +2,7 @@
 
 Hydra writes a few files itself before ``train.py`` runs: its record of the configuration under
 ``hydra.output_subdir`` and the log files of ``hydra.job_logging``/``hydra.hydra_logging``. It
-opens them by name, through any link, outside the file door (``racing/files.py``). This project
+opens them by name, through any link, outside the file door (``door/files.py``). This project
 turns them off (``train.py`` writes ``.hydra/`` itself through the door; no log file), and this
 callback refuses a command that turns them back on, before any folder is made or file written.
 """

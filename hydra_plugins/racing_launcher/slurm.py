@@ -60,7 +60,7 @@ class SlurmLauncher(_SubmititSlurmLauncher):
             raise SweepJobsFailed(2) from None
         generic = set(OmegaConf.structured(BaseQueueConf).keys())
         executor.update_parameters(**{k if k in generic else f"slurm_{k}": v for k, v in params.items()})
-        from racing import files
+        from door import files
 
         sweep_dir = files.folder(Path(str(self.config.hydra.sweep.dir)), create=True)
         log.info(f"Submitit 'slurm' sweep output dir : {sweep_dir}")
@@ -162,7 +162,7 @@ def job_state(job) -> str:
 
 def last_message(job) -> str:
     """The project's message from the job's stderr log, else its last line, else a pointer to it."""
-    from racing import files
+    from door import files
 
     path = Path(job.paths.stderr)
     try:  # the log's last 64 MB at most: read bounded, as every file

@@ -118,7 +118,7 @@ class CheckedSweeper(BasicSweeper):
             raise SweepRefused(2)
         from engine.processes import STOP_FILE, read_stop_file
 
-        from racing import files
+        from door import files
 
         try:
             sweep_dir = files.folder(Path(str(self.config.hydra.sweep.dir)), create=True)
@@ -251,7 +251,7 @@ def _folder_problem(rundir, RunConfig, run_cfg, settings: dict, folder: Path, me
                     sweep_dir: Path) -> str | None:
     """Why a job's folders would refuse it (None if they would not); writes nothing (no lock is
     taken: ``rundir.in_use`` only asks)."""
-    from racing import files
+    from door import files
 
     for path in [folder, *members.values()]:  # no link from the sweep's folder down, before anything else
         try:

@@ -30,7 +30,7 @@ import subprocess
 import warnings
 from pathlib import Path
 
-from racing import files
+from door import files
 
 
 SOURCE = Path(__file__).with_name("gemm.cpp")

@@ -143,7 +143,7 @@ def _options(algo) -> TDMPC2Options:
 
 
 def _support(options: TDMPC2Options):
-    from learners.latent import Support
+    from losses.tdmpc2 import Support
 
     return Support(options.v_max, options.bins)
 
