@@ -46,7 +46,8 @@ SCOPE = ("losses.", "learners.", "collectors.", "torchrl.objectives.")
 MACHINERY = ("torch.", "tensordict.")  # code both paths run alike, never a copy's concern
 # The modules whose classes and functions the record holds (everything a fast path can reach).
 RECORDED_MODULES = (
-    "losses.common", "losses.functional", "losses.ppo", "losses.spg", "losses.td",
+    "losses.common", "losses.functional", "losses.ppo", "losses.spg", "losses.td", "losses.sac", "losses.tqc",
+    "losses.crossq", "losses.td3",
     "learners.base", "learners.networks", "learners.kernels.ops", "learners.td.learner", "collectors.replay",
     "torchrl.objectives.common", "torchrl.objectives.sac", "torchrl.objectives.tqc", "torchrl.objectives.td3",
     "torchrl.objectives.crossq",

@@ -1,6 +1,6 @@
 """SAC with categorical critics and scaled rewards (SimbaV2's loss; Lee et al., 2025), for a population.
 
-``DistributionalSACLoss`` is ``losses.td.MemberSACLoss`` (TorchRL's ``SACLoss``: its actor and temperature
+``DistributionalSACLoss`` is ``losses.sac.MemberSACLoss`` (TorchRL's ``SACLoss``: its actor and temperature
 losses, one temperature per member, the members' own noise) whose Q-networks output the logits of a
 categorical distribution of the return over a fixed, evenly spaced support ``[v_min, v_max]`` (``bins``
 points). The critic's loss is the cross-entropy to the target distribution: the target network's
@@ -21,7 +21,7 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives.sac import compute_rsample_log_prob
 
-from losses.td import MemberSACLoss
+from losses.sac import MemberSACLoss
 
 
 def categorical_projection(probs: torch.Tensor, atoms: torch.Tensor, v_min: float, v_max: float) -> torch.Tensor:

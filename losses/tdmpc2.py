@@ -36,7 +36,7 @@ from tensordict.nn import TensorDictModule
 from torchrl.objectives import LossModule
 
 from losses.functional import symexp, symlog
-from losses.td import DrawnTanhNormal, _stacked_values
+from losses.td import DrawnTanhNormal, stacked_values
 
 TARGET_NOISE_KEY = "tdmpc2_target_noise"  # [R, B, H, A]: the prior's draws at h(s'_t) for the TD target
 PRIOR_NOISE_KEY = "tdmpc2_prior_noise"  # [R, B, H, A]: the prior's draws at z_0 .. z_(H-1) for its loss
@@ -124,7 +124,7 @@ class TDMPC2Loss(LossModule):
 
     def q_logits(self, z: torch.Tensor, action: torch.Tensor, params: TensorDictBase) -> torch.Tensor:
         """Every Q-network's logits ``[Q, R, ..., bins]`` at (z, a) ``[R, ..., L + A]`` with ``params``."""
-        return _stacked_values(self, torch.cat([z, action], -1), params)
+        return stacked_values(self, torch.cat([z, action], -1), params)
 
     @torch.no_grad()
     def planning_value(self, z: torch.Tensor, action: torch.Tensor) -> torch.Tensor:

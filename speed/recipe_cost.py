@@ -13,7 +13,7 @@ table gives per recipe and R: milliseconds per gradient step (population, and pe
 CPU minutes per member for a whole run, and the hours a population of R needs on one core. Absolute
 numbers depend on the machine and the hour (this one's speed drifts by 2x): plan with the ratios
 between recipes, measured in one process. ``sac-module`` is SAC with its gradient step through
-TorchRL's loss module instead of the fused step (``losses.td.fused_sac_losses``, the same bits):
+TorchRL's loss module instead of the fused step (``losses.sac.fused_sac_losses``, the same bits):
 its row against ``sac``'s is what the fused step saves (``bro-module`` and ``droq-module`` against
 ``bro`` and ``droq`` likewise).
 """

@@ -206,7 +206,8 @@ def _constant_changed(source: str) -> str:
 def test_a_subclass_or_a_method_added_in_place_is_new_code(monkeypatch):
     """A subclass written outside the project's files, a method added to the loss class and a method
     replaced on the class at run time: each keeps the fast path off, named."""
-    from losses.td import MemberSACLoss, MemberTD3Loss
+    from losses.sac import MemberSACLoss
+    from losses.td3 import MemberTD3Loss
 
     _, learner, _ = _learner("td3")
     assert fast_paths.refusal(learner.loss) is None
@@ -214,7 +215,7 @@ def test_a_subclass_or_a_method_added_in_place_is_new_code(monkeypatch):
     def actor_loss(self, tensordict):  # an override added in place (the issue's TD3 case)
         return super(MemberTD3Loss, self).actor_loss(tensordict)
     monkeypatch.setattr(MemberTD3Loss, "actor_loss", actor_loss, raising=False)
-    assert "losses.td.MemberTD3Loss.actor_loss" in fast_paths.refusal(learner.loss)
+    assert "losses.td3.MemberTD3Loss.actor_loss" in fast_paths.refusal(learner.loss)
     monkeypatch.undo()
     _, learner, _ = _learner("sac")
     learner.loss.__class__ = type("MySACLoss", (MemberSACLoss,), {"__module__": "my_experiment"})
@@ -223,12 +224,12 @@ def test_a_subclass_or_a_method_added_in_place_is_new_code(monkeypatch):
 
 # ---------------------------------------------------------------- through train.py, in a copy of the code
 EDITS = {  # learner: (file, the line a researcher's edit follows, the edit), each a method its default run calls
-    "sac": ("losses/td.py", "    def actor_loss(self, tensordict: TensorDictBase):\n", "        raise RuntimeError('my SAC')\n"),
-    "tqc": ("losses/td.py", "    def qvalue_v2_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:\n",
+    "sac": ("losses/sac.py", "    def actor_loss(self, tensordict: TensorDictBase):\n", "        raise RuntimeError('my SAC')\n"),
+    "tqc": ("losses/tqc.py", "    def qvalue_v2_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:\n",
             "        raise RuntimeError('my TQC')\n"),
-    "td3": ("losses/td.py", "        self.smoothing, self.generators = policy_noise, list(generators) if generators is not None else None\n",
+    "td3": ("losses/td3.py", "        self.smoothing, self.generators = policy_noise, list(generators) if generators is not None else None\n",
             "\n    def actor_loss(self, tensordict):\n        raise RuntimeError('my TD3')\n"),
-    "crossq": ("losses/td.py", "    def alpha_loss(self, log_prob: torch.Tensor, tensordict: TensorDictBase | None = None) -> torch.Tensor:\n",
+    "crossq": ("losses/crossq.py", "    def alpha_loss(self, log_prob: torch.Tensor, tensordict: TensorDictBase | None = None) -> torch.Tensor:\n",
                "        raise RuntimeError('my CrossQ')\n"),
     "spg": ("losses/spg.py", "    def actor_loss(self, tensordict: TensorDictBase) -> TensorDictBase:\n",
             "        raise RuntimeError('my SPG')\n"),
@@ -256,7 +257,7 @@ def test_an_edited_loss_in_a_copy_of_the_code_runs_and_a_docstring_does_not_matt
     (an override added to TD3's loss), in a copy of the code, then train.py: the run stops with the edit's
     error after one line naming the method; a copy whose edits are docstrings only trains on the fast path."""
     quiet = _code_copy(tmp_path / "quiet")
-    docstrings = {"losses/td.py": ('    """``torchrl.objectives.SACLoss`` with one entropy temperature',
+    docstrings = {"losses/sac.py": ('    """``torchrl.objectives.SACLoss`` with one entropy temperature',
                                    '    """``torchrl.objectives.SACLoss``, with one entropy temperature'),
                   "learners/networks.py": ('    """tanh(x) to within 2.4e-7 (absolute)',
                                            '    """The tanh of x, to within 2.4e-7 (absolute)')}

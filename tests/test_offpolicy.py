@@ -24,7 +24,9 @@ from engine.evaluation import load_policy, make_policy
 from engine.setup import make_env, make_generators, make_learner
 from learners.td import crossq, td3
 from learners.base import MetricTotals
-from losses.td import ACTION_NOISE_KEY, SMOOTHING_KEY, DrawnTanhNormal, quantile_huber_loss
+from losses.td import ACTION_NOISE_KEY, DrawnTanhNormal
+from losses.td3 import SMOOTHING_KEY
+from losses.tqc import quantile_huber_loss
 from engine.runner import train_population
 from tests.test_config import load
 from tests.test_resilience import interrupted_after

@@ -1,4 +1,4 @@
-"""CrossQ: TorchRL's ``CrossQLoss`` (``losses.td.MemberCrossQLoss``): batch-normalised Q-networks that score
+"""CrossQ: TorchRL's ``CrossQLoss`` (``losses.crossq.MemberCrossQLoss``): batch-normalised Q-networks that score
 (s, a) and (s', a') in one pass, no target networks, an actor step every ``policy_delay`` critic steps."""
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ def critics(cfg, inputs, generators):
 
 def loss(cfg, networks, generators):
     from learners.td.learner import entropy_loss_options
-    from losses.td import MemberCrossQLoss
+    from losses.crossq import MemberCrossQLoss
 
     options = entropy_loss_options(cfg, networks, generators)
     options["deactivate_vmap"] = True  # its batch norm updates running statistics in place
@@ -63,7 +63,7 @@ def loss(cfg, networks, generators):
 
 
 def fused_available(loss, actor_net) -> bool:
-    from losses.td import fused_crossq_available
+    from losses.crossq import fused_crossq_available
 
     return fused_crossq_available(loss, actor_net)
 
@@ -75,7 +75,8 @@ def prepare(runner) -> None:
 def step(runner, batch, step, totals):
     """A critic step (current and next state in one batch-normalised pass), then, every ``policy_delay``
     steps, an actor and temperature step against the updated critics."""
-    from losses.td import fused_crossq_actor_losses, fused_crossq_critic_losses, member_means
+    from losses.crossq import fused_crossq_actor_losses, fused_crossq_critic_losses
+    from losses.td import member_means
 
     loss = runner.loss
     if runner.fused:

@@ -44,7 +44,7 @@ from learners.registry import spec as learner_spec
 from learners.td import linear_schedule
 from losses.td import ACTION_NOISE_KEY, CRITIC_EXTRAS, DrawnTanhNormal, member_means
 
-FUSED = True  # the eager steps of SAC (DroQ, BRO), TQC, CrossQ and TD3 on plain tensors (losses.td.fused_*: the
+FUSED = True  # the eager steps of SAC (DroQ, BRO), TQC, CrossQ and TD3 on plain tensors (losses.<name>.fused_*: the
 #               same bits as TorchRL's loss modules, faster); False: through the loss modules (speed.floor
 #               --module, speed/recipe_cost.py's *-module recipes)
 
@@ -337,7 +337,7 @@ class TDPhaseRunner:
                  norm: ObservationNorm | None = None):
         """``memory``: the replay memory when its sampler is prioritised (else None). Each step's
         objective is compiled when ``cfg.compile`` (``learners.compiling``). The eager steps of SAC,
-        TQC, CrossQ and TD3 compute on plain tensors (``losses.td.fused_*``: TorchRL's numbers, bit
+        TQC, CrossQ and TD3 compute on plain tensors (``losses.sac``, ``tqc``, ``crossq``, ``td3``: TorchRL's numbers, bit
         for bit) when ``FUSED`` and the actor network (``actor_net``) and Q-networks allow it (the
         learner's ``fused_available``). ``td.reset_every`` re-initialises the networks as they were
         built: the actor network (the loss's own) and the Q-networks ``qvalue_nets`` (whose fresh
@@ -375,7 +375,7 @@ class TDPhaseRunner:
                or ("the actor network was not given" if actor_net is None else None)
                or self.code_refusal
                or (None if available(loss, actor_net) else
-                   f"the loss or its networks are not those losses.td's fused {name} step computes"))
+                   f"the loss or its networks are not those losses.{name}'s fused step computes"))
         if why != self.code_refusal:
             self.code_refusal = None  # said only where it is what keeps the fused step off
         self.fused = why is None

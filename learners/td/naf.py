@@ -69,7 +69,8 @@ def losses(runner, batch):
     tanh's flat tails; zero by default)."""
     import torch
 
-    from losses.td import PRIORITY_KEY, member_means
+    from losses.common import PRIORITY_KEY
+    from losses.td import member_means
 
     out = runner.loss(batch)
     values = {key: member_means(out[key]) for key in ("loss_qvalue", "value", "advantage")}

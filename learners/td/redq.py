@@ -1,4 +1,4 @@
-"""REDQ: TorchRL's ``REDQLoss`` (``losses.td.MemberREDQLoss``): an ensemble of Q-networks whose target is
+"""REDQ: TorchRL's ``REDQLoss`` (``losses.redq.MemberREDQLoss``): an ensemble of Q-networks whose target is
 the minimum over a random subset per member, with SAC's learned temperature; its step is its own
 loss module's ``population_losses`` (TorchRL's numbers for one member, each member with its own subset)."""
 
@@ -43,7 +43,7 @@ def critics(cfg, inputs, generators):
 
 def loss(cfg, networks, generators):
     from learners.td.learner import entropy_loss_options
-    from losses.td import MemberREDQLoss
+    from losses.redq import MemberREDQLoss
 
     redq = cfg.algo.redq
     options = entropy_loss_options(cfg, networks, generators)
@@ -54,7 +54,7 @@ def loss(cfg, networks, generators):
 
 
 def prepare(runner) -> None:
-    from losses.td import redq_available
+    from losses.redq import redq_available
 
     if runner.cfg.compile or runner.actor_net is None or not redq_available(runner.loss, runner.actor_net):
         raise ValueError("loss redq runs eagerly (compile=false) on the learner's own actor network and plain or "

@@ -1,4 +1,4 @@
-"""SAC: TorchRL's ``SACLoss`` with one learned temperature per member (``losses.td.MemberSACLoss``);
+"""SAC: TorchRL's ``SACLoss`` with one learned temperature per member (``losses.sac.MemberSACLoss``);
 DroQ and BRO are its configurations (``conf/algo/droq.yaml``, ``bro.yaml``: their Q-networks).
 
 The declaration (``SPEC``) is torch-free; the torch half (the functions below) imports torch when a
@@ -34,20 +34,20 @@ def exploration_noise(cfg) -> None:
 
 def loss(cfg, networks, generators):
     from learners.td.learner import entropy_loss_options
-    from losses.td import MemberSACLoss
+    from losses.sac import MemberSACLoss
 
     return MemberSACLoss(networks.actor, networks.qvalues, loss_function=cfg.algo.td.loss_function,
                          pessimism=cfg.algo.td.pessimism, **entropy_loss_options(cfg, networks, generators))
 
 
 def fused_available(loss, actor_net) -> bool:
-    from losses.td import fused_sac_available
+    from losses.sac import fused_sac_available
 
     return fused_sac_available(loss, actor_net)
 
 
 def fused_losses(loss, actor_net, batch):
-    from losses.td import fused_sac_losses
+    from losses.sac import fused_sac_losses
 
     return fused_sac_losses(loss, actor_net, batch)
 
@@ -61,7 +61,8 @@ def prepare(runner) -> None:
 def losses(runner, batch):
     """Its three losses per member and the minibatch's priorities (TorchRL's loss writes them); the
     fused step where it computes them (``runner.fused``)."""
-    from losses.td import PRIORITY_KEY, member_means
+    from losses.common import PRIORITY_KEY
+    from losses.td import member_means
 
     if runner.fused:
         return runner.steps_of.fused_losses(runner.loss, runner.actor_net, batch)

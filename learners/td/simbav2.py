@@ -141,7 +141,8 @@ def before_steps(runner, data) -> None:
 
 
 def losses(runner, batch):
-    from losses.td import PRIORITY_KEY, member_means
+    from losses.common import PRIORITY_KEY
+    from losses.td import member_means
 
     out = runner.loss(batch)
     values = {key: member_means(out[key]) for key in ("loss_qvalue", "loss_actor", "loss_alpha")}

@@ -1,4 +1,4 @@
-"""TD3: TorchRL's ``TD3Loss`` (``losses.td.MemberTD3Loss``): a deterministic tanh actor with Gaussian exploration
+"""TD3: TorchRL's ``TD3Loss`` (``losses.td3.MemberTD3Loss``): a deterministic tanh actor with Gaussian exploration
 noise, twin Q-networks, target policy smoothing and an actor step every ``policy_delay`` critic steps."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ def actor(actor_net):
     """The target actor adds the smoothing noise the loss draws per member."""
     from tensordict.nn import TensorDictModule
 
-    from losses.td import SMOOTHING_KEY, SmoothedActor
+    from losses.td3 import SMOOTHING_KEY, SmoothedActor
 
     return TensorDictModule(SmoothedActor(actor_net), ["observation", SMOOTHING_KEY], ["action"])
 
@@ -40,7 +40,7 @@ def preact_penalty(cfg) -> float:
 
 def loss(cfg, networks, generators):
     from learners.td.learner import action_spec
-    from losses.td import MemberTD3Loss
+    from losses.td3 import MemberTD3Loss
 
     td3 = cfg.algo.td3
     return MemberTD3Loss(networks.actor, networks.qvalues, action_spec(networks, generators),
@@ -50,7 +50,7 @@ def loss(cfg, networks, generators):
 
 
 def fused_available(loss, actor_net) -> bool:
-    from losses.td import fused_td3_available
+    from losses.td3 import fused_td3_available
 
     return fused_td3_available(loss, actor_net)
 
@@ -65,7 +65,8 @@ def prepare(runner) -> None:
 def critic_losses(runner, batch):
     """The Q loss per member and the minibatch's priorities (the largest error of the Q-networks; TorchRL's
     TD3 reports squared errors per Q-network)."""
-    from losses.td import fused_td3_critic_losses, member_means
+    from losses.td3 import fused_td3_critic_losses
+    from losses.td import member_means
 
     if runner.fused:
         return fused_td3_critic_losses(runner.loss, runner.actor_net, batch)
@@ -77,7 +78,8 @@ def actor_losses(runner, batch):
     """TorchRL's actor loss -Q(s, mu(s)) per member, plus ``td3.preact_penalty`` x the mean square of the
     actor's pre-tanh outputs u(s) (mu = tanh(u)): a gradient that pulls u back from tanh's flat tails,
     where -Q's vanishes (TD3's collapse at full brake, docs/beyond.md)."""
-    from losses.td import fused_td3_actor_losses, member_means
+    from losses.td3 import fused_td3_actor_losses
+    from losses.td import member_means
 
     if runner.fused:
         value = fused_td3_actor_losses(runner.loss, runner.actor_net, batch)

@@ -1,4 +1,4 @@
-"""TQC: TorchRL's ``TQCLoss`` (``losses.td.MemberTQCLoss``): an ensemble of quantile critics whose pooled
+"""TQC: TorchRL's ``TQCLoss`` (``losses.tqc.MemberTQCLoss``): an ensemble of quantile critics whose pooled
 target drops the highest quantiles, with SAC's learned temperature."""
 
 from __future__ import annotations
@@ -32,19 +32,19 @@ def critics(cfg, inputs, generators):
 def loss(cfg, networks, generators):
     """Its critic loss is the quantile Huber loss (``algo.td.loss_function: smooth_l1``, checked)."""
     from learners.td.learner import entropy_loss_options
-    from losses.td import MemberTQCLoss
+    from losses.tqc import MemberTQCLoss
 
     return MemberTQCLoss(networks.actor, networks.qvalues, top_quantiles_to_drop_per_net=cfg.algo.tqc.drop_per_critic,
                          **entropy_loss_options(cfg, networks, generators))
 
 
 def fused_available(loss, actor_net) -> bool:
-    from losses.td import fused_tqc_available
+    from losses.tqc import fused_tqc_available
 
     return fused_tqc_available(loss, actor_net)
 
 
 def fused_losses(loss, actor_net, batch):
-    from losses.td import fused_tqc_losses
+    from losses.tqc import fused_tqc_losses
 
     return fused_tqc_losses(loss, actor_net, batch)
