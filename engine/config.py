@@ -216,11 +216,11 @@ class AlgoConfig:
         missing = [key for key in family.KEYS if getattr(self, key) is None]
         if missing:
             raise ConfigError(f"{w}: loss {self.loss} needs {missing}")
-        for other in learners.FAMILIES.values():
+        for name, other in learners.FAMILIES.items():
             given = [key for key in other.KEYS if other is not family and getattr(self, key) is not None]
             if given:
-                raise ConfigError(f"{w}: {given} belong to {other.DESCRIPTION}, not to loss {self.loss}; "
-                                  "remove them")
+                raise ConfigError(f"{w}: {given} belong to {other.DESCRIPTION} (its learners: "
+                                  f"{', '.join(learners.in_family(name))}), not to loss {self.loss}; remove them")
         family.check(self, learner)
         learner.check(self)
         reads = {**family.BLOCKS, **learner.blocks}  # what this learner reads: its family's and its own

@@ -16,7 +16,7 @@ run's network layout, as saved and evaluated) and ``options`` (config checks).
 from __future__ import annotations
 
 from learners import monte_carlo, td
-from learners.registry import LEARNERS, spec
+from learners.registry import LEARNERS, in_family, spec  # noqa: F401  (in_family: the names of a family's learners)
 
 FAMILIES = {"monte_carlo": monte_carlo, "td": td}
 LOSSES = tuple(LEARNERS)  # every algo.loss value

@@ -264,7 +264,7 @@ def test_bad_trust_pcl_settings_are_refused_with_a_reason(override, message):
 
 
 def test_the_options_torch_free_copies_of_the_coefficients_range_are_the_losss():
-    import learners.td
+    from learners.td import trust_pcl as options
     from losses import trust_pcl
 
-    assert learners.td.LAMBDA_MAX == trust_pcl.LAMBDA_RANGE[1] and learners.td.FEWEST_EPISODES == trust_pcl.FEWEST_EPISODES
+    assert options.LAMBDA_MAX == trust_pcl.LAMBDA_RANGE[1] and options.FEWEST_EPISODES == trust_pcl.FEWEST_EPISODES

@@ -3,8 +3,32 @@ the best of sampled actions (SPG-p: prioritised; ``spg_multi``: several epochs).
 
 from __future__ import annotations
 
-from learners.monte_carlo import SPGOptions
+from dataclasses import dataclass
+
+from learners.monte_carlo import CENTRES
+from learners.options import ConfigError, at_least, capped, choice
 from learners.registry import LearnerSpec
+
+
+@dataclass(frozen=True)
+class SPGOptions:
+    """``algo.spg`` (``losses.SPGLoss``)."""
+
+    prioritised: bool
+    num_samples: int = capped((100_000, "sampled actions per state"))
+    temperature: float
+    temperature_decay: float
+    sample_around: str
+    baseline: str
+
+    def __post_init__(self) -> None:
+        choice("algo.spg.sample_around", self.sample_around, CENTRES)
+        choice("algo.spg.baseline", self.baseline, CENTRES)
+        at_least("algo.spg.num_samples", self.num_samples, 0)
+        at_least("algo.spg.temperature", self.temperature, 0)
+        if not 0 <= self.temperature_decay < 1:
+            raise ConfigError(f"algo.spg.temperature_decay must be in [0, 1), got {self.temperature_decay}")
+
 
 SPEC = LearnerSpec(name="spg", title="SPG", family="monte_carlo", module=__name__, blocks={"spg": SPGOptions},
                    critic=lambda algo: (1, 1, True),  # Q(s, a)

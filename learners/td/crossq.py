@@ -3,10 +3,25 @@
 
 from __future__ import annotations
 
-from learners.options import ConfigError
+from dataclasses import dataclass
+
+from learners.options import ConfigError, at_least
 from learners.registry import LearnerSpec
-from learners.td import CrossQOptions, SACOptions, critic_options_given
-from learners.td import sac
+from learners.td import critic_options_given, sac
+from learners.td.sac import SACOptions
+
+
+@dataclass(frozen=True)
+class CrossQOptions:
+    """``algo.crossq`` (TorchRL's ``CrossQLoss``, batch-normalised critics)."""
+
+    policy_delay: int  # one actor (and temperature) step every this-many critic steps
+    batch_norm_momentum: float  # running statistics <- (1 - m) * running + m * batch (evaluation mode)
+
+    def __post_init__(self) -> None:
+        at_least("algo.crossq.policy_delay", self.policy_delay, 1)
+        if not 0 < self.batch_norm_momentum <= 1:
+            raise ConfigError(f"algo.crossq.batch_norm_momentum must be in (0, 1], got {self.batch_norm_momentum}")
 
 
 def _check(algo) -> None:

@@ -3,9 +3,23 @@ lower-triangular L(s), trained by one loss; it acts with Gaussian noise around m
 
 from __future__ import annotations
 
-from learners.options import ConfigError
+from dataclasses import dataclass
+
+from learners.options import ConfigError, at_least
 from learners.registry import LearnerSpec
-from learners.td import NAFOptions, critic_options_given
+from learners.td import critic_options_given
+
+
+@dataclass(frozen=True)
+class NAFOptions:
+    """``algo.naf`` (``losses.naf.NAFLoss``): the acting policy's exploration, mu's pre-tanh penalty."""
+
+    exploration_noise: float  # standard deviation of the Gaussian noise added to mu(s) when acting
+    preact_penalty: float = 0.0  # the loss adds this x the mean square of mu's pre-tanh outputs (TD3's)
+
+    def __post_init__(self) -> None:
+        at_least("algo.naf.exploration_noise", self.exploration_noise, 0)
+        at_least("algo.naf.preact_penalty", self.preact_penalty, 0)
 
 
 def _check(algo) -> None:

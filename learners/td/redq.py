@@ -5,11 +5,43 @@ loss module's ``population_losses`` (TorchRL's numbers for one member, each memb
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
-from learners.options import ConfigError
+from learners.options import ConfigError, at_least, capped, positive
 from learners.registry import LearnerSpec
-from learners.td import REDQOptions, SACOptions, critic_options_given
-from learners.td import sac
+from learners.td import critic_options_given, sac
+from learners.td.sac import SACOptions
+
+
+@dataclass(frozen=True)
+class REDQOptions:
+    """``algo.redq`` (TorchRL's ``REDQLoss``): the ensemble, the target's random subset, the actor's
+    schedule and the temperature's bounds."""
+
+    critics: int = capped((1_000, "Q-networks"))  # in the ensemble
+    subset: int  # target networks whose minimum makes each member's target, drawn anew per minibatch
+    policy_delay: int | None  # one actor (and temperature) step every this-many critic steps (None: one per
+    #                           environment step, updates_per_step rounded; ``actor_every``)
+    min_alpha: float | None = None  # TorchRL's bounds on the temperature (None: unbounded)
+    max_alpha: float | None = None
+
+    def __post_init__(self) -> None:
+        at_least("algo.redq.critics", self.critics, 2)
+        at_least("algo.redq.subset", self.subset, 1)
+        if self.subset >= self.critics:
+            raise ConfigError(f"algo.redq.subset must be below algo.redq.critics ({self.critics}), got {self.subset}: "
+                              "the target takes the minimum over a random subset of the ensemble")
+        if self.policy_delay is not None:
+            at_least("algo.redq.policy_delay", self.policy_delay, 1)
+        for key in ("min_alpha", "max_alpha"):
+            if getattr(self, key) is not None:
+                positive(f"algo.redq.{key}", getattr(self, key))
+        if self.min_alpha is not None and self.max_alpha is not None and self.min_alpha > self.max_alpha:
+            raise ConfigError(f"algo.redq.min_alpha ({self.min_alpha}) is above algo.redq.max_alpha ({self.max_alpha})")
+
+    def actor_every(self, updates_per_step: float) -> int:
+        """Critic steps per actor step: ``policy_delay``, or one actor step per environment step."""
+        return self.policy_delay if self.policy_delay is not None else max(1, round(updates_per_step))
 
 
 def _check(algo) -> None:

@@ -7,8 +7,33 @@ run builds the learner (``learners.td.learner``).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
+from learners.options import ConfigError, positive
 from learners.registry import LearnerSpec
-from learners.td import SACOptions
+
+
+@dataclass(frozen=True)
+class SACOptions:
+    """``algo.sac``: TorchRL's ``SACLoss``'s temperature, and that of the losses built like it
+    (``TQCLoss``, ``CrossQLoss``)."""
+
+    alpha_init: float
+    target_entropy: float | None  # None: TorchRL's "auto", minus the action dimension
+    fixed_alpha: bool
+    target_entropy_end: float | None = None  # None: the target stays; else it moves linearly from target_entropy
+    #                                          at the first gradient step to this at the last episode
+
+    def __post_init__(self) -> None:
+        positive("algo.sac.alpha_init", self.alpha_init)
+        for key in ("target_entropy", "target_entropy_end"):
+            value = getattr(self, key)
+            if value is not None and not -1e6 <= value <= 1e6:
+                raise ConfigError(f"algo.sac.{key} must be within [-1e6, 1e6] nats (or null), got {value}")
+        if self.target_entropy_end is not None and self.fixed_alpha:
+            raise ConfigError("algo.sac.target_entropy_end moves the target the learned temperature follows; with "
+                              "algo.sac.fixed_alpha: true there is none (set one of them back)")
+
 
 SPEC = LearnerSpec(name="sac", title="SAC", family="td", module=__name__, blocks={"sac": SACOptions},
                    critic=lambda algo: (2, 1, True), gaussian_actor=True, past_critic=True,

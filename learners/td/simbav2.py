@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 from learners.options import ConfigError, at_least, capped, positive
 from learners.registry import LearnerSpec
-from learners.td import SACOptions, critic_options_given
-from learners.td import sac
+from learners.td import critic_options_given, sac
+from learners.td.sac import SACOptions
 
 
 @dataclass(frozen=True)

@@ -3,8 +3,27 @@ noise, twin Q-networks, target policy smoothing and an actor step every ``policy
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
+from learners.options import at_least
 from learners.registry import LearnerSpec
-from learners.td import TD3Options
+
+
+@dataclass(frozen=True)
+class TD3Options:
+    """``algo.td3`` (TorchRL's ``TD3Loss``)."""
+
+    exploration_noise: float
+    policy_noise: float
+    noise_clip: float
+    policy_delay: int
+    preact_penalty: float = 0.0  # the actor loss adds this x the mean square of its pre-tanh outputs
+
+    def __post_init__(self) -> None:
+        for key in ("exploration_noise", "policy_noise", "noise_clip", "preact_penalty"):
+            at_least(f"algo.td3.{key}", getattr(self, key), 0)
+        at_least("algo.td3.policy_delay", self.policy_delay, 1)
+
 
 SPEC = LearnerSpec(name="td3", title="TD3", family="td", module=__name__, blocks={"td3": TD3Options},
                    critic=lambda algo: (2, 1, True), gaussian_actor=False)
@@ -65,8 +84,8 @@ def prepare(runner) -> None:
 def critic_losses(runner, batch):
     """The Q loss per member and the minibatch's priorities (the largest error of the Q-networks; TorchRL's
     TD3 reports squared errors per Q-network)."""
-    from losses.td3 import fused_td3_critic_losses
     from losses.td import member_means
+    from losses.td3 import fused_td3_critic_losses
 
     if runner.fused:
         return fused_td3_critic_losses(runner.loss, runner.actor_net, batch)
@@ -78,8 +97,8 @@ def actor_losses(runner, batch):
     """TorchRL's actor loss -Q(s, mu(s)) per member, plus ``td3.preact_penalty`` x the mean square of the
     actor's pre-tanh outputs u(s) (mu = tanh(u)): a gradient that pulls u back from tanh's flat tails,
     where -Q's vanishes (TD3's collapse at full brake, docs/beyond.md)."""
-    from losses.td3 import fused_td3_actor_losses
     from losses.td import member_means
+    from losses.td3 import fused_td3_actor_losses
 
     if runner.fused:
         value = fused_td3_actor_losses(runner.loss, runner.actor_net, batch)

@@ -151,7 +151,6 @@ def _support(options: TDMPC2Options):
 def actor_network(members, obs_dim, action_dim, network, algo):
     """The latent model: what acts (through the planner), is saved and evaluated (its prior)."""
     from learners.latent import LatentModel
-
     from learners.td.learner import _setting
 
     options = _options(algo)

@@ -3,10 +3,29 @@ target drops the highest quantiles, with SAC's learned temperature."""
 
 from __future__ import annotations
 
-from learners.options import ConfigError
+from dataclasses import dataclass
+
+from learners.options import ConfigError, at_least, capped
 from learners.registry import LearnerSpec
-from learners.td import SACOptions, TQCOptions
 from learners.td import sac
+from learners.td.sac import SACOptions
+
+
+@dataclass(frozen=True)
+class TQCOptions:
+    """``algo.tqc`` (TorchRL's ``TQCLoss``): the ensemble of quantile critics and the truncation."""
+
+    critics: int = capped((1_000, "Q-networks"))  # each outputting `quantiles` quantiles of the return
+    quantiles: int = capped((10_000, "quantiles per Q-network"))
+    drop_per_critic: int  # the target drops the highest critics * drop_per_critic of the pooled quantiles
+
+    def __post_init__(self) -> None:
+        at_least("algo.tqc.critics", self.critics, 1)
+        at_least("algo.tqc.quantiles", self.quantiles, 1)
+        at_least("algo.tqc.drop_per_critic", self.drop_per_critic, 0)
+        if self.drop_per_critic >= self.quantiles:
+            raise ConfigError(f"algo.tqc.drop_per_critic must be below algo.tqc.quantiles ({self.quantiles}), "
+                              f"got {self.drop_per_critic}: the target would keep no quantile")
 
 
 def _check(algo) -> None:

@@ -3,9 +3,45 @@ with a relative-entropy trust region against a lagged policy; a Gaussian actor a
 
 from __future__ import annotations
 
-from learners.options import ConfigError
+from dataclasses import dataclass
+
+from learners.options import ConfigError, at_least, positive
 from learners.registry import LearnerSpec
-from learners.td import TrustPCLOptions, critic_options_given
+from learners.td import critic_options_given
+
+LAMBDA_MAX = 1000.0  # losses.trust_pcl.LAMBDA_RANGE's top (kept torch-free here; a test holds them equal)
+FEWEST_EPISODES = 9  # losses.trust_pcl.FEWEST_EPISODES
+
+
+@dataclass(frozen=True)
+class TrustPCLOptions:
+    """``algo.trust_pcl`` (``losses.trust_pcl.TrustPCLLoss``): the sub-episodes, the trust region and the
+    consistency's gradients (``conf/algo/trust_pcl.yaml`` explains each key)."""
+
+    rollout: int  # d: steps per sub-episode (fewer where the episode ends first)
+    max_divergence: float  # the trust region: the relative entropy allowed per episode step
+    divergence_episodes: int  # the newest this-many episodes of the memory estimate the divergence
+    entropy: float  # tau: the entropy coefficient
+    clip: float | None  # the consistency is clipped to [-clip, clip] in the gradients (None: not clipped)
+    critic_weight: float  # the value loss's weight
+    initial_coefficient: float = 0.0  # lambda before its first move
+
+    def __post_init__(self) -> None:
+        at_least("algo.trust_pcl.rollout", self.rollout, 1)
+        positive("algo.trust_pcl.max_divergence", self.max_divergence)
+        at_least("algo.trust_pcl.divergence_episodes", self.divergence_episodes, 1)
+        at_least("algo.trust_pcl.entropy", self.entropy, 0)
+        if self.clip is not None:
+            positive("algo.trust_pcl.clip", self.clip)
+        positive("algo.trust_pcl.critic_weight", self.critic_weight)
+        at_least("algo.trust_pcl.initial_coefficient", self.initial_coefficient, 0)
+        if self.initial_coefficient > LAMBDA_MAX:
+            raise ConfigError(f"algo.trust_pcl.initial_coefficient must be in lambda's range [0, {LAMBDA_MAX:g}], "
+                              f"got {self.initial_coefficient}")
+        if self.divergence_episodes < FEWEST_EPISODES:
+            raise ConfigError(f"algo.trust_pcl.divergence_episodes must be at least {FEWEST_EPISODES}: with fewer "
+                              f"episodes the trust region is not estimated (lambda stays at {LAMBDA_MAX / 2:g}), got "
+                              f"{self.divergence_episodes}")
 
 
 def _check(algo) -> None:
