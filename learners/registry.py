@@ -93,13 +93,33 @@ def _modules() -> tuple[str, ...]:
 MODULES = _modules()
 
 
+def required(protocol) -> list[str]:
+    """The members a family's ``LearnerModule`` protocol declares: its annotated attributes and functions."""
+    names = set(getattr(protocol, "__annotations__", {}))
+    names |= {key for key, value in vars(protocol).items() if callable(value) and not key.startswith("_")}
+    return sorted(names)
+
+
+def check_module(module, family) -> None:
+    """Refuse a learner module that lacks what its family's ``LearnerModule`` requires (or one of
+    ``ONE_OF``), naming each missing member and where the interface is declared."""
+    missing = [name for name in required(family.LearnerModule) if not hasattr(module, name)]
+    if family.ONE_OF and not any(hasattr(module, name) for name in family.ONE_OF):
+        missing.append(" or ".join(family.ONE_OF))
+    if missing:
+        raise RuntimeError(f"{module.__name__}: a learner of {family.__name__} needs {', '.join(missing)} "
+                           f"({family.__name__}.LearnerModule declares each)")
+
+
 def _load() -> dict[str, LearnerSpec]:
     specs = {}
     for name in MODULES:
-        spec = importlib.import_module(name).SPEC
+        module = importlib.import_module(name)
+        spec = module.SPEC
         if spec.module != name or f"learners.{spec.family}." not in name or spec.name in specs:
             raise RuntimeError(f"{name}: its SPEC must name this module (module=__name__), the family whose package "
                                "holds it, and a learner no other module names")
+        check_module(module, importlib.import_module(f"learners.{spec.family}"))
         specs[spec.name] = spec
     return specs
 

@@ -88,15 +88,17 @@ def test_an_unknown_learner_is_refused_naming_every_one():
 def test_a_new_learner_module_is_found_without_a_list_to_extend(tmp_path, monkeypatch):
     """The registry finds learners in the families' folders: a module that assigns ``SPEC`` is one (however
     it is spelled), a helper beside it is not imported, and a SPEC that names another module or family is
-    refused when the registry loads."""
+    refused when the registry loads, as is one that lacks what its family's ``LearnerModule`` requires."""
     import sys
 
     import learners.registry as registry
     import learners.td
 
+    hooks = "METRICS = ((), ())\n" + "".join(f"def {name}(*args): pass\n" for name in
+                                            ("actor", "critics", "exploration_noise", "loss", "prepare", "step"))
     (tmp_path / "toy.py").write_text(
         "from learners.registry import LearnerSpec\n"
-        "SPEC: LearnerSpec = LearnerSpec(name='toy', title='Toy', family='td', module=__name__)\n")
+        "SPEC: LearnerSpec = LearnerSpec(name='toy', title='Toy', family='td', module=__name__)\n" + hooks)
     (tmp_path / "toy_helper.py").write_text("raise AssertionError('a module without SPEC is not imported')\n")
     monkeypatch.setattr(learners.td, "__path__", [*learners.td.__path__, str(tmp_path)])
     monkeypatch.delitem(sys.modules, "learners.td.toy", raising=False)
@@ -105,6 +107,13 @@ def test_a_new_learner_module_is_found_without_a_list_to_extend(tmp_path, monkey
     assert "learners.td.learner" not in modules  # the family's machinery beside its learners
     monkeypatch.setattr(registry, "MODULES", modules)
     assert registry._load()["toy"].title == "Toy"
+
+    (tmp_path / "toy.py").write_text(
+        "from learners.registry import LearnerSpec\n"
+        "SPEC = LearnerSpec(name='toy', title='Toy', family='td', module=__name__)\n" + hooks.replace("def step", "def stop"))
+    monkeypatch.delitem(sys.modules, "learners.td.toy", raising=False)
+    with pytest.raises(RuntimeError, match="needs step or phase .learners.td.LearnerModule declares each"):
+        registry._load()
 
     (tmp_path / "toy.py").write_text(
         "from learners.registry import LearnerSpec\n"

@@ -9,6 +9,8 @@ dataclass is in its module, validated before torch loads) and ``build``, which i
 
 from __future__ import annotations
 
+from typing import Protocol
+
 from learners.options import at_least
 
 DESCRIPTION = "the paper's protocol"
@@ -17,6 +19,22 @@ KEYS = ("value_epochs", "policy_epochs", "entropy_coeff", "joint_log_prob")  # a
 RATIO_SPACES = ("linear", "log")
 CENTRES = ("mean", "action")
 
+
+class LearnerModule(Protocol):
+    """What a learner's module of the paper's family provides (``learners/monte_carlo/<name>.py``; the
+    registry checks it when it finds the module, ``learners.registry.check_module``): its declaration and its
+    loss. The phases, networks and critic are the family's (``SPEC.critic``'s third entry says whether the
+    critic reads the action: Q(s, a) as SPG's, or V(s) as PPO's)."""
+
+    SPEC: object  # its learners.registry.LearnerSpec
+
+    def loss(self, cfg, networks, generators, common: dict):
+        """Its loss module: a ``losses.common.PhaseLoss`` (critic loss, actor loss, the phase hooks) given the
+        family's ``common`` settings (members, joint_log_prob, entropy_coeff)."""
+
+
+ONE_OF: dict = {}
+OPTIONAL: dict = {}
 
 BLOCKS = {}  # the family's own blocks (each learner declares its own: learners.registry)
 

@@ -106,9 +106,12 @@ class PhaseRunner:
         self._critic_objective = compile_step(self._critic_step_objective, compiled)
         self.fused_critic = None
         self.fused_actor = None
-        # the loss's own code or settings (a subclass, an unknown setting, an edited function): said in one line
-        self.code_refusal = loss_refusal(loss)
+        # the loss's own code or settings (a subclass, an unknown setting, an edited function): said in one line.
+        # A loss of its own (a new learner's) has no fused phases: the loss module computes, nothing to say.
+        own = not isinstance(loss, (SPGLoss, LogClipPPOLoss))
+        self.code_refusal = None if own else loss_refusal(loss)
         why = (("learners.monte_carlo.learner.FUSED is off" if not FUSED else None)
+               or (f"{type(loss).__name__} has no fused phases (SPGLoss's and LogClipPPOLoss's have)" if own else None)
                or ("the networks were not given" if critic_net is None else None)
                or ("prioritised replay draws its minibatches by priority" if sampler is not None else None)
                or ("compile=true compiles the loss module's step" if compiled else None)

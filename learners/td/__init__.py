@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Protocol
 
 from learners.options import ACTIVATIONS, ConfigError, at_least, capped, choice, positive
 from racing.history import MAX_HISTORY
@@ -98,6 +99,47 @@ def linear_schedule(start: float, end: float, episode: int, first: int, last: in
     fraction = min(1.0, max(0.0, (episode - first) / max(1, last - first)))
     return start + (end - start) * fraction
 
+
+class LearnerModule(Protocol):
+    """What an off-policy learner's module provides (``learners/td/<name>.py``; the registry checks the
+    required members when it finds the module, ``learners.registry.check_module``). Its functions import
+    torch inside themselves: the module's top level stays torch-free. One of ``step`` or ``phase``
+    (``ONE_OF``); the hooks a learner may add are ``OPTIONAL``'s."""
+
+    SPEC: object  # its learners.registry.LearnerSpec
+    METRICS: tuple  # (critic names, actor names): its diagnostics, metrics.csv's columns
+
+    def actor(self, actor_net):
+        """The TensorDict actor its loss takes (``learner.tanh_normal_actor`` for a learned temperature)."""
+
+    def critics(self, cfg, inputs, generators):
+        """Its critic networks and their TensorDict modules, member r's initial weights from ``generators[r]``."""
+
+    def exploration_noise(self, cfg):
+        """The acting policy's Gaussian noise for a deterministic actor, else None."""
+
+    def loss(self, cfg, networks, generators):
+        """Its loss module."""
+
+    def prepare(self, runner):
+        """Its compiled objectives (``learners.compiling.compile_step``) and any check of what was built."""
+
+
+ONE_OF = {
+    "step": "(runner, batch, step, totals) -> priority: one gradient step on a minibatch",
+    "phase": "(runner, data, minibatch_size, totals, episode, todo): the steps of a learner that draws its own "
+             "minibatches (Trust-PCL's sub-episodes)",
+}
+OPTIONAL = {
+    "policy_delay": "(cfg) -> int: critic steps per actor step",
+    "preact_penalty": "(cfg) -> float: the actor's pre-tanh penalty (TD3's, NAF's)",
+    "fused_available": "(loss, actor_net) -> bool: whether its fused step computes this loss's settings (the fused "
+                       "step runs only while learners.fast_paths finds the code it copies as recorded)",
+    "actor_network": "(members, obs_dim, action_dim, network, algo): an actor other than network.actor_hidden's MLP",
+    "before_steps": "(runner, data): what it sets from the replay memory before a block of steps",
+    "acting_policy": "(cfg, networks, loss): an acting policy that reads the trained loss (a planner)",
+    "evaluation_policy": "(net, critic, network, algo, gamma): a deterministic policy that is more than its actor",
+}
 
 BLOCKS = {"td": TDOptions}  # the family's own block (each learner declares its others: learners.registry)
 CRITIC_OPTIONS = ("critic_dropout", "critic_layer_norm", "critic_blocks")  # DroQ's and BRO's Q-networks
