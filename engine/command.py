@@ -247,6 +247,9 @@ class _HydraErrors:
         return getattr(self.stream, name)
 
 
+CODE_FROM_DATA = ("--experimental-rerun",)  # Hydra's flags that unpickle a file
+
+
 def run(main) -> None:
     """``main()`` (the Hydra app); a configuration Hydra cannot compose (``algo=nope``) or resolve
     (``seed=${oops}``, which its run folder's name interpolates) ends in one line and exit status 2,
@@ -256,6 +259,10 @@ def run(main) -> None:
     from engine.processes import readable_output
 
     readable_output()  # a folder name that is not UTF-8 is printed escaped
+    for flag in CODE_FROM_DATA:  # Hydra's own flags that load pickles: code would run from a file
+        if any(arg == flag or arg.startswith(f"{flag}=") for arg in sys.argv[1:]):
+            end(f"{flag} loads a pickled configuration, which can run code from a file; rerun a run with "
+                "its command instead (its .hydra/overrides.yaml lists it)", 2)
     stderr = sys.stderr
     sys.stderr = errors = _HydraErrors(stderr)
     try:

@@ -30,8 +30,11 @@ LOGGERS = ("csv", "tensorboard", "none")
 
 def seed_dir(seeds, seed) -> str:
     """The run folder's last part (``conf/config.yaml``): ``/seed<seed>`` for one run, nothing
-    for a population (its members write ``seed<seed>/`` inside the folder)."""
-    return f"/seed{seed}" if seeds is None else ""
+    for a population (its members write ``seed<seed>/`` inside the folder). Checked as a name
+    (``door.files.name``) before Hydra makes the folder, as ``run_path``'s parts are."""
+    from door import files
+
+    return f"/{files.name(f'seed{seed}', 'seed')}" if seeds is None else ""
 
 
 def run_path(algo, er, seeds, seed) -> str:

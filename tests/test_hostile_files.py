@@ -159,6 +159,40 @@ def test_a_member_folder_that_is_a_link_is_never_written_through_or_cleared(tmp_
     assert not (population / "seed6").exists() or not any((population / "seed6").iterdir())
 
 
+def test_hydras_rerun_flag_never_unpickles_a_file(tmp_path):
+    """On 258b7c4 ``train.py --experimental-rerun FILE`` unpickled FILE (its payload ran), then ended in a
+    traceback: refused in one line, the file never read."""
+    import pickle
+
+    marker = tmp_path / "ran"
+
+    class Payload:
+        def __reduce__(self):
+            return (open, (str(marker), "w"))
+
+    payload = tmp_path / "config.pickle"
+    payload.write_bytes(pickle.dumps(Payload()))
+    for form in (["--experimental-rerun", str(payload)], [f"--experimental-rerun={payload}"]):
+        result = run("train.py", *form)
+        assert result.returncode == 2 and "--experimental-rerun loads a pickled" in one_line(result), result.stderr
+        assert not marker.exists()
+
+
+def test_a_seed_that_is_a_path_makes_no_folder_anywhere(tmp_path):
+    """On 258b7c4 ``seed=/../../../../x/esc`` was refused, but only after Hydra had made ``x/esc`` outside
+    outputs/ (the seed formed the folder's last part unchecked)."""
+    import shutil
+
+    escaped = ROOT / f"escaped-{tmp_path.name}"
+    try:
+        result = run("train.py", *TINY, f"seed=/../../../../{escaped.name}/esc")
+        assert result.returncode != 0 and "seed must be a name" in one_line(result), result.stderr[-2000:]
+        assert not escaped.exists()
+    finally:
+        if escaped.exists():
+            shutil.rmtree(escaped)
+
+
 def test_a_configuration_value_never_makes_a_folder_outside(tmp_path):
     result = run("train.py", "-m", *TINY, "algo.name=../../../escaped", f"hydra.sweep.dir={tmp_path}/sweep",
                  "hydra/launcher=basic")
