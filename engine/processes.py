@@ -141,7 +141,10 @@ def check_outputs(parser, **outputs) -> None:
 
 def readable_output() -> None:
     """Standard output and error print what cannot be encoded (a folder name that is not UTF-8)
-    escaped, instead of ending the tool in a ``UnicodeEncodeError``."""
+    escaped, instead of ending the tool in a ``UnicodeEncodeError``; the project's own warnings (a
+    fallback to other numerics, say) print as one plain line, without the source line Python adds."""
+    import warnings
+
     for stream in (sys.stdout, sys.stderr):
         reconfigure = getattr(stream, "reconfigure", None)
         if reconfigure is not None:
@@ -149,6 +152,23 @@ def readable_output() -> None:
                 reconfigure(errors="backslashreplace")
             except (ValueError, OSError):
                 pass
+    if getattr(warnings.formatwarning, "racing_plain", False):
+        return
+    default = warnings.formatwarning
+
+    def formatwarning(message, category, filename, lineno, line=None):
+        if _in_project(filename):
+            return f"Warning: {message}\n"
+        return default(message, category, filename, lineno, line)
+
+    formatwarning.racing_plain = True
+    warnings.formatwarning = formatwarning
+
+
+def _in_project(filename: str) -> bool:
+    """Whether ``filename`` is one of the project's own modules (a package of ``PROJECT_PACKAGES``)."""
+    parts = Path(filename).parts
+    return len(parts) >= 2 and parts[-2] in PROJECT_PACKAGES or any(p in PROJECT_PACKAGES for p in parts[-3:-1])
 
 
 def exit_with_parent(poll_seconds: float = 1.0) -> None:

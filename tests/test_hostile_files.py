@@ -9,6 +9,8 @@ import json
 import os
 import shutil
 import stat
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -268,6 +270,22 @@ def test_a_resume_under_other_numerics_is_refused_or_recorded_as_mixed(tmp_path,
     assert [(s["from_episode"], s["mode"], s["products"]) for s in summary["numerics"]["segments"]] == [
         (0, "portable", "torch"), (summary["resumed_at"], "fma", summary["numerics"]["segments"][1]["products"])]
     assert summary["numerics"]["segments"][1]["products"].startswith("fma-")
+
+
+def test_the_fallback_to_portable_products_is_one_plain_line(tmp_path):
+    """On 258b7c4 a machine without a C++ compiler saw the fallback as a Python warning with its source line
+    under it (``engine/command.py:94: RuntimeWarning: ...`` then ``numerics.apply(...)``)."""
+    empty = tmp_path / "bin"
+    empty.mkdir()
+    (empty / "python3").symlink_to(sys.executable)
+    env = {**ENV, "PATH": str(empty), "CXX": "", "RACING_KERNEL_CACHE": str(tmp_path / "cache"),
+           "PYTHONWARNINGS": "default"}  # as a user's shell has it (the tests' ENV silences warnings)
+    result = subprocess.run([sys.executable, "train.py", *TINY, f"hydra.run.dir={tmp_path / 'run'}"], cwd=ROOT,
+                            env=env, capture_output=True, text=True, timeout=300)  # a new process: no kernel loaded
+    assert result.returncode == 0, result.stderr[-2000:]
+    notes = [line for line in result.stderr.splitlines() if "running numerics=portable instead" in line]
+    assert len(notes) == 1 and notes[0].startswith("Warning: numerics=fma:"), result.stderr[-2000:]
+    assert "numerics.apply(" not in result.stderr and "RuntimeWarning" not in result.stderr
 
 
 @pytest.mark.slow

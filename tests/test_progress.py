@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import pytest
-
 import io
 import threading
+
+import pytest
 
 from engine.progress import Progress
 from tests.test_train import run_train
