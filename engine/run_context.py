@@ -206,7 +206,7 @@ class RunContext:
                 row = {**_episode_results(episode, batch, r), **diagnostics[r]}
                 member.metrics.write(row)
                 member.rewards.append(row["total_reward"])
-        _show(self.progress, members)
+        _show(self.progress, members, max(1, min(cfg.final_window, cfg.episodes)))
         done = episode + 1
         stopping = self.stop.requested is not None and done < cfg.episodes
         if cfg.checkpoint_every and done < cfg.episodes and (done % cfg.checkpoint_every == 0 or stopping):
@@ -374,12 +374,14 @@ def _progress(cfg: RunConfig, seeds: tuple[int, ...], initial: int = 0) -> Progr
     return Progress(f"{cfg.algo.name}/{cfg.er.name}/{who}", cfg.episodes, initial=initial, enabled=cfg.progress)
 
 
-def _show(progress: Progress, members: list[Member]) -> None:
+def _show(progress: Progress, members: list[Member], window: int) -> None:
+    """The last episode's reward and the mean of the last ``window`` (the final performance's window: the
+    label says how many, ``last10`` in a 10-episode run), over the running members."""
     running = [m for m in members if m.status == "running" and m.rewards]
     diverged = sum(m.status == "diverged" for m in members) or None
     if not running:
         progress.update(diverged=diverged)
         return
     last = _mean([m.rewards[-1] for m in running])
-    last20 = _mean([_mean(m.rewards[-20:]) for m in running])
-    progress.update(reward=last, last20=last20, diverged=diverged)
+    recent = _mean([_mean(m.rewards[-window:]) for m in running])
+    progress.update(**{"reward": last, f"last{window}": recent, "diverged": diverged})

@@ -63,4 +63,13 @@ def test_a_piped_run_writes_no_long_lines(tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     lines = [line for line in result.stderr.splitlines() if line.startswith("spg/recent/seed3: episode")]
     assert 15 <= len(lines) <= 17 and lines[-1].startswith("spg/recent/seed3: episode 30/30 (100%)")
+    assert all(", last20 " in line for line in lines)  # the final performance's window
+
+
+def test_the_progress_line_names_the_window_the_run_has(tmp_path):
+    """On 258b7c4 a 10-episode run's line said ``last20``: it averages the final window, min(20, episodes)."""
+    result = run_train("algo=spg", "er=recent", "seed=3", "episodes=4", "logger=none", f"hydra.run.dir={tmp_path}")
+    assert result.returncode == 0, result.stderr[-3000:]
+    lines = [line for line in result.stderr.splitlines() if line.startswith("spg/recent/seed3: episode")]
+    assert lines and all(", last4 " in line and "last20" not in line for line in lines), lines
     assert max(len(line) for line in (result.stdout + result.stderr).splitlines()) <= 200
