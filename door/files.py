@@ -273,8 +273,8 @@ def folder(path, root=None, create: bool = False) -> Path:
 def private(path) -> Path:
     """The folder ``path`` as this user's alone (for a cache whose files are loaded as code): made if
     missing (its parents too; mode 0700), not a link, owned by this user, and only this user may
-    write it (write permission taken from group and others where they had it). ``FileRefused`` if
-    another user owns it."""
+    write it. ``FileRefused`` if another user owns it or others may write into it (a shared folder,
+    such as ``/tmp``, is never changed: its mode is the system's or its owner's business)."""
     path = Path(path)
     folder(path.parent, path.parent, create=True)
     if not os.path.lexists(path):
@@ -289,11 +289,10 @@ def private(path) -> Path:
     if hasattr(os, "getuid") and info.st_uid != os.getuid():
         raise FileRefused(f"{path} belongs to another user (uid {info.st_uid}); a folder whose files are loaded as "
                           "code must be this user's own: remove it or choose another")
-    if stat.S_IMODE(info.st_mode) & 0o022:  # others may write into it: no longer
-        try:
-            os.chmod(path, stat.S_IMODE(info.st_mode) & ~0o022)
-        except OSError as err:
-            raise _refusal(path, err, "make private") from None
+    if stat.S_IMODE(info.st_mode) & 0o022:  # others may write into it: refused, left as it is
+        raise FileRefused(f"{path} may be written by other users (mode {stat.S_IMODE(info.st_mode):04o}); a folder "
+                          "whose files are loaded as code must be this user's alone: choose another, or take "
+                          "write permission from group and others yourself (chmod go-w)")
     return path
 
 

@@ -363,6 +363,22 @@ def test_a_path_too_long_and_a_bad_kernel_variable_end_in_one_line_before_anythi
     assert not folder.exists() or list(folder.iterdir()) == []
 
 
+def test_a_shared_kernel_cache_is_refused_and_left_as_it_is(tmp_path):
+    """On 258b7c4 RACING_KERNEL_CACHE pointed at an existing shared folder (mode 2775 or 1777) changed its mode
+    (to 2755, 1755): as root with /tmp that would break the system. Now the run says so in one line, computes
+    with the portable products, and the folder keeps its mode."""
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    os.chmod(shared, 0o2775)
+    env = {**ENV, "RACING_KERNEL_CACHE": str(shared), "PYTHONWARNINGS": "default"}
+    result = subprocess.run([sys.executable, "train.py", *TINY, f"hydra.run.dir={tmp_path / 'run'}"], cwd=ROOT,
+                            env=env, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    (line,) = [line for line in result.stderr.splitlines() if "running numerics=portable instead" in line]
+    assert "may be written by other users (mode 2775)" in line, line
+    assert stat.S_IMODE(os.lstat(shared).st_mode) == 0o2775 and not any(shared.iterdir())
+
+
 def test_compiled_code_is_cached_in_a_folder_of_this_users_own(tmp_path, monkeypatch):
     """TorchInductor loads the code it cached; its default folder sits in a shared /tmp, where another
     user could have made it first and planted code (found by a hostile trial)."""
@@ -372,9 +388,13 @@ def test_compiled_code_is_cached_in_a_folder_of_this_users_own(tmp_path, monkeyp
     monkeypatch.setenv("RACING_KERNEL_CACHE", str(tmp_path / "cache" / "kernels"))
     (tmp_path / "cache").mkdir()
     os.mkdir(tmp_path / "cache" / "inductor", 0o777)
-    os.chmod(tmp_path / "cache" / "inductor", 0o777)
-    assert compiling.inductor_cache() == str(tmp_path / "cache" / "inductor")
-    assert stat.S_IMODE(os.lstat(tmp_path / "cache" / "inductor").st_mode) & 0o022 == 0
+    os.chmod(tmp_path / "cache" / "inductor", 0o1777)  # a shared folder, as /tmp: refused, never changed
+    with pytest.raises(RuntimeError, match="may be written by other users .mode 1777"):
+        compiling.inductor_cache()
+    assert stat.S_IMODE(os.lstat(tmp_path / "cache" / "inductor").st_mode) == 0o1777
+    shutil.rmtree(tmp_path / "cache" / "inductor")
+    assert compiling.inductor_cache() == str(tmp_path / "cache" / "inductor")  # made afresh: this user's alone
+    assert stat.S_IMODE(os.lstat(tmp_path / "cache" / "inductor").st_mode) & 0o077 == 0
     shutil.rmtree(tmp_path / "cache" / "inductor")
     (tmp_path / "cache" / "inductor").symlink_to(tmp_path)
     monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
