@@ -532,8 +532,9 @@ def normalised_markdown(runs: list[Run], oracle: dict[int, float]) -> str:
     for er, algo in cells_seen:
         values = sorted(normalised(r, oracle) for r in scored if (r.er, r.algo) == (er, algo))
         mean = statistics.fmean(values)
-        se = statistics.stdev(values) / math.sqrt(len(values)) if len(values) > 1 else float("nan")
-        lines.append(f"| {er} / {ALGO_TITLES.get(algo, algo)} | {len(values)} | {mean:.3f} ± {se:.3f} | "
+        spread = (f"± {statistics.stdev(values) / math.sqrt(len(values)):.3f}" if len(values) > 1
+                  else "(n/a: one run)")  # a standard error needs two runs
+        lines.append(f"| {er} / {ALGO_TITLES.get(algo, algo)} | {len(values)} | {mean:.3f} {spread} | "
                      f"{statistics.median(values):.3f} | {values[0]:.3f} | {values[-1]:.3f} |")
     tracks = sorted({r.seed for r in scored})
     lines += ["", f"Oracle scores used ({len(tracks)} tracks): "
