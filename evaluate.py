@@ -12,8 +12,8 @@ A RUN_DIR is a finished train.py run folder (summary.json and actor.pt); any oth
 stands for every finished run inside it (a sweep, a population). Policies act without
 exploration noise (the Gaussian's mean; SAC: tanh of it; TD3: its actor). Each run is evaluated
 on its own track and on ``--tracks``; the table (printed, and written as CSV with ``--table``)
-has one row per run and track. ``--video`` films one episode of the first run on the first
-track as a GIF or MP4 (needs the ``render`` extra). Policies run under the numerics mode their runs
+has one row per run and track. ``--video`` films one episode of the first run on its own track
+as a GIF or MP4 (needs the ``render`` extra), and says which track and what total reward. Policies run under the numerics mode their runs
 were trained in (``--numerics`` to choose another; ``engine/numerics.py``).
 
 An AGENT that is not a run folder (``oracle``, ``pure_pursuit``, ``ray_follower``, a
@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=5, help="episodes per track (start states vary)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the first start state")
     parser.add_argument("--table", type=Path, default=None, help="write the table to this CSV file")
-    parser.add_argument("--video", type=Path, default=None, help="film the first run on the first track (.gif/.mp4)")
+    parser.add_argument("--video", type=Path, default=None, help="film the first run on its own track (.gif/.mp4)")
     parser.add_argument("--track-file", default=None,
                         help="with --video and an agent (not a run folder): film it on this track file")
     add_track_options(parser)
@@ -125,12 +125,14 @@ def main(argv: list[str] | None = None) -> int:
         _write_table(args.table, rows)
     if args.video is not None and first is not None:
         policy, settings, tracks, run = first
+        track = tracks[0]  # the run's own: the first of the evaluated tracks
         try:
-            frames = film(policy, settings, (args.tracks or tracks)[0], args.video, args.seed, name=str(run))
+            frames, total = film(policy, settings, track, args.video, args.seed, name=str(run))
         except (RuntimeError, ValueError) as err:
             print(f"evaluate: {err}", file=sys.stderr)
             return 2
-        print(f"wrote {args.video} ({frames} frames)")
+        print(f"track {track} (its own): {run} drove to a total reward of {total:.1f}; wrote {args.video} "
+              f"({frames} frames)")
     return 0 if rows else 2
 
 

@@ -262,16 +262,16 @@ def evaluate(net: Policy, settings: dict, track_seeds: list[int | str], episodes
 
 
 def film(net: Policy, settings: dict, track_seed: int | str, path: Path, seed: int = 0, fps: int = 30,
-         name: str | None = None) -> int:
+         name: str | None = None) -> tuple[int, float]:
     """Write one deterministic episode on a track (a seed or a track file) as a GIF or MP4 (by
     suffix), ``name`` (e.g. the run's folder) and the reward so far on each frame; returns the
-    number of frames."""
+    number of frames and the episode's total reward."""
     check_video_path(path)
     env = make_env(settings, track_seed, render_mode="rgb_array")
     frames: list = []
-    run_episode(net, env, seed, frames, name=name)
+    total = run_episode(net, env, seed, frames, name=name)
     env.close()
-    return write_video(frames, path, fps)
+    return write_video(frames, path, fps), total
 
 
 def check_video_path(path: Path) -> None:

@@ -135,6 +135,8 @@ def test_readme_report_and_evaluate_commands(tmp_path, capsys):
         args[args.index("--episodes") + 1] = "1"
         assert evaluate.main(args) == 0
     assert (sweep / "report" / "table.md").exists() and list(tmp_path.glob("*.gif"))
+    # the film is of the run's own track, and its line says so (on 258b7c4: the first of --tracks, unnamed)
+    assert "track 2067791 (its own): " in capsys.readouterr().out
 
 
 def test_every_relative_link_in_the_docs_points_at_a_file():
