@@ -23,6 +23,7 @@ status 130 or 143, and no process of it is left. A second signal stops the runni
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import sys
@@ -96,9 +97,20 @@ def sweep_folder_name(arguments: list[str]) -> str:
     return f"{readable[:80]}-{hashlib.sha256(text.encode()).hexdigest()[:8]}"
 
 
+class _JoblibSettings(logging.Filter):
+    """Drops the joblib launcher's line of raw settings (``Joblib.Parallel(n_jobs=-1,backend=loky,...)``):
+    the lines after it say which jobs run where."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("Joblib.Parallel(")
+
+
 class CheckedSweeper(BasicSweeper):
     def sweep(self, arguments: list[str]) -> Any:
         assert self.config is not None and self.launcher is not None and self.hydra_context is not None
+        joblib_log = logging.getLogger("hydra_plugins.hydra_joblib_launcher._core")
+        if not any(isinstance(f, _JoblibSettings) for f in joblib_log.filters):
+            joblib_log.addFilter(_JoblibSettings())
         getattr(sys.stderr, "pass_through", lambda: None)()  # composed: train.py's stderr is the sweep's now
         _name_the_folder(self.config, arguments)
         parser = OverridesParser.create(config_loader=self.hydra_context.config_loader)
