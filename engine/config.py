@@ -8,6 +8,7 @@ design does not allow, each in one sentence naming what was expected.
 from __future__ import annotations
 
 import functools
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -60,11 +61,13 @@ def register_resolvers() -> None:
 
 
 _noted: set[str] = set()
+NOTES_SAID = "RACING_NOTES_SAID"  # set by a sweep once its whole-sweep check has said every job's notes
 
 
 def _note(message: str) -> None:
-    """A one-line note on stderr, once per process (a value accepted, but not as one might expect)."""
-    if message not in _noted:
+    """A one-line note on stderr, once per process (a value accepted, but not as one might expect), and
+    once per sweep (its jobs' processes do not say again what the sweep's check said)."""
+    if message not in _noted and not os.environ.get(NOTES_SAID):
         _noted.add(message)
         import sys
 

@@ -53,6 +53,8 @@ def test_a_population_splits_over_processes_inside_a_joblib_worker(tmp_path):
         assert summary["status"] == "completed" and summary["population"] == {"seeds": [seed], "size": 1}
     # the joblib launcher's raw settings line is left out (on 258b7c4 every sweep printed it); its job lines stay
     assert "Joblib.Parallel(" not in result.stderr + result.stdout and "#0 : " in result.stderr + result.stdout
+    # a configuration's note is said once per sweep (on 258b7c4: by the check, then again by each job's process)
+    assert result.stderr.count("Note: final_window=20 is larger than episodes=1") == 1, result.stderr
 
 
 @pytest.mark.slow

@@ -128,6 +128,9 @@ class CheckedSweeper(BasicSweeper):
                   "(nothing was written):", file=sys.stderr)
             print("\n".join(f"  {line}" for line in problems), file=sys.stderr)
             raise SweepRefused(2)
+        from engine.config import NOTES_SAID
+
+        os.environ[NOTES_SAID] = "1"  # every job's configuration notes were said by the check: not again per job
         from engine.processes import STOP_FILE, read_stop_file
 
         from door import files
