@@ -63,13 +63,20 @@ class FileRefused(ValueError):
 class DiskFull(FileRefused):
     """A file could not be written for want of space; the previous version of it (if any) is intact."""
 
-    def __init__(self, path, needed: int):
+    def __init__(self, path, needed: int, quota: bool = False):
         self.path, self.needed = Path(path), needed
-        free = free_bytes(self.path.parent)
-        have = "" if free is None else f", {free:,} are free"
-        what = f"writing it needs {needed:,} bytes{have}" if needed else f"it could not be flushed to the disk{have}"
-        super().__init__(f"no space left on the device of {self.path}: {what}; "
-                         "the folder keeps its last good files (free some space and run the same command again)")
+        free, entries = free_bytes(self.path.parent), free_entries(self.path.parent)
+        if quota:  # EDQUOT: this user's share, whatever the device holds
+            ran_out, remedy = "this user's disk quota is used up", "free some of your files"
+        elif entries == 0:  # bytes to spare, but no file entry (inode) left for a new file
+            ran_out, remedy = (f"the device of {self.path} has no file entries (inodes) left"
+                               f"{'' if free is None else f' (though {free:,} bytes are free)'}",
+                               "delete some files (many small ones free the most)")
+        else:
+            have = "" if free is None else f", {free:,} are free"
+            what = f"writing it needs {needed:,} bytes{have}" if needed else f"it could not be flushed to the disk{have}"
+            ran_out, remedy = f"no space left on the device of {self.path}: {what}", "free some space"
+        super().__init__(f"{ran_out}; the folder keeps its last good files ({remedy} and run the same command again)")
 
 
 def free_bytes(folder) -> int | None:
@@ -77,6 +84,16 @@ def free_bytes(folder) -> int | None:
         return shutil.disk_usage(folder).free
     except OSError:
         return None
+
+
+def free_entries(folder) -> int | None:
+    """File entries (inodes) an unprivileged user may still make on ``folder``'s device (None: unknown; some file
+    systems report 0 for both totals, having no fixed count)."""
+    try:
+        info = os.statvfs(folder)
+    except (OSError, AttributeError):
+        return None
+    return None if info.f_files == 0 else info.f_favail
 
 
 def kind(mode: int) -> str:
@@ -95,7 +112,7 @@ def _refusal(path, err: OSError, verb: str, follow: bool = False) -> Exception:
     if isinstance(err, FileNotFoundError):
         return err
     if err.errno in (errno.ENOSPC, errno.EDQUOT):
-        return DiskFull(path, 0)
+        return DiskFull(path, 0, quota=err.errno == errno.EDQUOT)
     reason = {errno.ELOOP: "its symbolic links loop" if follow else "it is a symbolic link (a file here is never read "
                                                                        "or written through a link): remove the link",
               errno.ENXIO: "it is a FIFO or a device, not a regular file",
@@ -370,7 +387,7 @@ def write_atomic(path, data, root=None) -> None:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         if err.errno in (errno.ENOSPC, errno.EDQUOT):
-            raise DiskFull(path, size) from None
+            raise DiskFull(path, size, quota=err.errno == errno.EDQUOT) from None
         raise _refusal(path, err, "write") from None
     except BaseException:
         with contextlib.suppress(OSError):

@@ -209,6 +209,25 @@ def test_the_door_turns_system_errors_into_one_sentence(tmp_path):
         locked.chmod(0o700)
 
 
+def test_a_disk_out_of_file_entries_says_so(tmp_path, monkeypatch):
+    """On 258b7c4 a disk with bytes to spare but no inodes left was reported as "no space left ... 52,342,784
+    (bytes) are free": it says what ran out, as it does for a quota."""
+    real = os.statvfs(tmp_path)
+
+    class NoEntries:  # the device's own numbers, but no entry left
+        f_bavail, f_frsize, f_blocks, f_bfree = real.f_bavail, real.f_frsize, real.f_blocks, real.f_bfree
+        f_files, f_favail = real.f_files or 1000, 0
+
+    monkeypatch.setattr(files.os, "statvfs", lambda folder: NoEntries())
+    message = str(files._refusal(tmp_path / "x", OSError(errno.ENOSPC, "full"), "write"))
+    assert "has no file entries (inodes) left (though " in message and "delete some files" in message, message
+    quota = str(files._refusal(tmp_path / "x", OSError(errno.EDQUOT, "quota"), "write"))
+    assert quota.startswith("this user's disk quota is used up"), quota
+    monkeypatch.undo()
+    full = str(files._refusal(tmp_path / "x", OSError(errno.ENOSPC, "full"), "write"))
+    assert full.startswith(f"no space left on the device of {tmp_path / 'x'}"), full
+
+
 def test_errno_names_cover_what_the_door_reports():
     for code in (errno.ELOOP, errno.ENXIO, errno.EISDIR, errno.ENAMETOOLONG, errno.EROFS, errno.EACCES):
         err = files._refusal(Path("/x"), OSError(code, os.strerror(code)), "write")
