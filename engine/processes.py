@@ -109,15 +109,14 @@ def interrupt(number: int, frame) -> None:
         raise KeyboardInterrupt(signal.Signals(number).name)
 
 
-RUN_MARKERS = ("summary.json", "checkpoint.pt")  # a folder holding one is a run's or a population's
-
-
 def check_outputs(parser, **outputs) -> None:
     """Before a tool's work: each output file its command line names (``table=args.table``, ...) can
-    be written (``door.files.check_target``) and lies outside every run folder (a folder holding a
-    run's summary or a population's checkpoint, or below one: those hold only the run's own files, and
-    an output there would replace one of them or damage the run), else ``parser.error`` with one line."""
+    be written (``door.files.check_target``) and lies outside every run folder (``engine.rundir.run_folder_of``:
+    a folder with a run's marks, finished, training or damaged, a population's top folder included, or below
+    one: those hold only the run's own files, and an output there would replace one of them or damage the
+    run), else ``parser.error`` with one line."""
     from door import files
+    from engine.rundir import run_folder_of
 
     for option, path in outputs.items():
         if path is None:
@@ -125,14 +124,10 @@ def check_outputs(parser, **outputs) -> None:
         name = f"--{option.replace('_', '-')}"
         if os.path.isdir(path):
             parser.error(f"{name} {path} is a folder; give a file name")
-        folder = os.path.dirname(os.path.abspath(path))
-        while True:
-            if any(os.path.lexists(os.path.join(folder, marker)) for marker in RUN_MARKERS):
-                parser.error(f"{name} {path} is inside the run folder {folder}, which holds only the run's own "
-                             "files; write it elsewhere")
-            if os.path.dirname(folder) == folder:
-                break
-            folder = os.path.dirname(folder)
+        folder = run_folder_of(os.path.dirname(os.path.abspath(path)))
+        if folder is not None:
+            parser.error(f"{name} {path} is inside the run folder {folder}, which holds only the run's own "
+                         "files; write it elsewhere")
         try:
             files.check_target(path)
         except files.FileRefused as err:

@@ -86,6 +86,26 @@ def _is_run_file(name: str) -> bool:
     return name in _RUN_NAMES or _CHECKPOINT_NAME.fullmatch(name) is not None
 
 
+def holds_a_run(folder) -> bool:
+    """Whether ``folder`` carries a run's marks, whatever state the run is in: its summary, rows, weights,
+    checkpoints, lock, logs or Hydra's record (a population's top folder, with ``.lock`` and ``.hydra/``, is
+    one; a sweep's, with ``multirun.yaml``, is not). The one answer every tool asks before it writes."""
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return False
+    return any(_is_run_file(name) for name in names)
+
+
+def run_folder_of(path) -> Path | None:
+    """The run folder ``path`` lies in (the nearest folder at or above it that ``holds_a_run``), or None."""
+    folder = Path(os.path.abspath(path))
+    for candidate in (folder, *folder.parents):
+        if holds_a_run(candidate):
+            return candidate
+    return None
+
+
 def _run_files(folder: Path) -> list[Path]:
     """Every file (and folder) a run writes in its folder: those of fixed names, present or not, and
     its checkpoints present (files or links)."""

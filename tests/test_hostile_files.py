@@ -161,6 +161,29 @@ def test_a_member_folder_that_is_a_link_is_never_written_through_or_cleared(tmp_
     assert not (population / "seed6").exists() or not any((population / "seed6").iterdir())
 
 
+def test_no_tool_writes_into_a_run_folder_whatever_its_state(tmp_path):
+    """On 258b7c4 ``evaluate.py RUN --table POP/.hydra/config.yaml`` replaced a finished population's resolved
+    configuration (its top folder holds .hydra/ and .lock, its members the summaries), and ``--table
+    RUN/metrics.csv`` while RUN trained (before its first checkpoint) exited 0: tools knew a run folder only
+    by a summary or a checkpoint. One rule (engine.rundir.run_folder_of) now answers for every tool."""
+    population = tmp_path / "population"
+    done = run("train.py", *TINY, "seeds=[6,7]", f"hydra.run.dir={population}")
+    assert done.returncode == 0, done.stderr[-2000:]
+    config = population / ".hydra" / "config.yaml"
+    before = config.read_bytes()
+    training = tmp_path / "training"  # a run between its start and its first checkpoint: rows and a lock
+    training.mkdir()
+    (training / "metrics.csv").write_text("episode,total_reward\n0,1.0\n")
+    (training / ".lock").write_text("")
+    for target in (config, training / "metrics.csv", population / "notes.csv"):
+        result = run("evaluate.py", str(population / "seed6"), "--episodes", "1", "--table", str(target))
+        last = result.stderr.strip().splitlines()[-1]  # argparse: its usage, then the one line
+        assert result.returncode == 2 and "is inside the run folder" in last and "Traceback" not in result.stderr, \
+            result.stderr[-2000:]
+    assert config.read_bytes() == before and (training / "metrics.csv").read_text() == "episode,total_reward\n0,1.0\n"
+    assert not (population / "notes.csv").exists()
+
+
 def test_hydras_rerun_flag_never_unpickles_a_file(tmp_path):
     """On 258b7c4 ``train.py --experimental-rerun FILE`` unpickled FILE (its payload ran), then ended in a
     traceback: refused in one line, the file never read."""
