@@ -9,7 +9,10 @@ the reason, never counted.
 from __future__ import annotations
 
 import csv
+import functools
+import hashlib
 import io
+import json
 import math
 import statistics
 from dataclasses import dataclass, field
@@ -53,6 +56,7 @@ class Run:
     problem: str | None = None  # a damaged run's: which file, and what is wrong with it
     sealed: bool = True  # its summary carries its own digest (False: written before summaries were sealed)
     budget: int | None = None  # the episodes it was planned for (summary.json's episodes_planned): its training budget
+    identity: str | None = None  # what the run is, as it recorded it (algo, er, seed, settings): copies share it
 
     @property
     def version(self) -> str:
@@ -157,6 +161,11 @@ def read_run(folder: Path) -> Run:
         from engine.outputs import DIGEST_KEY
 
         settings = summary.get("settings") or {}
+        mislabelled = _mislabelled(summary["algo"], (settings.get("algo") or {}).get("loss"))
+        if mislabelled:
+            return Run(folder, "damaged", rewards=rewards, problem=f"{folder / SUMMARY_FILE}: {mislabelled}")
+        identity = hashlib.sha256(json.dumps({key: summary.get(key) for key in ("algo", "er", "seed")} |
+                                             {"settings": settings}, sort_keys=True, default=str).encode()).hexdigest()
         size = (summary.get("population") or {}).get("size") or 1
         wall = summary.get("wall_time_s")
         if summary.get("resumed_at") and (wall is None or "wall_time_session_s" not in summary):
@@ -169,9 +178,38 @@ def read_run(folder: Path) -> Run:
                    wall / size if wall is not None else None, numerics_label(summary),
                    int(((settings.get("env") or {}).get("options") or {}).get("max_steps") or EPISODE_STEPS),
                    summary["cpu_time_s"] / size if summary.get("cpu_time_s") is not None else None,
-                   sealed=DIGEST_KEY in summary, budget=int(summary.get("episodes_planned") or summary["episodes"]))
+                   sealed=DIGEST_KEY in summary, budget=int(summary.get("episodes_planned") or summary["episodes"]),
+                   identity=identity)
     except (KeyError, TypeError, ValueError, AttributeError) as err:
         return Run(folder, "damaged", rewards=rewards, problem=f"{folder / SUMMARY_FILE}: a field is malformed ({err!r})")
+
+
+@functools.lru_cache(maxsize=1)
+def _declared_learners() -> dict[str, str]:
+    from engine.config import algo_learners
+
+    return algo_learners()
+
+
+def _mislabelled(name: str, learner: str | None) -> str | None:
+    """Why a run's name is not what it trained (None: it is): a run named as one of conf/algo's algorithms
+    (``algo.name``) but recorded training another learner (``settings.algo.loss``) would land in that
+    algorithm's cell. A run is grouped by what it recorded, never by its folder or its name alone."""
+    declared = _declared_learners().get(name)
+    if declared is None or learner is None or declared == learner:
+        return None
+    return (f"its name says {name} (conf/algo/{name}.yaml trains {declared}), but it recorded training {learner} "
+            "(settings.algo.loss): give such a run a name of its own (algo.name=...)")
+
+
+def copies(runs: list[Run]) -> list[list[Run]]:
+    """Groups of two or more finished runs that are one run (the same recorded algorithm, replay mode, seed
+    and settings): a copy of a folder (a backup beside it) or the same run made twice; each would count again."""
+    groups: dict[str, list[Run]] = {}
+    for run in runs:
+        if run.status in ("completed", "diverged") and run.identity is not None:
+            groups.setdefault(run.identity, []).append(run)
+    return [group for group in groups.values() if len(group) > 1]
 
 
 def code_versions(runs: list[Run]) -> dict[str, list[Run]]:

@@ -278,6 +278,30 @@ def algo_titles() -> dict[str, str]:
     return titles
 
 
+def algo_learners() -> dict[str, str]:
+    """Every algorithm of ``conf/algo/`` by name, with the learner (``loss:``) it trains, following an
+    algorithm built on another (its ``defaults`` list). What a run recorded is checked against it: a run
+    whose name is one of these but that trained another learner is not that algorithm's."""
+    import yaml
+
+    from door import files
+
+    nodes = {}
+    for path in sorted((CONF_DIR / "algo").glob("*.yaml")):
+        node = yaml.safe_load(files.read_text(path, 1 << 20, "configuration file")) or {}
+        nodes[path.stem] = node
+    found = {}
+    for stem, node in nodes.items():
+        seen = node
+        for _ in range(len(nodes)):
+            if "loss" in seen:
+                break
+            bases = [entry for entry in seen.get("defaults") or [] if isinstance(entry, str) and entry != "_self_"]
+            seen = nodes.get(bases[0], {}) if bases else {}
+        found[node.get("name", stem)] = seen.get("loss")
+    return found
+
+
 @dataclass(frozen=True)
 class ERConfig:
     """An experience-replay row of the paper's table (``conf/er/*.yaml``)."""

@@ -88,13 +88,14 @@ def _is_run_file(name: str) -> bool:
 
 def holds_a_run(folder) -> bool:
     """Whether ``folder`` carries a run's marks, whatever state the run is in: its summary, rows, weights,
-    checkpoints, lock, logs or Hydra's record (a population's top folder, with ``.lock`` and ``.hydra/``, is
-    one; a sweep's, with ``multirun.yaml``, is not). The one answer every tool asks before it writes."""
+    checkpoints or Hydra's record (a population's top folder, with ``.hydra/``, is one; a sweep's, with
+    ``multirun.yaml``, is not; a ``.lock`` or ``logs/`` alone is not: other programs name files so too).
+    The one answer every tool asks before it writes."""
     try:
         names = os.listdir(folder)
     except OSError:
         return False
-    return any(_is_run_file(name) for name in names)
+    return any(_is_run_file(name) and name not in (LOCK_FILE, LOGS_DIR) for name in names)
 
 
 def run_folder_of(path) -> Path | None:

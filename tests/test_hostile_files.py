@@ -175,6 +175,7 @@ def test_no_tool_writes_into_a_run_folder_whatever_its_state(tmp_path):
     training.mkdir()
     (training / "metrics.csv").write_text("episode,total_reward\n0,1.0\n")
     (training / ".lock").write_text("")
+    (tmp_path / ".lock").write_text("")  # another program's lock (pytest's numbered folders have one): no run
     for target in (config, training / "metrics.csv", population / "notes.csv"):
         result = run("evaluate.py", str(population / "seed6"), "--episodes", "1", "--table", str(target))
         last = result.stderr.strip().splitlines()[-1]  # argparse: its usage, then the one line

@@ -445,3 +445,37 @@ def test_no_verdict_on_fewer_than_four_tracks(tmp_path):
     assert "| +10.0 [+10.0, +10.0] too few tracks to decide |" in beyond_markdown(find_runs(tmp_path))
     fake_run(tmp_path, "sac", "memory", PAPER_SEEDS[3], 110.0)
     assert "| +10.0 [+10.0, +10.0] higher |" in beyond_markdown(find_runs(tmp_path))
+
+
+def test_a_copied_run_is_refused_naming_both_folders(tmp_path, capsys):
+    """On 258b7c4 a finished run copied beside itself in a sweep (a backup) was counted again: "-18.3 ± 0.0
+    (n=3)". One run is one run, however many folders hold it: by what it recorded, never by its folder."""
+    import shutil
+
+    original = fake_run(tmp_path, "spg", "recent", 1, 90.0)
+    fake_run(tmp_path, "spg", "recent", 2, 100.0)
+    backup = tmp_path / "backup" / "spg" / "recent" / "seed1"
+    shutil.copytree(original, backup)
+    assert report.main([str(tmp_path), "--no-figures"]) == 2
+    err = capsys.readouterr().err
+    assert "1 run(s) in more than one folder" in err and str(original) in err and str(backup) in err
+    assert not (tmp_path / "report").exists()
+    shutil.rmtree(tmp_path / "backup")
+    assert report.main([str(tmp_path), "--no-figures"]) == 0
+
+
+def test_a_run_named_as_another_algorithm_stays_out_of_its_cell(tmp_path, capsys):
+    """On 258b7c4 ``train.py algo=ppo er=recent algo.name=spg_p_multi er.name=memory`` landed a PPO result in
+    SPG-p's cell: the report trusted the name over the learner the run recorded."""
+    from engine.outputs import write_summary
+
+    fake_run(tmp_path, "spg_p_multi", "memory", 1, 130.0)
+    liar = fake_run(tmp_path / "elsewhere", "spg_p_multi", "memory", 2, 10.0)
+    summary = json.loads((liar / "summary.json").read_text())
+    summary.pop("sha256", None)
+    write_summary(liar, {**summary, "settings": {"algo": {"name": "spg_p_multi", "loss": "ppo"}}})
+    assert report.main([str(tmp_path), "--no-figures"]) == 0
+    out = capsys.readouterr().out
+    assert "conf/algo/spg_p_multi.yaml trains spg), but it recorded training ppo" in out, out
+    listed = (tmp_path / "report" / "runs.csv").read_text()
+    assert ",,,damaged,,3,not recorded,elsewhere/spg_p_multi/memory/seed2," in listed, listed  # not in any cell
