@@ -60,7 +60,8 @@ def test_a_learner_of_each_family_is_its_own_files_only(tmp_path):
     _add_off_policy_learner(copy)
     environment = {**os.environ, "PYTHONPATH": str(copy)}
     checks = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-o", "addopts=",
-                             "tests/test_config.py", "tests/test_registry.py", "tests/test_layout.py"],
+                             "-m", "not slow", "tests/test_config.py", "tests/test_registry.py", "tests/test_layout.py",
+                             "tests/test_fast_paths.py"],
                             cwd=copy, env=environment, capture_output=True, text=True, timeout=900)
     assert checks.returncode == 0, checks.stdout[-3000:]
     for name, extra in (("toy_ppo", ["er=recent"]), ("toy_td3", ["algo.td.warmup_episodes=1",
