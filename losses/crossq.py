@@ -11,16 +11,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import CrossQLoss
 from torchrl.objectives.utils import distance_loss
 
-from losses.td import (
-    ACTION_NOISE_KEY,
-    MemberTemperature,
-    check_no_masks,
-    member_means,
-    owns_actor,
-    policy_sample,
-    stacked_values,
-    td0_target,
-)
+from losses.td import (ACTION_NOISE_KEY, MemberTemperature, check_no_masks, member_means, owns_actor, policy_sample,
+                       stacked_values, td0_target)
 
 
 class MemberCrossQLoss(MemberTemperature, CrossQLoss):

@@ -10,18 +10,8 @@ from torchrl.objectives import REDQLoss
 from torchrl.objectives.utils import distance_loss
 
 from losses.common import PRIORITY_WEIGHT_KEY
-from losses.td import (
-    ACTION_NOISE_KEY,
-    MemberTemperature,
-    check_no_masks,
-    member_means,
-    owns_actor,
-    policy_sample,
-    q_input,
-    soft_td_target,
-    stackable_critic,
-    stacked_values,
-)
+from losses.td import (ACTION_NOISE_KEY, MemberTemperature, check_no_masks, member_means, owns_actor, policy_sample,
+                       q_input, soft_td_target, stackable_critic, stacked_values)
 
 
 class MemberREDQLoss(MemberTemperature, REDQLoss):
@@ -81,7 +71,8 @@ class MemberREDQLoss(MemberTemperature, REDQLoss):
         observation = batch.get("observation")
         members = observation.shape[0]
         if self.subsets is None or self.subsets.shape[1] != members:
-            raise RuntimeError("population_losses needs each member's subset of target networks: call draw(batch) first")
+            raise RuntimeError("population_losses needs each member's subset of target networks: "
+                               "call draw(batch) first")
         rows = torch.arange(members, device=self.subsets.device)
         chosen = self.target_qvalue_network_params.apply(lambda value: value[self.subsets, rows],  # [subset, R, ...]
                                                          batch_size=[self.subsets.shape[0]])

@@ -13,19 +13,8 @@ from torch import nn
 from torchrl.objectives import SACLoss
 from torchrl.objectives.utils import distance_loss
 
-from losses.td import (
-    ACTION_NOISE_KEY,
-    MemberTemperature,
-    check_no_masks,
-    member_means,
-    owns_actor,
-    policy_sample,
-    q_input,
-    q_reduce,
-    soft_td_target,
-    stackable_critic,
-    stacked_values,
-)
+from losses.td import (ACTION_NOISE_KEY, MemberTemperature, check_no_masks, member_means, owns_actor, policy_sample,
+                       q_input, q_reduce, soft_td_target, stackable_critic, stacked_values)
 
 
 class MemberSACLoss(MemberTemperature, SACLoss):

@@ -12,16 +12,8 @@ from torch import nn
 from torchrl.objectives import TD3Loss
 from torchrl.objectives.utils import distance_loss
 
-from losses.td import (
-    check_no_masks,
-    draws_masks,
-    member_means,
-    member_normal,
-    owns_actor,
-    stackable_critic,
-    stacked_values,
-    td0_target,
-)
+from losses.td import (check_no_masks, draws_masks, member_means, member_normal, owns_actor, stackable_critic,
+                       stacked_values, td0_target)
 
 SMOOTHING_KEY = "smoothing_noise"  # TD3: the clipped target smoothing noise under "next" (zeros at the root)
 

@@ -9,17 +9,8 @@ from tensordict import TensorDictBase
 from torch import nn
 from torchrl.objectives import TQCLoss
 
-from losses.td import (
-    ACTION_NOISE_KEY,
-    MemberTemperature,
-    check_no_masks,
-    member_means,
-    owns_actor,
-    policy_sample,
-    stackable_critic,
-    stacked_values,
-    td0_returns,
-)
+from losses.td import (ACTION_NOISE_KEY, MemberTemperature, check_no_masks, member_means, owns_actor, policy_sample,
+                       stackable_critic, stacked_values, td0_returns)
 
 
 class _QuantileHuber(torch.autograd.Function):
