@@ -161,7 +161,8 @@ def read_run(folder: Path) -> Run:
         from engine.outputs import DIGEST_KEY
 
         settings = summary.get("settings") or {}
-        mislabelled = _mislabelled(summary["algo"], (settings.get("algo") or {}).get("loss"))
+        algo_settings = settings.get("algo")  # a mapping for train.py's runs (external ones record their own)
+        mislabelled = _mislabelled(summary["algo"], algo_settings.get("loss") if isinstance(algo_settings, dict) else None)
         if mislabelled:
             return Run(folder, "damaged", rewards=rewards, problem=f"{folder / SUMMARY_FILE}: {mislabelled}")
         identity = hashlib.sha256(json.dumps({key: summary.get(key) for key in ("algo", "er", "seed")} |

@@ -61,14 +61,19 @@ class MetricsWriter:
         kept = kept_rows(self.path, keep_rows, expect, ",".join(columns))
         text = io.StringIO(newline="")
         csv.DictWriter(text, fieldnames=columns).writeheader()
-        write_atomic(self.path, text.getvalue().encode() + kept)  # a crash now leaves the old file whole
+        start = text.getvalue().encode() + kept
+        write_atomic(self.path, start)  # a crash now leaves the old file whole
+        # what this run wrote, as it wrote it: the summary seals these bytes, not whatever the file holds
+        self.written, self.written_bytes = hashlib.sha256(start), len(start)
         # then rows are appended, each in one write; one that does not fit is cut off again
         self.fd = files.open_append(self.path)
         self.size = os.fstat(self.fd).st_size
 
     def record(self) -> dict:
-        """Size and SHA-256 of the file as it is on the disk now (a checkpoint keeps it: ``expect``)."""
+        """Size and SHA-256 of the file as it is on the disk now (a checkpoint keeps it: ``expect``), which must
+        be what this run wrote (``check_unchanged``)."""
         self.sync()
+        self.check_unchanged()
         return bytes_record(files.read(self.path, ROWS_LIMIT, "metrics.csv"))
 
     def write(self, row: dict[str, Any]) -> None:
@@ -98,6 +103,17 @@ class MetricsWriter:
                 raise DiskFull(self.path, len(data)) from None
             raise
         self.size += len(data)
+        self.written.update(data)
+        self.written_bytes += len(data)
+
+    def check_unchanged(self) -> None:
+        """``RunFolderError`` if metrics.csv is not exactly the bytes this run wrote (a row edited, added or
+        cut behind its back while it trained): a run seals what it wrote, never what the file holds at the end."""
+        now = file_digest(self.path)
+        if now != {"bytes": self.written_bytes, "sha256": self.written.hexdigest()}:
+            raise RunFolderError(f"{self.path} changed while the run trained (it holds {now['bytes']:,} bytes; the run "
+                                 f"wrote {self.written_bytes:,}): its rows are not the run's own, so the run is not "
+                                 "sealed; run the same command with overwrite=true to train it afresh")
 
     def sync(self) -> None:
         """Flush the rows to the disk (before a checkpoint that counts them)."""

@@ -234,6 +234,8 @@ class RunContext:
         wall = round(session + self.earlier_wall, 3) if self.earlier_wall is not None else None
         cpu = round(time.process_time() - self.cpu_start + self.earlier_cpu, 3) if self.earlier_cpu is not None else None
         session_wall = {"wall_time_session_s": session} if self.first else {}
+        for member in members:  # before anything is written: a run seals the rows it wrote, or nothing
+            member.metrics.check_unchanged()
         for r, member in enumerate(members):
             if member.status == "running":
                 member.status = "completed"

@@ -79,6 +79,7 @@ def refusal(found: FolderState, settings: dict | None, solo: bool = True) -> str
 
 
 _RUN_NAMES = (SUMMARY_FILE, *RECORDED_FILES, "model.zip", LOCK_FILE, LOGS_DIR, ".hydra")
+RUN_MARKS = (SUMMARY_FILE, METRICS_FILE, ".hydra")  # with its checkpoints: what only a run's folder holds
 
 
 def _is_run_file(name: str) -> bool:
@@ -87,15 +88,16 @@ def _is_run_file(name: str) -> bool:
 
 
 def holds_a_run(folder) -> bool:
-    """Whether ``folder`` carries a run's marks, whatever state the run is in: its summary, rows, weights,
+    """Whether ``folder`` carries a run's marks, whatever state the run is in: its summary, rows,
     checkpoints or Hydra's record (a population's top folder, with ``.hydra/``, is one; a sweep's, with
-    ``multirun.yaml``, is not; a ``.lock`` or ``logs/`` alone is not: other programs name files so too).
+    ``multirun.yaml``, is not; a ``.lock``, ``logs/`` or weights alone are not: a downloaded ``model.zip`` or
+    ``actor.pt`` sits anywhere, and other programs name their locks and logs so too).
     The one answer every tool asks before it writes."""
     try:
         names = os.listdir(folder)
     except OSError:
         return False
-    return any(_is_run_file(name) and name not in (LOCK_FILE, LOGS_DIR) for name in names)
+    return any(name in RUN_MARKS or _CHECKPOINT_NAME.fullmatch(name) for name in names)
 
 
 def run_folder_of(path) -> Path | None:

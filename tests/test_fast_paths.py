@@ -175,19 +175,28 @@ def test_an_edit_to_any_method_a_step_calls_runs_and_says_so(name, monkeypatch):
     constant (checked on each method's own source)."""
     methods = _methods_a_step_calls(name)
     assert len(methods) >= 3 or not methods, methods
+    ran = []
     for klass, member in methods:
         qualified = f"{klass.__module__}.{klass.__qualname__}.{member}"
         with monkeypatch.context() as patch:
             patch.setattr(klass, member, _edited(klass, member, f"raise RuntimeError('edited {qualified}')"))
-            with pytest.raises(RuntimeError, match=f"edited {qualified}"):  # noqa: PT012
+            try:
                 _, learner, _ = _learner(name)  # a method the build calls raises here: the edit ran
                 assert learner.phases.path["critic"] == "loss module", (qualified, learner.phases.path)
                 assert qualified in learner.phases.code_refusal or "and" in learner.phases.code_refusal
                 _update(learner, _data(learner))
+            except RuntimeError as err:
+                assert f"edited {qualified}" in str(err), err
+                ran.append(member)
+            # not raised: this update did not call it (a clean-up TorchRL runs only when the garbage collector
+            # has left it something, say); what the guard says was checked above
         source = textwrap.dedent(inspect.getsource(_function(klass, member)))
         assert fast_paths.source_digest(_with_docstring(source)) == fast_paths.source_digest(source), qualified
         changed = _constant_changed(source)
         assert fast_paths.source_digest(changed) != fast_paths.source_digest(source), qualified
+    loss_methods = {member for _, member in methods if member in ("forward", "actor_loss", "qvalue_loss", "value_loss",
+                                                                  "qvalue_v2_loss", "critic_loss", "draw")}
+    assert loss_methods and loss_methods <= set(ran), (loss_methods, ran)  # the losses themselves: always run
 
 
 def _function(klass, member):

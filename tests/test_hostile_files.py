@@ -185,6 +185,30 @@ def test_no_tool_writes_into_a_run_folder_whatever_its_state(tmp_path):
     assert not (population / "notes.csv").exists()
 
 
+def test_a_row_edited_while_the_run_trains_is_never_sealed_as_its_own(tmp_path, monkeypatch):
+    """On 258b7c4 a metrics.csv row edited while the run trained was sealed into the finished run as its own:
+    a run seals what it wrote (a running digest of its rows), so an edit behind its back is damage."""
+    from engine import run_context
+    from engine.outputs import RunFolderError
+
+    original = run_context.RunContext.log
+
+    def log(self, episode, batch, totals):
+        original(self, episode, batch, totals)
+        if episode == 1:  # someone "fixes" the first episode's reward while the run goes on
+            path = self.members[0].folder / "metrics.csv"
+            lines = path.read_text().splitlines(keepends=True)
+            fields = lines[1].split(",")
+            lines[1] = ",".join([fields[0], "999.0", *fields[2:]])
+            path.write_text("".join(lines))
+
+    monkeypatch.setattr(run_context.RunContext, "log", log)
+    folder = tmp_path / "run"
+    with pytest.raises(RunFolderError, match="changed while the run trained"):
+        train(TINY, folder)
+    assert not (folder / "summary.json").exists() and "999.0" in (folder / "metrics.csv").read_text()
+
+
 def test_hydras_rerun_flag_never_unpickles_a_file(tmp_path):
     """On 258b7c4 ``train.py --experimental-rerun FILE`` unpickled FILE (its payload ran), then ended in a
     traceback: refused in one line, the file never read."""
