@@ -130,7 +130,9 @@ class Session:
         from engine.version import describe
 
         for folder, summary in self.skipped:
-            print(f"{folder}: already {summary['status']} (final_mean {summary['final_mean']}, "
+            final = summary.get("final_mean")
+            shown = f"{final:.1f}" if isinstance(final, (int, float)) else "none"  # as the line below it shows it
+            print(f"{folder}: already {summary['status']} (final performance {shown}, "
                   f"{describe(summary.get('code'))}); skipped", file=sys.stderr)
         for summary in summaries:
             print(finished_line(run_cfg, self.out_dir, summary))

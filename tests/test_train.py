@@ -101,6 +101,8 @@ def test_a_finished_run_is_skipped_and_a_different_one_refused(tmp_path):
     before = (tmp_path / "metrics.csv").read_bytes()
     again = run_train(*args, "logger=none")  # presentation keys do not make a different run
     assert again.returncode == 0 and "already completed" in again.stderr and "skipped" in again.stderr
+    final = json.loads((tmp_path / "summary.json").read_text())["final_mean"]  # shown as the finished line shows it
+    assert f"(final performance {final:.1f}, " in again.stderr and repr(final) not in again.stderr, again.stderr
     direct = run_train(*args, "env.collector=direct")  # nor the collector (the same batches), recorded or not
     assert direct.returncode == 0 and "already completed" in direct.stderr
     summary = json.loads((tmp_path / "summary.json").read_text())
