@@ -402,13 +402,19 @@ def test_a_path_too_long_and_a_bad_kernel_variable_end_in_one_line_before_anythi
     long = run("train.py", *TINY, f"hydra.run.dir={tmp_path / ('x' * 300) / 'run'}")
     assert long.returncode == 2 and "File name too long" in one_line(long)
     folder = tmp_path / "run"
-    import subprocess
-    import sys
-
     isa = subprocess.run([sys.executable, ROOT / "train.py", *TINY, f"hydra.run.dir={folder}"], cwd=ROOT,
                          env={**ENV, "RACING_KERNEL_ISA": "garbage"}, capture_output=True, text=True, timeout=300)
     assert isa.returncode == 2 and "RACING_KERNEL_ISA must be one of" in one_line(isa)
     assert not folder.exists() or list(folder.iterdir()) == []
+    # a sweep: refused by its whole-sweep check, before any folder (on 258b7c4 each job refused it after Hydra
+    # had made the job's folder, and the sweep ended in a joblib traceback)
+    sweep = tmp_path / "sweep"
+    swept = subprocess.run([sys.executable, ROOT / "train.py", "-m", *TINY, "seed=1,2", f"hydra.sweep.dir={sweep}"],
+                           cwd=ROOT, env={**ENV, "RACING_KERNEL_ISA": "garbage"}, capture_output=True, text=True,
+                           timeout=300)
+    assert swept.returncode == 2 and "The sweep was not started: " in swept.stderr, swept.stderr[-2000:]
+    assert "RACING_KERNEL_ISA must be one of" in swept.stderr and "Traceback" not in swept.stderr
+    assert not sweep.exists()
 
 
 def test_a_shared_kernel_cache_is_refused_and_left_as_it_is(tmp_path):

@@ -118,7 +118,7 @@ class CheckedSweeper(BasicSweeper):
                                               self.max_batch_size)
         jobs = [list(job) for batch in self.overrides for job in batch]
         self.folders: list[list[Path]] = []
-        folder_problem = sweep_dir_problem(self.config)  # the sweep's own folder, before any job's
+        folder_problem = sweep_dir_problem(self.config) or environment_problem()  # before any job's folder
         if folder_problem:
             print(f"The sweep was not started: {folder_problem}", file=sys.stderr)
             raise SweepRefused(2)
@@ -284,6 +284,18 @@ def _folder_problem(rundir, RunConfig, run_cfg, settings: dict, folder: Path, me
         holder = rundir.in_use(path)
         if holder:
             return holder
+    return None
+
+
+def environment_problem() -> str | None:
+    """What is wrong with the environment variables every job reads (``$RACING_KERNEL_ISA``), checked once for
+    the whole sweep before any folder exists (each job would refuse it only after Hydra made its folder)."""
+    from learners import kernels
+
+    try:
+        kernels.isa_cap()
+    except kernels.KernelError as err:
+        return str(err)
     return None
 
 
