@@ -9,7 +9,6 @@ the reason, never counted.
 from __future__ import annotations
 
 import csv
-import functools
 import hashlib
 import io
 import json
@@ -18,7 +17,7 @@ import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from engine.config import algo_titles
+from engine.config import algo_learners, algo_titles
 from engine.outputs import METRICS_FILE, ROWS_LIMIT, SUMMARY_FILE
 from door import files
 
@@ -185,18 +184,11 @@ def read_run(folder: Path) -> Run:
         return Run(folder, "damaged", rewards=rewards, problem=f"{folder / SUMMARY_FILE}: a field is malformed ({err!r})")
 
 
-@functools.lru_cache(maxsize=1)
-def _declared_learners() -> dict[str, str]:
-    from engine.config import algo_learners
-
-    return algo_learners()
-
-
 def _mislabelled(name: str, learner: str | None) -> str | None:
     """Why a run's name is not what it trained (None: it is): a run named as one of conf/algo's algorithms
     (``algo.name``) but recorded training another learner (``settings.algo.loss``) would land in that
     algorithm's cell. A run is grouped by what it recorded, never by its folder or its name alone."""
-    declared = _declared_learners().get(name)
+    declared = algo_learners().get(name)
     if declared is None or learner is None or declared == learner:
         return None
     return (f"its name says {name} (conf/algo/{name}.yaml trains {declared}), but it recorded training {learner} "

@@ -263,33 +263,29 @@ def block_names() -> frozenset[str]:
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 
 
-def algo_titles() -> dict[str, str]:
-    """Every algorithm of ``conf/algo/`` by name, as tables name it (its ``title:``; else its name).
-    The one list of algorithms the report and the leaderboard read: a new ``conf/algo/*.yaml``
-    joins them by itself."""
+@functools.lru_cache(maxsize=1)
+def _algo_files() -> dict[str, dict]:
+    """Every ``conf/algo/*.yaml`` as written, by file stem (read once per process)."""
     import yaml
 
     from door import files
 
-    titles = {}
-    for path in sorted((CONF_DIR / "algo").glob("*.yaml")):
-        node = yaml.safe_load(files.read_text(path, 1 << 20, "configuration file")) or {}
-        titles[node.get("name", path.stem)] = node.get("title") or node.get("name", path.stem)
-    return titles
+    return {path.stem: yaml.safe_load(files.read_text(path, 1 << 20, "configuration file")) or {}
+            for path in sorted((CONF_DIR / "algo").glob("*.yaml"))}
+
+
+def algo_titles() -> dict[str, str]:
+    """Every algorithm of ``conf/algo/`` by name, as tables name it (its ``title:``; else its name).
+    The one list of algorithms the report and the leaderboard read: a new ``conf/algo/*.yaml``
+    joins them by itself."""
+    return {node.get("name", stem): node.get("title") or node.get("name", stem) for stem, node in _algo_files().items()}
 
 
 def algo_learners() -> dict[str, str]:
     """Every algorithm of ``conf/algo/`` by name, with the learner (``loss:``) it trains, following an
     algorithm built on another (its ``defaults`` list). What a run recorded is checked against it: a run
     whose name is one of these but that trained another learner is not that algorithm's."""
-    import yaml
-
-    from door import files
-
-    nodes = {}
-    for path in sorted((CONF_DIR / "algo").glob("*.yaml")):
-        node = yaml.safe_load(files.read_text(path, 1 << 20, "configuration file")) or {}
-        nodes[path.stem] = node
+    nodes = _algo_files()
     found = {}
     for stem, node in nodes.items():
         seen = node

@@ -162,8 +162,7 @@ def readable_output() -> None:
 
 def _in_project(filename: str) -> bool:
     """Whether ``filename`` is one of the project's own modules (a package of ``PROJECT_PACKAGES``)."""
-    parts = Path(filename).parts
-    return len(parts) >= 2 and parts[-2] in PROJECT_PACKAGES or any(p in PROJECT_PACKAGES for p in parts[-3:-1])
+    return any(part in PROJECT_PACKAGES for part in Path(filename).parts[-3:-1])  # a package, or one's subpackage
 
 
 def exit_with_parent(poll_seconds: float = 1.0) -> None:

@@ -25,7 +25,8 @@ After mirroring an edit in a fast path and passing its tests (``tests/test_fused
     python -m learners.fast_paths            # what differs from the record, if anything
     python -m learners.fast_paths --record   # write learners/fast_paths.json
 
-Torch-free; the functions take the built loss and import nothing of the project.
+Torch-free; the functions take the built loss and import nothing of the project but the file door
+(``door.files``, to read the record).
 """
 
 from __future__ import annotations
@@ -53,9 +54,6 @@ RECORDED_MODULES = (
     "torchrl.objectives.crossq",
     "torchrl.objectives.value.advantages",
 )
-_SKIP = {"__module__", "__doc__", "__dict__", "__weakref__", "__qualname__", "__annotations__", "__firstlineno__",
-         "__static_attributes__", "__parameters__", "__orig_bases__", "__abstractmethods__", "_abc_impl",
-         "__slotnames__", "__match_args__", "__dataclass_fields__", "__dataclass_params__", "__hash__"}
 
 
 def _canonical(node) -> str:
@@ -149,7 +147,7 @@ def class_digests(cls: type) -> dict[str, str | None]:
         for name, value in vars(klass).items():
             code = _code_of(value)
             # any code but the machinery's (tensordict's metaclass adds properties to TorchRL's losses)
-            if name not in _SKIP and code is not None and not f"{code.__module__}.".startswith(MACHINERY):
+            if code is not None and not f"{code.__module__}.".startswith(MACHINERY):
                 found[f"{klass.__module__}.{klass.__qualname__}.{name}"] = _member_digest(value)
     return found
 
