@@ -108,14 +108,20 @@ class PhaseRunner:
         self.fused_actor = None
         # the loss's own code or settings (a subclass, an unknown setting, an edited function): said in one line.
         # A loss of its own (a new learner's) has no fused phases: the loss module computes, nothing to say.
+        # The code is read only where the fused phases could run.
         own = not isinstance(loss, (SPGLoss, LogClipPPOLoss))
-        self.code_refusal = None if own else loss_refusal(loss)
+        self.code_refusal = None
+
+        def code_refusal() -> str | None:
+            self.code_refusal = loss_refusal(loss)
+            return self.code_refusal
+
         why = (("learners.monte_carlo.learner.FUSED is off" if not FUSED else None)
                or (f"{type(loss).__name__} has no fused phases (SPGLoss's and LogClipPPOLoss's have)" if own else None)
                or ("the networks were not given" if critic_net is None else None)
                or ("prioritised replay draws its minibatches by priority" if sampler is not None else None)
                or ("compile=true compiles the loss module's step" if compiled else None)
-               or self.code_refusal or critic_refusal(critic_net))
+               or code_refusal() or critic_refusal(critic_net))
         actor_why = why
         if why is None:
             self.fused_critic = FusedCritic(critic_net, optimisers.critic, self.active)

@@ -367,13 +367,19 @@ class TDPhaseRunner:
             raise ValueError("td.reset_every needs the actor network and the Q-networks as built")
         available = getattr(steps, "fused_available", None)
         name = self.spec.name
-        # the loss's own code (an edit, a method added, a subclass): said in one line (learners.fast_paths)
-        self.code_refusal = fast_paths.refusal(loss) if available is not None else None
+        # the loss's own code (an edit, a method added, a subclass): said in one line (learners.fast_paths); read
+        # only where the fused step could run
+        self.code_refusal = None
+
+        def code_refusal() -> str | None:
+            self.code_refusal = fast_paths.refusal(loss)
+            return self.code_refusal
+
         why = ((f"{name} has no fused step" if available is None else None)
                or ("learners.td.learner.FUSED is off" if not FUSED else None)
                or ("compile=true compiles the loss module's step" if cfg.compile else None)
                or ("the actor network was not given" if actor_net is None else None)
-               or self.code_refusal
+               or code_refusal()
                or (None if available(loss, actor_net) else
                    f"the loss or its networks are not those losses.{name}'s fused step computes"))
         if why != self.code_refusal:
