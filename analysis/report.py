@@ -545,7 +545,23 @@ def collapse_markdown(runs: list[Run]) -> str:
             tracks = ", ".join(f"{r.seed} ({r.final_mean:.1f})" for r in low)
             lines.append(f"| {er} / {COLUMN_TITLES[algo]} | {len(done)} | {len(low)} | {rate} | "
                          f"{len(mine) - len(done)} | {tracks} |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + budgets_note(runs)) + "\n"
+
+
+def budgets_note(runs: list[Run]) -> list[str]:
+    """The lines under a per-run table whose finished runs were trained for different budgets (none when
+    they share one): which cells hold which budgets, since a short run's final is not a long run's."""
+    done = [r for r in runs if r.status in ("completed", "diverged") and r.budget is not None]
+    budgets = sorted({r.budget for r in done}, reverse=True)
+    if len(budgets) < 2:
+        return []
+    parts = []
+    for budget in budgets:
+        cells = sorted({f"{r.er} / {ALGO_TITLES.get(r.algo, r.algo)}" for r in done if r.budget == budget})
+        count = sum(r.budget == budget for r in done)
+        parts.append(f"{budget} episodes: {count} run{'s' * (count > 1)} ({', '.join(cells)})")
+    return ["", f"Note: these runs were trained for different budgets ({'; '.join(parts)}); a run's final "
+                "after fewer episodes is not comparable with one after more, nor is its collapse."]
 
 
 def normalised_markdown(runs: list[Run], oracle: dict[int, float]) -> str:
@@ -570,4 +586,4 @@ def normalised_markdown(runs: list[Run], oracle: dict[int, float]) -> str:
     tracks = sorted({r.seed for r in scored})
     lines += ["", f"Oracle scores used ({len(tracks)} tracks): "
               + ", ".join(f"{t}: {oracle[t]:.1f}" for t in tracks) + "."]
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + budgets_note(scored)) + "\n"

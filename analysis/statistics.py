@@ -102,10 +102,11 @@ def statistics_figures(runs: list[Run], oracle: dict[int, float], out: Path,
     taus = np.linspace(min(0.0, everything.min()), max(1.0 if scaled else 0.0, everything.max()) * 1.02, 101)
     fig, axes = plt.subplots(1, len(modes), figsize=(4.2 * len(modes), 3.4), squeeze=False, sharey=True)
     for ax, er in zip(axes[0], modes):
-        for key in [k for k in _ordered(cells) if k[0] == er]:
-            profile, low, high = aggregate.performance_profile(cells[key], taus)
-            line, = ax.plot(taus, profile, label=COLUMN_TITLES.get(key[1], key[1]))
-            ax.fill_between(taus, low, high, color=line.get_color(), alpha=0.15, linewidth=0)
+        mine = {COLUMN_TITLES.get(k[1], k[1]): cells[k] for k in _ordered(cells) if k[0] == er}
+        styles = line_styles(sorted(mine, key=lambda name: -aggregate.iqm(mine[name])))
+        for name, style in styles.items():
+            profile, low, high = aggregate.performance_profile(mine[name], taus)
+            _profile_line(ax, taus, profile, low, high, style, band_alpha=0.15)
         ax.set(title=f"{er}", xlabel="oracle-normalised final performance" if scaled else "final performance")
         ax.legend(fontsize=7, loc="lower left")
     axes[0][0].set(ylabel="fraction of runs above")
@@ -163,13 +164,48 @@ def board_profiles(cells: dict[str, np.ndarray], path: Path) -> Path:
     plt = import_pyplot()
     taus = np.linspace(0.0, 1.05, 106)
     fig, ax = plt.subplots(figsize=(7, 4.2))
-    for name in sorted(cells, key=lambda n: -aggregate.iqm(cells[n])):
+    ranked = sorted(cells, key=lambda n: -aggregate.iqm(cells[n]))
+    for name, style in line_styles(ranked, lambda n: n.startswith("reference:")).items():
         profile, low, high = aggregate.performance_profile(cells[name], taus)
-        reference = name.startswith("reference:")
-        line, = ax.plot(taus, profile, label=name, linestyle="--" if reference else "-", linewidth=1.2)
-        if not reference:
-            ax.fill_between(taus, low, high, color=line.get_color(), alpha=0.1, linewidth=0)
+        _profile_line(ax, taus, profile, low, high, style, band_alpha=0.1)
     ax.set(xlabel="oracle-normalised score on a benchmark track", ylabel="fraction of runs x tracks above",
            xlim=(0.4, 1.05))
     ax.legend(fontsize=6, loc="lower left")
     return save_figure(fig, path, dpi=110)
+
+
+COLOURED = 6  # the learned agents a figure draws in colours of their own; more would share colours
+
+
+def line_styles(ranked: list[str], is_reference=lambda name: False) -> dict[str, dict]:
+    """Each line's style in a figure of agents ``ranked`` best first, so that a reader can tell every
+    coloured line apart: the reference drivers dashed in dark tones, the best ``COLOURED`` other agents
+    each in a colour of its own with its band, the rest thin grey without bands under one legend entry.
+    The legend follows the returned order; the grey lines are drawn beneath (zorder)."""
+    references = [n for n in ranked if is_reference(n)]
+    learned = [n for n in ranked if not is_reference(n)]
+    palette = ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown"]
+    darks = ["black", "0.35", "tab:olive", "tab:cyan"]
+    rest = learned[COLOURED:]
+    styles = {name: {"color": palette[i], "linewidth": 1.3, "band": True, "zorder": 3, "label": name}
+              for i, name in enumerate(learned[:COLOURED])}
+    styles.update({name: {"color": darks[i % len(darks)], "linewidth": 1.2, "band": False, "zorder": 2,
+                          "linestyle": "--", "label": name} for i, name in enumerate(references)})
+    styles.update({name: {"color": "0.72", "linewidth": 0.8, "band": False, "zorder": 1,
+                          "label": f"{len(rest)} other agents" if i == 0 else None} for i, name in enumerate(rest)})
+    return styles
+
+
+def figure_label(name: str) -> str:
+    """A name as a legend shows it verbatim: matplotlib reads ``$...$`` as mathematics (an ill-formed one
+    fails the drawing) and hides labels that start with an underscore."""
+    name = name.replace("$", r"\$")
+    return " " + name if name.startswith("_") else name
+
+
+def _profile_line(ax, taus, profile, low, high, style: dict, band_alpha: float) -> None:
+    label = style.get("label")
+    ax.plot(taus, profile, color=style["color"], linewidth=style["linewidth"], zorder=style["zorder"],
+            linestyle=style.get("linestyle", "-"), label=None if label is None else figure_label(label))
+    if style["band"]:
+        ax.fill_between(taus, low, high, color=style["color"], alpha=band_alpha, linewidth=0, zorder=style["zorder"])

@@ -84,6 +84,7 @@ def main(argv: list[str] | None = None) -> int:
 
     oracle = read_oracle()
     cells: dict[str, list[list[float]]] = {}
+    budgets: dict[str, set[int]] = {}
     rows, skipped = [], []
     for run in runs:
         try:
@@ -95,25 +96,31 @@ def main(argv: list[str] | None = None) -> int:
 
         summary = state(run).summary
         cell = f"{NAMES.get(summary['algo'], summary['algo'])}, {summary['er']}"
+        episodes = int(summary.get("episodes_planned") or summary["episodes"])  # its training budget
+        budgets.setdefault(cell, set()).add(episodes)
         per_track = score(agent, TRACKS)
         cells.setdefault(cell, []).append([per_track[t] for t in TRACKS])
         rows += [{"agent": cell, "run": str(run), "track": t, "mean_reward": round(per_track[t], 6),
-                  "normalised": round(per_track[t] / oracle[t], 6)} for t in TRACKS]
+                  "normalised": round(per_track[t] / oracle[t], 6), "episodes": episodes} for t in TRACKS]
     for name in ("ray_follower", "pure_pursuit"):
         per_track = score(load_agent(name), TRACKS)
         cells[f"reference: {name.replace('_', ' ')}"] = [[per_track[t] for t in TRACKS]]
         rows += [{"agent": f"reference: {name.replace('_', ' ')}", "run": name, "track": t,
                   "mean_reward": round(per_track[t], 6), "normalised": round(per_track[t] / oracle[t], 6)}
                  for t in TRACKS]
-    return _write_board(cells, rows, args.out, skipped, len(runs))
+    return _write_board(cells, rows, args.out, skipped, len(runs), budgets)
 
 
 def _from_scores(paths: list[Path], out: Path) -> int:
-    """The board from runs.csv files a leaderboard wrote: one agent per name, its runs' per-track scores."""
-    from benchmark.protocol import TRACKS
+    """The board from runs.csv files a leaderboard wrote: one agent per name, its runs' per-track scores.
+    Each score is checked as a run's final is (a finite total an episode can reach), each agent's name as
+    text a table can hold; a run's score on a track given twice must agree (the reference drivers are in
+    every file), otherwise both places are named and nothing is written."""
+    from benchmark.protocol import TRACKS, check_score
     from door import files
 
-    cells: dict[str, dict[str, dict[int, float]]] = {}
+    cells: dict[str, dict[str, dict[int, tuple[float, str]]]] = {}
+    budgets: dict[str, set[int]] = {}
     rows = []
     for path in paths:
         try:
@@ -121,16 +128,29 @@ def _from_scores(paths: list[Path], out: Path) -> int:
         except (OSError, files.FileRefused) as err:
             print(f"leaderboard: {err}", file=sys.stderr)
             return 2
-        for row in table:
+        for line, row in enumerate(table, start=2):
+            where = f"{path} line {line}"
             try:
-                runs = cells.setdefault(row["agent"], {}).setdefault(row["run"], {})
-                if int(row["track"]) in runs:  # a reference driver scored in each file: once is enough
-                    continue
-                runs[int(row["track"])] = float(row["mean_reward"])
+                agent, run, track, value = row["agent"], row["run"], int(row["track"]), float(row["mean_reward"])
             except (KeyError, TypeError, ValueError):
                 print(f"leaderboard: {path} is not a leaderboard's runs.csv (agent, run, track, mean_reward)",
                       file=sys.stderr)
                 return 2
+            problem = check_name(agent, "agent") or check_name(run, "run") or check_score(value, track)
+            if problem:
+                print(f"leaderboard: {where}: {problem}", file=sys.stderr)
+                return 2
+            runs = cells.setdefault(agent, {}).setdefault(run, {})
+            if track in runs:
+                if runs[track][0] != value:
+                    print(f"leaderboard: {agent}'s run {run} scores {runs[track][0]!r} on track {track} in "
+                          f"{runs[track][1]} but {value!r} in {where}; one run has one score per track",
+                          file=sys.stderr)
+                    return 2
+                continue  # the same score listed again (a reference driver in each file): once is enough
+            runs[track] = (value, where)
+            if str(row.get("episodes") or "").isdigit():  # boards written before the column: budget unknown
+                budgets.setdefault(agent, set()).add(int(row["episodes"]))
             rows.append(row)
     board = {}
     for agent, runs in cells.items():
@@ -138,12 +158,43 @@ def _from_scores(paths: list[Path], out: Path) -> int:
         if missing:
             print(f"leaderboard: {agent}'s run {missing[0]} lacks benchmark tracks in {paths}", file=sys.stderr)
             return 2
-        board[agent] = [[tracks[t] for t in TRACKS] for tracks in runs.values()]
-    return _write_board(board, rows, out, [], sum(len(runs) for runs in cells.values()))
+        board[agent] = [[tracks[t][0] for t in TRACKS] for tracks in runs.values()]
+    return _write_board(board, rows, out, [], sum(len(runs) for runs in cells.values()), budgets)
+
+
+def budget_note(budgets: dict[str, set[int]]) -> list[str]:
+    """The lines under a board whose agents were trained for different budgets (none when one budget, or
+    none recorded): a score compares like with like only within a budget."""
+    every = sorted({b for agent in budgets.values() for b in agent})
+    if len(every) < 2:
+        return []
+    groups = "; ".join(f"{b} episodes: " + ", ".join(markdown_cell(a) for a in sorted(budgets) if b in budgets[a])
+                       for b in every)
+    return ["", f"Note: these agents were trained for different budgets ({groups}); an agent's score compares "
+                "with another's only at one budget."]
+
+
+NAME_LENGTH = 200  # an agent's or a run's name in a scores file: longer is not a name
+
+
+def check_name(text: str, what: str) -> str | None:
+    """Why ``text`` cannot stand as an agent's or run's name in a table (None: it can): control characters
+    (a line break splits a table's row) or more than ``NAME_LENGTH`` characters."""
+    if len(text) > NAME_LENGTH:
+        return f"the {what} name is {len(text):,} characters long; a name is at most {NAME_LENGTH}"
+    if not text.isprintable():
+        return f"the {what} name {text[:60]!r} holds control characters; a name is printable text"
+    return None
+
+
+def markdown_cell(text: str) -> str:
+    """``text`` as one cell of a Markdown table: its pipes and backslashes escaped, so that a name cannot
+    add a column or format the page."""
+    return text.replace("\\", "\\\\").replace("|", "\\|").replace("<", "&lt;")
 
 
 def _write_board(cells: dict[str, list[list[float]]], rows: list[dict], out: Path, skipped: list[str],
-                 runs: int) -> int:
+                 runs: int, budgets: dict[str, set[int]]) -> int:
     from benchmark.protocol import TRACKS, read_oracle
 
     oracle = read_oracle()
@@ -153,17 +204,19 @@ def _write_board(cells: dict[str, list[list[float]]], rows: list[dict], out: Pat
         scores = np.array(scores)
         mean, low, high = interval(scores)
         n_mean, n_low, n_high = interval(scores / np.array([oracle[t] for t in TRACKS]))
-        board.append({"agent": cell, "runs": len(scores), "score": round(mean, 2), "low": round(low, 2),
-                      "high": round(high, 2), "normalised": round(n_mean, 4), "normalised_low": round(n_low, 4),
-                      "normalised_high": round(n_high, 4)})
+        board.append({"agent": cell, "runs": len(scores), "score": mean, "low": low, "high": high,
+                      "normalised": n_mean, "normalised_low": n_low, "normalised_high": n_high})
     board.sort(key=lambda row: -row["score"])
     from engine.outputs import write_table
 
     write_table(out / "runs.csv", rows)
-    write_table(out / "leaderboard.csv", board)
+    write_table(out / "leaderboard.csv", [{key: round(value, 2 if key in ("score", "low", "high") else 4)
+                                           if isinstance(value, float) else value for key, value in row.items()}
+                                          for row in board])
     lines = ["| agent | runs | score [95% interval] | oracle-normalised [95% interval] |", "|---|---:|---:|---:|"]
-    lines += [f"| {r['agent']} | {r['runs']} | {r['score']:.1f} [{r['low']:.1f}, {r['high']:.1f}] | "
+    lines += [f"| {markdown_cell(r['agent'])} | {r['runs']} | {r['score']:.1f} [{r['low']:.1f}, {r['high']:.1f}] | "
               f"{r['normalised']:.3f} [{r['normalised_low']:.3f}, {r['normalised_high']:.3f}] |" for r in board]
+    lines += budget_note(budgets)
     from door import files
 
     files.write_text(out / "leaderboard.md", "\n".join(lines) + "\n")

@@ -217,3 +217,20 @@ def summarise(per_track: dict[int, float], oracle: dict[int, float]) -> dict:
     if len(normalised) == len(tracks):
         summary.update(normalised=math.fsum(normalised) / len(normalised), normalised_ci=bootstrap_interval(normalised))
     return summary
+
+
+def check_score(value: float, track: int) -> str | None:
+    """Why ``value`` cannot be an agent's mean total reward on benchmark ``track`` under the protocol
+    (None: it can): a track the protocol does not score, or a value that is not finite or lies outside
+    what an episode of the environment's defaults can total (each step's reward lies in
+    [-crash_penalty, 1])."""
+    from racing.config import RacingConfig
+
+    if track not in TRACKS:
+        return f"track {track} is not one of the benchmark's tracks"
+    config = RacingConfig()
+    low, high = -config.crash_penalty * config.max_steps, float(config.max_steps)
+    if not math.isfinite(value) or not low <= value <= high:
+        return (f"mean total reward {value!r} is not a finite number in [{low:g}, {high:g}] (what an episode of "
+                f"{config.max_steps} steps can total)")
+    return None

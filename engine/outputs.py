@@ -207,13 +207,14 @@ def make_torchrl_logger(kind: str, out_dir: Path, scalars: list[str] = ()):
 
 
 def write_table(path: Path, rows: list[dict]) -> None:
-    """Rows (dicts with the same keys) as a CSV file, its header the first row's keys; prints where."""
+    """Rows (dicts) as a CSV file, its header every key in the order first seen (a row without a key
+    leaves its cell empty); prints where."""
     path = Path(path)
     if not rows:
         print(f"no rows to write: {path} was not written")
         return
     text = io.StringIO(newline="")
-    writer = csv.DictWriter(text, fieldnames=list(rows[0]))
+    writer = csv.DictWriter(text, fieldnames=list(dict.fromkeys(key for row in rows for key in row)))
     writer.writeheader()
     writer.writerows(rows)
     files.folder(path.parent, path.parent, create=True)  # a folder the user names (it may be a link)

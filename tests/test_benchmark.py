@@ -282,3 +282,66 @@ def test_an_mp4_keeps_its_frames_and_a_circuit_film_ends_at_its_laps(tmp_path, c
     assert 1 < frames < 5000 and " MB), total reward" in out  # the lap ended it, long before the step cap
     assert score_py.main(["pure_pursuit", "--video", str(tmp_path / "x.gif"), "--laps", "1"]) == 2
     assert "laps=1 ends an episode after laps of a circuit; these cars drive" in capsys.readouterr().err
+
+
+def _scores_file(path: Path, agents: dict[str, float], episodes: dict[str, int] | None = None) -> Path:
+    """A leaderboard's runs.csv: each agent one run scoring ``value`` on every benchmark track."""
+    import csv
+
+    with path.open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["agent", "run", "track", "mean_reward", "normalised"] + (["episodes"] if episodes else []))
+        for agent, value in agents.items():
+            for track in TRACKS:
+                writer.writerow([agent, f"runs/{agent}", track, value, ""] + ([episodes[agent]] if episodes else []))
+    return path
+
+
+def test_a_board_from_scores_refuses_what_no_run_can_score_and_escapes_names(tmp_path, capsys):
+    """--scores checks scores as report.py checks finals (finite, within what an episode totals), refuses
+    one run's two scores of a track naming both files, refuses names a table cannot hold, escapes the
+    rest; a board of agents trained for different budgets says so under its table."""
+    from benchmark import leaderboard
+
+    def refused(*paths: Path) -> str:
+        assert leaderboard.main(["--scores", *map(str, paths), "--out", str(tmp_path / "board")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1
+        return err[0]
+
+    for value in ("nan", "inf", "1e9", "-2000.5", "200.01"):
+        line = refused(_scores_file(tmp_path / "bad.csv", {"SAC": value}))
+        assert "bad.csv line 2" in line and "not a finite number in [-2000, 200]" in line
+    assert not (tmp_path / "board").exists()
+    first = _scores_file(tmp_path / "one.csv", {"SAC": 140.0})
+    line = refused(first, _scores_file(tmp_path / "two.csv", {"SAC": 141.0}))
+    assert "one.csv line 2" in line and "two.csv line 2" in line and "one run has one score per track" in line
+    assert "control characters" in refused(_scores_file(tmp_path / "bad.csv", {"SAC\n| x | 9 |": 140.0}))
+    assert "at most 200" in refused(_scores_file(tmp_path / "bad.csv", {"S" * 201: 140.0}))
+
+    again = _scores_file(tmp_path / "again.csv", {"SAC": 140.0})  # the same run's same scores: counted once
+    odd = _scores_file(tmp_path / "odd.csv", {"a | b <i>": 120.0, "$x_{$": 100.0, "_hidden": 90.0},
+                       episodes={"a | b <i>": 10, "$x_{$": 201, "_hidden": 201})
+    assert leaderboard.main(["--scores", str(first), str(again), str(odd), "--out", str(tmp_path / "board")]) == 0
+    table = (tmp_path / "board" / "leaderboard.md").read_text().splitlines()
+    assert "| a \\| b &lt;i> | 1 | 120.0 [120.0, 120.0] |" in "\n".join(table)
+    assert all(line.replace("\\|", "").count("|") == 5 for line in table if line.startswith("|"))
+    assert "| SAC | 1 |" in "\n".join(table)  # one run, not two
+    assert table[-1].startswith("Note: these agents were trained for different budgets (10 episodes: a \\| b")
+    assert (tmp_path / "board" / "profiles.png").stat().st_size > 0  # "$x_{$" drawn as text
+
+
+def test_a_figure_of_many_agents_gives_each_coloured_line_its_own_colour():
+    """profiles.png with 19 agents: the best six learned agents in six colours, the references dashed in
+    dark tones, the rest grey under one legend entry."""
+    from analysis.statistics import COLOURED, line_styles
+
+    ranked = [f"agent {i}" for i in range(16)] + ["reference: oracle", "reference: ray follower",
+                                                  "reference: pure pursuit"]
+    styles = line_styles(ranked, lambda name: name.startswith("reference:"))
+    coloured = [s["color"] for s in styles.values() if s["color"] != "0.72"]
+    assert len(coloured) == len(set(coloured)) == COLOURED + 3
+    grey = [name for name, s in styles.items() if s["color"] == "0.72"]
+    assert grey == ranked[COLOURED:16]
+    assert [styles[n]["label"] for n in grey] == ["10 other agents"] + [None] * 9
+    assert all(styles[n]["linestyle"] == "--" for n in ranked[16:])

@@ -276,6 +276,11 @@ def test_collapse_rates_per_cell(tmp_path):
     fake_run(tmp_path, "spg", "recent", 9, None, status="diverged")
     text = collapse_markdown(find_runs(tmp_path))
     assert "| recent / SPG single | 4 | 2 | 50% | 1 | 1 (0.5), 2 (-12.0) |" in text
+    assert "budgets" not in text  # one budget: nothing to say
+    fake_run(tmp_path, "ppo", "recent", 5, 3.0, episodes=10)
+    note = collapse_markdown(find_runs(tmp_path)).splitlines()[-1]
+    assert note.startswith("Note: these runs were trained for different budgets (10 episodes: 1 run (recent / "
+                           "PPO linear); 3 episodes: 5 runs (recent / SPG single))")
 
 
 def test_iqm_is_over_runs(tmp_path):
