@@ -8,11 +8,15 @@ ceilings can still add up to more than a machine has:
 
 ``check_ram``, before a run writes anything (train.py, and the sweeper for every job), sets the
 RAM a run will need, estimated from its sizes (``estimate``: replay memory and its checkpoint copies,
-episodes, the tracks' ray tables, networks with their optimiser state, a minibatch's activations, and
-the process itself), against the RAM the machine has available (``available_bytes``: the kernel's
-MemAvailable, or a cgroup's limit if lower). A run that would not fit is refused with the estimate,
-part by part. The estimate errs low rather than high (a run it refuses would not have fitted); it
-is not a promise that a run it allows fits beside other work.
+an episode's collected steps, the tracks' ray tables, networks with their optimiser state, the update
+steps' records, a minibatch's activations, and the process itself), each part from what a run was
+measured to allocate per step and per member (``speed/memory_estimate.py`` prints the estimate beside
+measured peaks over a grid of sizes: each within 1.5 times of its peak), against the RAM the machine
+has available (``available_bytes``: the kernel's MemAvailable, or a cgroup's limit if lower). A run
+that would not fit is refused with the estimate, part by part. The per-step parts are set near the
+low end of what was measured (one configuration's peak varies between processes, by up to 1.65
+times for Monte-Carlo populations); the estimate is not a promise that a run it allows fits beside
+other work.
 """
 
 from __future__ import annotations
@@ -27,9 +31,17 @@ OBSERVATION_BYTES = 8  # per observation of a stored transition (float32, and th
 TABLE_BYTES = 16  # a track's ray tables, per squared checkpoint, kept (racing.physics builds N x 2N tables;
 #                  building one takes 9 times that at its peak: measured 3.6 GB at 5,000 checkpoints)
 CHECKPOINT_COPIES = 2  # a checkpoint holds the whole replay storage (allocated at its full size), serialised and read
-EPISODE_STEP_BYTES = 640  # a collected step of one member, with the collector's keys and a copy for training
-#                           (and 16 bytes more per observation)
-PROCESS_BYTES = 600 * 2**20  # torch, the simulator and Python themselves
+# A collected step of the whole population (one step of every car) is about a dozen small tensors, each a few
+# hundred bytes of bookkeeping whatever its size, kept until the episode is stacked; TorchRL's collector adds a
+# TensorDict per step around them. A Monte-Carlo population's steps cost that much per member (measured, not
+# itemised: 3 and 9 members take 3 and 9 times a solo run's bytes per step; an off-policy population's do not).
+# Measured (speed/memory_estimate.py: peak RSS of one-episode runs of 200 to 200,000 steps and 1 to 9 members):
+COLLECTED_STEP_BYTES = {"direct": 5_400, "torchrl": 7_300}
+MEMBER_STEP_BYTES = 100  # per member and step besides: its rows of the stacked episode (and 16 bytes per observation)
+UPDATE_STEP_BYTES = 600  # per member and gradient step of an off-policy episode: the step's diagnostics, kept until
+#                         the episode's end (learners.base.MetricTotals), and what the allocator keeps around them
+#                         (measured: nothing visible at 3 members, 17 KB per environment step at 9 members instead of 8)
+PROCESS_BYTES = 370 * 2**20  # torch, the simulator, Hydra and Python themselves (a 200-step run peaks at 380-390 MB)
 PARAMETER_COPIES = 5  # a parameter, its gradient, Adam's two moments, and a target network's copy
 ACTIVATION_COPIES = 8  # per unit of a layer and row of a minibatch: forward values, gradients, temporaries
 
@@ -69,10 +81,12 @@ def estimate(cfg) -> dict[str, int]:
     return {
         "replay memory": members * stored * transition,
         "checkpoints": members * stored * transition * CHECKPOINT_COPIES if cfg.checkpoint_every else 0,
-        "episodes": members * steps * (EPISODE_STEP_BYTES + 16 * obs),
+        "episodes": steps * (COLLECTED_STEP_BYTES[cfg.env.collector] * (1 if algo.td is not None else members)
+                             + members * (MEMBER_STEP_BYTES + 16 * obs)),
         "track tables": (members + 8) * TABLE_BYTES * checkpoints**2,
         "networks": members * parameters * 4 * PARAMETER_COPIES,
         "acting": members * algo.learner.acting(algo, steps) * 4,
+        "update records": round(members * steps * algo.td.updates_per_step * UPDATE_STEP_BYTES) if algo.td else 0,
         "activations": members * rows * widest * layers * (critics if algo.td is not None else 1) * 4
         * ACTIVATION_COPIES,
         "process": PROCESS_BYTES,
