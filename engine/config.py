@@ -64,10 +64,13 @@ _noted: set[str] = set()
 NOTES_SAID = "RACING_NOTES_SAID"  # set by a sweep once its whole-sweep check has said every job's notes
 
 
+_quiet = False  # set while a recorded run's settings are checked (RunConfig.from_record): its notes were its run's
+
+
 def _note(message: str) -> None:
     """A one-line note on stderr, once per process (a value accepted, but not as one might expect), and
     once per sweep (its jobs' processes do not say again what the sweep's check said)."""
-    if message not in _noted and not os.environ.get(NOTES_SAID):
+    if message not in _noted and not os.environ.get(NOTES_SAID) and not _quiet:
         _noted.add(message)
         import sys
 
@@ -578,6 +581,29 @@ class RunConfig:
         return None if settings is None else {k: v for k, v in settings.items() if k not in cls.EVALUATION_KEYS}
 
     @classmethod
+    def from_record(cls, settings: Mapping[str, Any]) -> "RunConfig":
+        """A recorded run's settings (summary.json's, a downloaded run's) validated as a run's configuration
+        is (types, rules, every ceiling): ``ConfigError`` otherwise. Keys a record leaves out (how the run
+        printed, which collector ran, options added since it ran) take their defaults for its algorithm."""
+        if not isinstance(settings, Mapping):
+            raise ConfigError(f"settings must be a mapping, got {type(settings).__name__}")
+        algo = settings.get("algo")
+        name = algo.get("name") if isinstance(algo, Mapping) else None
+        defaults = _default_mapping(name if isinstance(name, str) and name in _algo_files() else None)
+
+        def fill(recorded, default):
+            if isinstance(recorded, Mapping) and isinstance(default, Mapping):
+                return {**default, **{key: fill(value, default.get(key)) for key, value in recorded.items()}}
+            return recorded
+
+        global _quiet
+        _quiet = True
+        try:
+            return cls.from_mapping(fill(current_names(dict(settings)), defaults))
+        finally:
+            _quiet = False
+
+    @classmethod
     def compose(cls, *overrides: str) -> "RunConfig":
         """Compose ``conf/config.yaml`` with Hydra overrides (as on the command line) and validate,
         without running Hydra's app (for tests, benchmarks and notebooks)."""
@@ -606,3 +632,11 @@ class RunConfig:
                 raise ConfigError(f"{key} must be a config node (a mapping), got {values.get(key)!r}")
             values[key] = node(key, values[key]) if key == "algo" else _build(node, key, values[key])
         return _build(cls, "config", values)
+
+
+@functools.lru_cache(maxsize=32)
+def _default_mapping(algo: str | None) -> dict:
+    """The composed defaults (of ``algo`` where given): what a record's missing keys take."""
+    import copy
+
+    return copy.deepcopy(RunConfig.compose_mapping(*([f"algo={algo}"] if algo else [])))

@@ -108,6 +108,9 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
         state_dict = load_tensors(actor_path, "actor")
     except ValueError as err:
         raise RunFolderError(str(err)) from None
+    problem = settings_problem(settings, state_dict)
+    if problem:
+        raise RunFolderError(f"{run_dir / 'summary.json'}: {problem}")
     critic, critic_path, plans = None, run_dir / "critic.pt", _plans(loss)
     if plans and critic_path.exists():  # its deterministic policy may read its Q-networks too
         try:
@@ -126,6 +129,33 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
     if not all(torch.isfinite(p).all() for p in policy.parameters()):
         raise RunFolderError(f"{actor_path} holds non-finite weights (the run diverged)")
     return policy, settings
+
+
+def settings_problem(settings: dict, actor_state: dict) -> str | None:
+    """Why a finished run's recorded settings cannot be built into its policy here (None: they can), decided
+    before anything is allocated: settings no run could have (``RunConfig.from_record``: types, rules, every
+    ceiling), networks larger than the memory this machine has available, or an actor shaped by
+    ``network.actor_hidden`` with more parameters than ``actor.pt`` holds (a record edited to ask for more)."""
+    from engine.config import ConfigError, RunConfig
+    from engine.limits import PARAMETER_COPIES, _gb, _mlp_parameters, available_bytes, estimate
+
+    try:
+        cfg = RunConfig.from_record(settings)
+    except ConfigError as err:
+        return f"records settings no run could have: {err}"
+    parts = estimate(cfg)
+    weights = parts["networks"] // (len(cfg.members) * PARAMETER_COPIES)  # one member's parameters, in bytes
+    available = available_bytes()
+    if available is not None and 2 * weights > available:  # built, then loaded from its state dict
+        return (f"its settings ask for networks of {_gb(weights)} ({weights // 4:,} parameters), more than this "
+                f"machine has available ({_gb(available)})")
+    if cfg.algo.learner.networks is None:  # the actor is network.actor_hidden's multilayer perceptron
+        asked = _mlp_parameters([cfg.env.observation_size, *cfg.network.actor_hidden, 2])
+        held = sum(value.numel() for value in actor_state.values() if isinstance(value, torch.Tensor))
+        if asked > held:
+            return (f"its settings ask for an actor of at least {asked:,} parameters (network.actor_hidden "
+                    f"{list(cfg.network.actor_hidden)}) but actor.pt holds {held:,} numbers")
+    return None
 
 
 def _plans(loss) -> bool:

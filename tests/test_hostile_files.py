@@ -634,3 +634,29 @@ def test_analysis_and_track_outputs_are_checked_before_the_work(tmp_path):
     runs_csv.write_text("er,algo,seed,status,final_mean\nmemory,sac,1,completed,nan\n")
     nan = run("analysis/compare.py", str(runs_csv), str(runs_csv))
     assert nan.returncode == 2 and "not a finite number" in nan.stderr
+
+
+@pytest.mark.parametrize("path, value, words", [
+    (("network", "actor_hidden"), [65536] * 64, "networks of"),  # each layer within its ceiling, 1.1 TB in all
+    (("network", "actor_hidden"), [2048, 2048], "ask for an actor of at least 4,214,786 parameters"),
+    (("network", "actor_hidden"), [10**9], "above its ceiling"),
+    (("algo", "spg", "num_samples"), 10**9, "above its ceiling"),
+    (("env", "options", "max_steps"), 10**9, "max_steps must be an integer in"),
+    (("env", "past_steps"), -3, "past_steps"),
+])
+def test_a_run_whose_record_asks_for_more_than_it_holds_is_refused_before_anything_is_built(
+        tmp_path, finished, path, value, words):
+    """A downloaded run folder whose summary (resealed: the seal guards damage, not forgery) asks for sizes
+    its weights do not hold, or no run could have: evaluate.py and score.py refuse it in one line before
+    any network is built (the first built 1.1 TB of layers on 258b7c4)."""
+    folder = tmp_path / "run"
+    shutil.copytree(finished, folder)
+    summary = json.loads((folder / "summary.json").read_text())
+    node = summary["settings"]
+    for key in path[:-1]:
+        node = node[key]
+    node[path[-1]] = value
+    (folder / "summary.json").write_text(json.dumps(seal(summary)))
+    for script, args in (("evaluate.py", [str(folder)]), ("score.py", [str(folder), "--tracks", "1"])):
+        line = one_line(run(script, *args, timeout=120))
+        assert words in line and "summary.json" in line, (script, line)
