@@ -127,15 +127,21 @@ class Session:
 
     def report(self, run_cfg, summaries: list[dict]) -> None:
         """A line for each member skipped (already finished) and each run trained."""
-        from engine.version import describe
 
         for folder, summary in self.skipped:
-            final = summary.get("final_mean")
-            shown = f"{final:.1f}" if isinstance(final, (int, float)) else "none"  # as the line below it shows it
-            print(f"{folder}: already {summary['status']} (final performance {shown}, "
-                  f"{describe(summary.get('code'))}); skipped", file=sys.stderr)
+            print(skipped_line(folder, summary), file=sys.stderr)
         for summary in summaries:
             print(finished_line(run_cfg, self.out_dir, summary))
+
+
+def skipped_line(folder, summary: dict) -> str:
+    """The line of a member already finished, not trained again (by its run, or by its sweep's check)."""
+    from engine.version import describe
+
+    final = summary.get("final_mean")
+    shown = f"{final:.1f}" if isinstance(final, (int, float)) else "none"  # as a finished run's line shows it
+    return (f"{folder}: already {summary['status']} (final performance {shown}, {describe(summary.get('code'))}); "
+            "skipped")
 
 
 @contextmanager

@@ -8,6 +8,7 @@ Hydra composes it, and against a real SLURM in tests/test_slurm.py.
 import json
 
 import pytest
+import yaml
 from hydra import compose, initialize_config_dir
 
 from tests.test_train import ROOT, run_train
@@ -58,14 +59,41 @@ def test_a_population_splits_over_processes_inside_a_joblib_worker(tmp_path):
 
 
 @pytest.mark.slow
-def test_submitit_rerun_skips_finished_runs(tmp_path):
-    _sweep("submitit_local", tmp_path)
+@pytest.mark.parametrize("launcher", ["submitit_local", "joblib"])
+def test_a_sweep_run_again_launches_only_its_unfinished_jobs(tmp_path, launcher):
+    """The sweep's check knows which jobs are finished (every member of the job's own settings): they are
+    said skipped and not launched (on 258b7c4 a finished two-job joblib sweep took 11.5 s to start two
+    workers that each skipped its job); a job added to the sweep runs under its own number."""
+    _sweep(launcher, tmp_path)
     summary = tmp_path / "spg" / "recent" / "seed11" / "summary.json"
     before = summary.stat().st_mtime_ns, summary.read_bytes()
-    _sweep("submitit_local", tmp_path)
+    jobs = len(list((tmp_path / ".submitit").iterdir())) if launcher == "submitit_local" else 0
+    again = run_train("-m", f"hydra/launcher={launcher}", *SWEEP, f"hydra.sweep.dir={tmp_path}")
+    assert again.returncode == 0 and again.stderr.count("already completed") == 2, again.stderr[-3000:]
+    assert "Launching jobs" not in again.stderr + again.stdout
     assert (summary.stat().st_mtime_ns, summary.read_bytes()) == before
-    logs = "".join(p.read_text() for p in (tmp_path / ".submitit").rglob("*_log.err"))
-    assert "already completed" in logs and "skipped" in logs
+    if launcher == "submitit_local":
+        assert len(list((tmp_path / ".submitit").iterdir())) == jobs  # no job submitted
+    more = run_train("-m", f"hydra/launcher={launcher}", *[a.replace("seed=11,12", "seed=11,12,13") for a in SWEEP],
+                     f"hydra.sweep.dir={tmp_path}")
+    assert more.returncode == 0 and more.stderr.count("already completed") == 2, more.stderr[-3000:]
+    hydra = yaml.safe_load((tmp_path / "spg" / "recent" / "seed13" / ".hydra" / "hydra.yaml").read_text())
+    assert hydra["hydra"]["job"]["num"] == 2
+
+
+def test_a_long_check_of_a_sweep_says_how_far_it_is(monkeypatch, capsys):
+    """A whole-sweep check of 1,000 jobs took a minute with no output: a line every ten seconds says how many
+    of them are checked."""
+    import time
+
+    from hydra_plugins.racing_launcher import sweeper
+
+    clock = iter(range(0, 10_000, 4))  # four seconds a job
+    monkeypatch.setattr(time, "monotonic", lambda: next(clock))
+    for done in range(1, 11):
+        sweeper._say_progress(done, 10)
+    lines = capsys.readouterr().err.splitlines()
+    assert lines == [f"Checking the sweep's jobs before any starts: {n} of 10 checked" for n in (4, 7)]
 
 
 def test_slurm_preset_composes_with_its_defaults():

@@ -7,7 +7,9 @@ Before any job starts, every job's configuration is composed and validated as tr
 writing one folder, a folder holding a finished run of another configuration or a damaged one
 (unless ``overwrite=true``), a folder another process is training in. All problems are listed at
 once, one line per job, and nothing runs (exit status 2). A checkpoint's configuration is not
-checked here (that needs torch); its job refuses it alone.
+checked here (that needs torch); its job refuses it alone. A long check says how far it is every ten
+seconds. A job whose every member already holds a finished run of the job's own settings is not
+launched: its members' lines say they are skipped, as the job would have said.
 
 When the jobs have run, those that failed (refused, stopped, or raised) are listed one line each
 with their message, after the others have finished; the command then exits with status 1. (The
@@ -122,7 +124,10 @@ class CheckedSweeper(BasicSweeper):
         if folder_problem:
             print(f"The sweep was not started: {folder_problem}", file=sys.stderr)
             raise SweepRefused(2)
-        problems = check_jobs(self.hydra_context.config_loader, self.config, jobs, self.folders)
+        finished: dict[int, list] = {}
+        problems = check_jobs(self.hydra_context.config_loader, self.config, jobs, self.folders, finished)
+        if not problems:
+            _say_finished(finished)
         if problems:
             print(f"The sweep was not started: {len(problems)} of its {len(jobs)} jobs cannot run as given "
                   "(nothing was written):", file=sys.stderr)
@@ -152,16 +157,18 @@ class CheckedSweeper(BasicSweeper):
         with _SweepSignals(stop_file):
             while not self.is_done() and read_stop_file(stop_file) is None:
                 batch = self.get_job_batch()
-                try:
-                    results = self.launcher.launch(batch, initial_job_idx=first)
-                except (Exception, KeyboardInterrupt):  # a second signal reached jobs that were starting
-                    if read_stop_file(stop_file) is None:
-                        raise
-                    break
-                for index, (job, result) in enumerate(zip(batch, results), start=first):
-                    if result.status == JobStatus.FAILED:
-                        failed.append(f"job #{index} ({' '.join(filter_overrides(job))}): "
-                                      f"{_message(result._return_value)}")
+                results = []
+                for start, part in _unfinished_runs(batch, first, finished):  # a finished job is not launched
+                    try:
+                        results += self.launcher.launch(part, initial_job_idx=start)
+                    except (Exception, KeyboardInterrupt):  # a second signal reached jobs that were starting
+                        if read_stop_file(stop_file) is None:
+                            raise
+                        break
+                    for index, (job, result) in enumerate(zip(part, results[-len(part):]), start=start):
+                        if result.status == JobStatus.FAILED:
+                            failed.append(f"job #{index} ({' '.join(filter_overrides(job))}): "
+                                          f"{_message(result._return_value)}")
                 first += len(batch)
                 returns.append(results)
         stopped = read_stop_file(stop_file)
@@ -187,6 +194,29 @@ class CheckedSweeper(BasicSweeper):
         """Done for the whole sweep at once, before it starts (``check_jobs``)."""
 
 
+def _unfinished_runs(batch: list, first: int, finished: dict) -> list[tuple[int, list]]:
+    """(first job index, jobs) for each unbroken run of jobs of ``batch`` (numbered from ``first``) that
+    are not finished: launched as such, each job keeps its number (a folder name may use it)."""
+    runs: list[tuple[int, list]] = []
+    for index, job in enumerate(batch, start=first):
+        if index in finished:
+            continue
+        if runs and runs[-1][0] + len(runs[-1][1]) == index:
+            runs[-1][1].append(job)
+        else:
+            runs.append((index, [job]))
+    return runs
+
+
+def _say_finished(finished: dict) -> None:
+    """The line each skipped member gets (as a job that started would print it), for the jobs not launched."""
+    from engine.command import skipped_line
+
+    for index in sorted(finished):
+        for folder, summary in finished[index]:
+            print(skipped_line(folder, summary), file=sys.stderr)
+
+
 def _first_line(error: Any) -> str:
     """The first line of a composition error (Hydra's list the config search path after it)."""
     lines = [line.strip() for line in str(error).splitlines() if line.strip()]
@@ -198,9 +228,12 @@ def _message(error: Any) -> str:
     return (lines[-1] if lines else type(error).__name__)[:300]
 
 
-def check_jobs(loader, master, jobs: list[list[str]], folders: list | None = None) -> list[str]:
+def check_jobs(loader, master, jobs: list[list[str]], folders: list | None = None,
+               finished: dict | None = None) -> list[str]:
     """One line per problem of the sweep's jobs (see the module's docstring); none if all can run.
-    ``folders``, if given, receives each job's member folders (a list per job; empty where unknown)."""
+    ``folders``, if given, receives each job's member folders (a list per job; empty where unknown);
+    ``finished``, if given, {job index: [(member folder, summary)]} for the jobs whose every member holds
+    a finished run of the job's own settings (nothing left to do)."""
     from engine import rundir
     from engine.config import ConfigError, RunConfig, config_mapping, register_resolvers
     from engine.limits import check_ram
@@ -259,7 +292,28 @@ def check_jobs(loader, master, jobs: list[list[str]], folders: list | None = Non
             problem = _folder_problem(rundir, RunConfig, run_cfg, settings, folder, members, sweep_dir)
             if problem:
                 problems.append(f"{label}: {problem}")
+            elif finished is not None and not run_cfg.overwrite:
+                states = [rundir.state(path) for path in members.values()]
+                if all(found.kind == "finished" for found in states):  # of these settings: _folder_problem says
+                    finished[index] = [(found.folder, found.summary) for found in states]
+        _say_progress(index + 1, len(jobs))
     return problems
+
+
+_progress = {"last": None}
+
+
+def _say_progress(done: int, total: int, every: float = 10.0) -> None:
+    """A line every ``every`` seconds while a long check runs (1,000 jobs take about a minute)."""
+    import time
+
+    now = time.monotonic()
+    if _progress["last"] is None or done == 1:
+        _progress["last"] = now
+    elif now - _progress["last"] >= every and done < total:
+        _progress["last"] = now
+        print(f"Checking the sweep's jobs before any starts: {done:,} of {total:,} checked", file=sys.stderr,
+              flush=True)
 
 
 def _folder_problem(rundir, RunConfig, run_cfg, settings: dict, folder: Path, members: dict,
