@@ -21,7 +21,12 @@ and a partial run (stopped with a checkpoint), then tries faults drawn at random
 - ``kernel``: the compiled matrix kernel in a copy of the cache with bits flipped or cut short;
 - ``pickle``: a model file whose pickle runs code when loaded (a run's ``actor.pt``, and with
   Stable-Baselines3 installed, a ``model.zip``'s settings);
-- ``numerics``: a partial run resumed under other products (the first part ran without the kernels).
+- ``numerics``: a partial run resumed under other products (the first part ran without the kernels);
+- ``record``: a finished run's summary rewritten and sealed again, asking for what no run records
+  (networks beyond its weights or the machine, values beyond their ceilings, a final performance no
+  episode totals): read as damaged, or its policy refused naming summary.json, before anything is built;
+- ``copy``: a finished run's folder copied beside itself in its sweep: the report finds one run in two
+  folders and names both, instead of counting it twice.
 
 Then the same command runs again, as a user would, and the outcome is classed:
 
@@ -316,6 +321,68 @@ def try_numerics(trial: Trial, rng: random.Random, folder: Path) -> tuple[str, s
     return "misreported", f"{label}: resumed silently"
 
 
+# A finished run's summary rewritten and sealed again (the seal guards damage, not forgery): values no run could
+# record, or sizes its weights do not hold. Every tool must refuse the run before building anything from them.
+RECORD_EDITS = (
+    (("settings", "network", "actor_hidden"), [65536] * 64),  # each layer within its ceiling: 1.1 TB in all
+    (("settings", "network", "actor_hidden"), [2048, 2048]),  # more than actor.pt holds
+    (("settings", "network", "actor_hidden"), [10**9]),
+    (("settings", "env", "options", "max_steps"), 10**9),
+    (("settings", "env", "past_steps"), -1),
+    (("settings", "algo", "minibatch_size"), 10**12),
+    (("settings", "algo", "loss"), "no_such_learner"),
+    (("settings", "numerics"), "x" * 10_000),
+    (("final_mean",), float("nan")),
+    (("final_mean",), 1e300),
+    (("episodes",), -5),
+    (("seed",), "2067791"),
+)
+
+
+def try_record(trial: Trial, rng: random.Random, folder: Path) -> tuple[str, str]:
+    """A finished run whose resealed summary asks for what no run records: the folder reads as damaged, or
+    loading its policy is refused naming summary.json, before any network is built."""
+    from engine.evaluation import load_policy
+
+    shutil.copytree(trial.reference, folder, symlinks=True)
+    path, value = rng.choice(RECORD_EDITS)
+    summary = _summary_values(folder)
+    node = summary
+    for key in path[:-1]:
+        node = node[key]
+    node[path[-1]] = value
+    (folder / "summary.json").write_text(json.dumps(outputs.seal(summary)))
+    label = f"record {'.'.join(path)}={str(value)[:30]}"
+    if rundir.state(folder).kind == "damaged":
+        return "refused", label
+    try:
+        load_policy(folder)
+    except CLEAR as err:
+        return ("refused", label) if "summary.json" in str(err) else ("misreported", f"{label}: {err}")
+    except Exception as err:  # noqa: BLE001
+        return "misreported", f"{label}: {type(err).__name__}: {err}"
+    return "misreported", f"{label}: loaded"
+
+
+def try_copy(trial: Trial, rng: random.Random, folder: Path) -> tuple[str, str]:
+    """A finished run's folder copied beside it, or into another folder of the sweep (a backup): the report
+    counts it once, refusing the sweep with both folders named, not as two runs."""
+    from analysis.report import copies, find_runs
+
+    sweep = folder / "sweep"
+    original = sweep / "spg" / "recent" / "seed2067791"
+    shutil.copytree(trial.reference, original, symlinks=True)
+    name = rng.choice(("seed2067791-backup", "old/seed2067791", "seed2067791 copy", "../recent-2/seed2067791"))
+    copy = original.parent / name
+    shutil.copytree(trial.reference, copy, symlinks=True)
+    label = f"copy {name}"
+    groups = copies(find_runs(sweep))
+    found = [{os.path.abspath(run.path) for run in group} for group in groups]
+    if found == [{os.path.abspath(original), os.path.abspath(copy)}]:
+        return "refused", label
+    return "misreported", f"{label}: copies found {found}"
+
+
 def flip(path: Path, rng: random.Random) -> str:
     data = bytearray(path.read_bytes())
     offset = rng.randrange(len(data))
@@ -490,8 +557,9 @@ def run(trials: int, signals: int, seed: int, families: list[str], work: Path,
         base = work / family
         trial = Trial(family, base)
         writes = count_writes(trial, base / "count")
+        every = list(dict.fromkeys(KINDS))  # each kind once first, so that a small sample tries them all
         for i in range(trials):
-            kind = rng.choice(KINDS)
+            kind = every[i] if i < len(every) else rng.choice(KINDS)
             folder = base / f"t{i}"
             if kind == "disk":
                 outcome, label = try_disk_full(trial, rng, folder, writes)
@@ -503,6 +571,10 @@ def run(trials: int, signals: int, seed: int, families: list[str], work: Path,
                 outcome, label = try_pickle(trial, rng, folder)
             elif kind == "numerics":
                 outcome, label = try_numerics(trial, rng, folder)
+            elif kind == "record":
+                outcome, label = try_record(trial, rng, folder)
+            elif kind == "copy":
+                outcome, label = try_copy(trial, rng, folder)
             else:
                 outcome, label = try_file_fault(trial, kind, rng, folder)
             counts[(family, kind, outcome)] += 1
@@ -522,7 +594,8 @@ def run(trials: int, signals: int, seed: int, families: list[str], work: Path,
 OUTCOMES = ("refused", "exact", "unchanged", "misreported", "escaped", "hung")
 BAD = ("misreported", "escaped", "hung")
 # faults drawn per trial (flips twice as often: they reach every byte)
-KINDS = ("flip", "flip", "truncate", "link", "disk", "special", "special", "kernel", "pickle", "numerics")
+KINDS = ("flip", "flip", "truncate", "link", "disk", "special", "special", "kernel", "pickle", "numerics", "record",
+         "copy")
 
 
 def table(counts: Counter) -> str:

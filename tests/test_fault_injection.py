@@ -1,6 +1,7 @@
 """A small sample of the fault-injection suite (tests/fault_injection.py; the large one is its command,
 docs/guarantees.md): bit flips, truncations, links, full disks, signals, special files at every depth,
-damaged kernels, pickled payloads and resumes under other numerics on both learner families, none
+damaged kernels, pickled payloads, resumes under other numerics, forged records and copied folders on
+both learner families, none
 misreported, escaped or hung."""
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ def test_a_sample_of_faults_on_every_family_is_refused_or_survived_exactly(tmp_p
     tried = {(family, kind) for family, kind, _ in counts}
     for family in FAMILIES:
         assert {kind for f, kind in tried if f == family} >= {"flip", "truncate", "link", "disk", "signal", "special",
-                                                              "kernel", "pickle", "numerics"}, table(counts)
+                                                              "kernel", "pickle", "numerics", "record",
+                                                              "copy"}, table(counts)
     assert sum(v for (_, _, outcome), v in counts.items() if outcome == "refused") > 10
     assert sum(v for (_, _, outcome), v in counts.items() if outcome == "exact") > 3
 
