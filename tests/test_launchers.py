@@ -231,3 +231,19 @@ def test_a_sweep_folder_that_cannot_be_resolved_is_one_line(tmp_path):
     lines = [line for line in result.stderr.splitlines() if line.strip()]
     assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr[-2000:]
     assert len(lines) == 1 and lines[0].startswith("The sweep was not started: hydra.sweep.dir: "), lines
+
+
+@pytest.mark.slow
+def test_a_job_folder_no_launcher_can_resolve_is_refused_before_the_sweep(tmp_path):
+    """``hydra.sweep.subdir=${oc.env:UNSET}`` was passed over by the whole-sweep check (as if a launcher would
+    name it) and the sweep ended in joblib's traceback; a name a launcher resolves (its job id) still runs."""
+    from tests.test_train import run_train
+
+    common = ["-m", "algo=spg", "er=recent", "seed=1,2", "episodes=1", "progress=false", "logger=none"]
+    result = run_train(*common, f"hydra.sweep.dir={tmp_path / 'a'}", "hydra.sweep.subdir=${oc.env:RACING_UNSET_X}")
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr[-2000:]
+    assert result.stderr.count("cannot be resolved: KeyError raised while resolving interpolation") == 2
+    assert not (tmp_path / "a").exists()
+    named = run_train(*common, f"hydra.sweep.dir={tmp_path / 'b'}", "hydra.sweep.subdir=s${hydra.job.id}")
+    assert named.returncode == 0, named.stderr[-2000:]
+    assert sorted(p.name for p in (tmp_path / "b").iterdir()) == ["multirun.yaml", "strain_0", "strain_1"]

@@ -25,6 +25,7 @@ status 130 or 143, and no process of it is left. A second signal stops the runni
 
 from __future__ import annotations
 
+import copy
 import logging
 import os
 import signal
@@ -194,6 +195,21 @@ class CheckedSweeper(BasicSweeper):
         """Done for the whole sweep at once, before it starts (``check_jobs``)."""
 
 
+def _resolves_with_launcher_values(cfg) -> bool:
+    """Whether the job's folder name resolves once the values a launcher sets as the job starts (its id, a
+    scheduler's job id) stand in: if not, it fails for another reason (an environment variable that is not
+    set, a key that does not exist) and every job would end in a traceback."""
+    probe = copy.deepcopy(cfg)
+    with open_dict(probe):
+        probe.hydra.job.id = "job-id"
+        probe.hydra.job.name = probe.hydra.job.name or "train"
+    try:
+        OmegaConf.select(probe, "hydra.sweep.subdir")
+    except Exception:  # noqa: BLE001 (any resolution error: what it is, the caller says)
+        return False
+    return True
+
+
 def _unfinished_runs(batch: list, first: int, finished: dict) -> list[tuple[int, list]]:
     """(first job index, jobs) for each unbroken run of jobs of ``batch`` (numbered from ``first``) that
     are not finished: launched as such, each job keeps its number (a folder name may use it)."""
@@ -256,12 +272,16 @@ def check_jobs(loader, master, jobs: list[list[str]], folders: list | None = Non
             with open_dict(cfg):
                 cfg.hydra.job.num = index  # as the launcher numbers the jobs (a folder name may use it)
             subdir = str(OmegaConf.select(cfg, "hydra.sweep.subdir"))
-        except Exception:  # a folder name that needs other launcher values (e.g. a SLURM job id)
+        except Exception as err:  # a folder name that needs other launcher values (e.g. a SLURM job id)?
             subdir = None
             template = str(OmegaConf.to_container(cfg.hydra.sweep, resolve=False).get("subdir", ""))
             if template.startswith("/") or ".." in Path(template).parts:
                 problems.append(f"{label}: its folder {template!r} (hydra.sweep.subdir) is not a folder inside the "
                                 f"sweep's {sweep_dir}: it holds '..' or is an absolute path")
+                continue
+            if not _resolves_with_launcher_values(cfg):  # not for want of those: no launcher could name it
+                problems.append(f"{label}: its folder {template!r} (hydra.sweep.subdir) cannot be resolved: "
+                                f"{_first_line(err)}")
                 continue
         with open_dict(cfg):
             del cfg["hydra"]
