@@ -71,7 +71,10 @@ def _one(overrides: str) -> None:
     from engine.config import RunConfig
     from engine.limits import estimate
 
-    parts = estimate(RunConfig.compose(*overrides.split(), "episodes=1"))
+    try:
+        parts = estimate(RunConfig.compose(*overrides.split(), "episodes=1"))
+    except Exception as err:  # noqa: BLE001 (Hydra's composition errors, the configuration's refusals)
+        raise SystemExit(f"memory_estimate: {overrides}: {str(err).splitlines()[0]}") from None
     with tempfile.TemporaryDirectory() as folder:
         peak = peak_bytes(overrides.split(), folder)
     print(sum(parts.values()), peak, *(f"{name.replace(' ', '_')}={size}" for name, size in parts.items()))
