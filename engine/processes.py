@@ -67,24 +67,38 @@ def _library(frame) -> bool | None:
     return installed and module not in PROJECT_PACKAGES
 
 
+# Parts of torch that are plain Python called from Python: a signal interrupting them is a library's (it
+# waits at most a second), not a callback's from torch's C++.
+TORCH_PLAIN = ("nn" + os.sep, "utils" + os.sep + "_contextlib.py", "autograd" + os.sep + "grad_mode.py",
+               "optim" + os.sep, "_tensor.py", "functional.py")
+
+
 def deferred(number: int, frame) -> bool:
     """Whether a signal handler's exception must wait, the signal being sent again 50 ms later
     until it lands where raising is safe:
 
-    - whenever torch's Python code is anywhere on the stack, which its C++ may be running as a
-      callback (while torch imports, say), where an exception aborts the whole process
-      (``terminate called after throwing pybind11::error_already_set``);
+    - while torch's C++ may be running torch's Python code as a callback, where an exception aborts
+      the whole process (``terminate called after throwing pybind11::error_already_set``): while
+      torch imports (a module body of torch's on the stack), or when the code interrupted is torch's
+      own outside its plain-Python parts (``TORCH_PLAIN``: modules, grad-mode wrappers, optimisers).
+      A torch frame further out (``@torch.no_grad()`` around a planner's step, a Module's call around
+      the project's forward) does not make the signal wait: it once kept SIGINT waiting for as long
+      as a planner evaluated;
     - for at most a second, when the code the signal interrupted is an installed library's (the
       innermost frame outside the standard library): an exception raised while omegaconf sets a
       value leaves its objects half changed, and its clean-up then raises an unrelated error, a
       traceback instead of one line. A library that waits (joblib for its workers) is interrupted
       after that second."""
     torch_dir = os.sep + "torch" + os.sep
-    decided, inner = False, frame
+    decided, inner, innermost = False, frame, True
     while inner is not None:
-        if torch_dir in inner.f_code.co_filename:
+        filename = inner.f_code.co_filename
+        if torch_dir in filename and (inner.f_code.co_name == "<module>" or innermost and not any(
+                f"{torch_dir}{part}" in filename for part in TORCH_PLAIN)):
             decided = True
             break
+        if innermost and _library(inner) is not None:  # the innermost frame outside the standard library
+            innermost = False
         inner = inner.f_back
     while not decided and frame is not None:
         library = _library(frame)

@@ -181,7 +181,7 @@ def test_a_signal_inside_torchs_python_code_waits_until_it_can_stop_the_tool(tmp
 
     class Code:
         def __init__(self, filename):
-            self.co_filename = filename
+            self.co_filename, self.co_name = filename, "f"
 
     class Frame:
         def __init__(self, filename, back=None, module=None):
@@ -197,8 +197,18 @@ def test_a_signal_inside_torchs_python_code_waits_until_it_can_stop_the_tool(tmp
         assert deferred(signal.SIGUSR1, inside)
         time.sleep(0.3)
         assert received == [signal.SIGUSR1]  # sent again
+        importing = Frame("/x/racing/sim.py", Frame("/venv/lib/python3.11/site-packages/torch/__init__.py", ours,
+                                                    module="torch"), module="racing.sim")
+        importing.f_back.f_code.co_name = "<module>"
+        assert deferred(signal.SIGUSR1, importing)  # torch's module body runs: its C++ may call back
     finally:
         signal.signal(signal.SIGUSR1, previous)
+    # A planner evaluated under @torch.no_grad(): torch's wrapper is on the stack all the while (a SIGINT
+    # waited for the whole evaluation and was lost when it ended); the project's code inside it stops.
+    wrapper = Frame("/venv/lib/python3.11/site-packages/torch/utils/_contextlib.py", ours, module="torch.utils")
+    planner = Frame("/x/learners/latent.py", Frame("/venv/lib/python3.11/site-packages/torch/nn/modules/module.py",
+                                                   wrapper, module="torch.nn.modules.module"), module="learners.latent")
+    assert not deferred(signal.SIGUSR2, planner)
 
 
 def test_a_signal_inside_a_librarys_code_waits_a_moment_for_the_projects(monkeypatch):
@@ -213,7 +223,7 @@ def test_a_signal_inside_a_librarys_code_waits_a_moment_for_the_projects(monkeyp
 
     class Code:
         def __init__(self, filename):
-            self.co_filename = filename
+            self.co_filename, self.co_name = filename, "f"
 
     class Frame:
         def __init__(self, filename, module, back=None):
@@ -238,3 +248,4 @@ def test_a_signal_inside_a_librarys_code_waits_a_moment_for_the_projects(monkeyp
     assert processes.deferred(signal.SIGHUP, omegaconf)  # a new signal waits again
     declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]
     assert {name.rstrip("*").split(".")[0] for name in declared["include"]} == set(processes.PROJECT_PACKAGES)
+
