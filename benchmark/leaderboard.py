@@ -21,6 +21,7 @@ ones), without running an episode.
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from pathlib import Path
 
@@ -39,7 +40,9 @@ def interval(scores: np.ndarray, reps: int = 10000, seed: int = 0) -> tuple[floa
     rng = np.random.default_rng(seed)
     runs = rng.integers(0, scores.shape[0], size=(reps, scores.shape[0]))
     tracks = rng.integers(0, scores.shape[1], size=(reps, scores.shape[1]))
-    means = scores[runs[:, :, None], tracks[:, None, :]].mean(axis=(1, 2))
+    step = max(1, 2**22 // scores.size)  # resamples at a time: about 32 MB of them, whatever the runs
+    means = np.concatenate([scores[runs[i:i + step, :, None], tracks[i:i + step, None, :]].mean(axis=(1, 2))
+                            for i in range(0, reps, step)])
     low, high = np.percentile(means, [2.5, 97.5])
     return float(scores.mean()), float(low), float(high)
 
@@ -69,6 +72,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if bool(args.sweeps) == bool(args.scores):
         parser.error("give sweep folders to score, or --scores with runs.csv files, not both")
+    from engine.processes import check_output_folder
+
+    check_output_folder(parser, "--out", args.out)
     if args.scores:
         return _from_scores(args.scores, args.out)
     from engine.rundir import find_runs, runs_numerics
@@ -111,55 +117,83 @@ def main(argv: list[str] | None = None) -> int:
     return _write_board(cells, rows, args.out, skipped, len(runs), budgets)
 
 
+MAX_RUNS = 1_000  # runs of one agent a board takes: its interval resamples them 10,000 times
+
+
 def _from_scores(paths: list[Path], out: Path) -> int:
     """The board from runs.csv files a leaderboard wrote: one agent per name, its runs' per-track scores.
-    Each score is checked as a run's final is (a finite total an episode can reach), each agent's name as
-    text a table can hold; a run's score on a track given twice must agree (the reference drivers are in
-    every file), otherwise both places are named and nothing is written."""
-    from benchmark.protocol import TRACKS, check_score
+    Each score is checked as a run's final is (a finite total an episode can reach), each name as text a
+    table can hold (``check_name``); a run's score on a track given twice must agree, otherwise both places
+    are named and nothing is written. The reference drivers are scored here, as a board from sweeps scores
+    them; a file's rows of them must agree, and no agent of a file may take a reference's name. The
+    ``runs.csv`` written is made from the values read, not copied from the files' text."""
+    from benchmark.protocol import TRACKS, check_score, load_agent, read_oracle, score
     from door import files
 
+    oracle = read_oracle()
     cells: dict[str, dict[str, dict[int, tuple[float, str]]]] = {}
     budgets: dict[str, set[int]] = {}
-    rows = []
+    references = {f"reference: {name.replace('_', ' ')}": name for name in ("ray_follower", "pure_pursuit")}
+
+    def refuse(message: str) -> int:
+        print(f"leaderboard: {message}", file=sys.stderr)
+        return 2
+
     for path in paths:
         try:
-            table = files.read_csv(path, 64 * 2**20, "a leaderboard's runs.csv")
+            table = files.read_csv(path, 64 * 2**20, "leaderboard's runs.csv", comments=False)
         except (OSError, files.FileRefused) as err:
-            print(f"leaderboard: {err}", file=sys.stderr)
-            return 2
+            return refuse(str(err))
+        if not table:
+            return refuse(f"{path} holds no scores (a header at most): not a leaderboard's runs.csv")
         for line, row in enumerate(table, start=2):
             where = f"{path} line {line}"
             try:
-                agent, run, track, value = row["agent"], row["run"], int(row["track"]), float(row["mean_reward"])
-            except (KeyError, TypeError, ValueError):
-                print(f"leaderboard: {path} is not a leaderboard's runs.csv (agent, run, track, mean_reward)",
-                      file=sys.stderr)
-                return 2
+                agent, run, track, value = row["agent"], row["run"], row["track"], row["mean_reward"]
+            except KeyError:
+                return refuse(f"{path} is not a leaderboard's runs.csv (columns agent, run, track, mean_reward)")
+            if not re.fullmatch(r"[0-9]{1,10}", track or "") or not re.fullmatch(NUMBER, value or ""):
+                return refuse(f"{where}: track {str(track)[:20]!r} or mean_reward {str(value)[:20]!r} is not a number")
+            track, value = int(track), float(value)
             problem = check_name(agent, "agent") or check_name(run, "run") or check_score(value, track)
+            episodes = row.get("episodes") or ""
+            if not problem and episodes and not re.fullmatch(r"[0-9]{1,9}", episodes):
+                problem = f"episodes {episodes[:20]!r} is not a number of episodes"
+            if not problem and agent.startswith("reference:") and references.get(agent) != run:
+                problem = f"agent {agent!r} takes a reference driver's name, which the board scores itself"
             if problem:
-                print(f"leaderboard: {where}: {problem}", file=sys.stderr)
-                return 2
+                return refuse(f"{where}: {problem}")
             runs = cells.setdefault(agent, {}).setdefault(run, {})
             if track in runs:
                 if runs[track][0] != value:
-                    print(f"leaderboard: {agent}'s run {run} scores {runs[track][0]!r} on track {track} in "
-                          f"{runs[track][1]} but {value!r} in {where}; one run has one score per track",
-                          file=sys.stderr)
-                    return 2
+                    return refuse(f"{agent}'s run {run} scores {runs[track][0]!r} on track {track} in {runs[track][1]} "
+                                  f"but {value!r} in {where}; one run has one score per track")
                 continue  # the same score listed again (a reference driver in each file): once is enough
             runs[track] = (value, where)
-            if str(row.get("episodes") or "").isdigit():  # boards written before the column: budget unknown
-                budgets.setdefault(agent, set()).add(int(row["episodes"]))
-            rows.append(row)
-    board = {}
+            if episodes:  # boards written before the column: budget unknown
+                budgets.setdefault(agent, set()).add(int(episodes))
+    board, rows = {}, []
     for agent, runs in cells.items():
         missing = [run for run, tracks in runs.items() if set(tracks) != set(TRACKS)]
         if missing:
-            print(f"leaderboard: {agent}'s run {missing[0]} lacks benchmark tracks in {paths}", file=sys.stderr)
-            return 2
+            return refuse(f"{agent}'s run {missing[0]} lacks benchmark tracks in {', '.join(map(str, paths))}")
+        if len(runs) > MAX_RUNS:
+            return refuse(f"{agent} has {len(runs):,} runs; a board takes at most {MAX_RUNS:,} runs of one agent")
+        if agent in references:
+            fresh = score(load_agent(references[agent]), TRACKS)
+            wrong = [t for t in TRACKS if abs(runs[references[agent]][t][0] - fresh[t]) > 1e-5]
+            if wrong:
+                return refuse(f"{runs[references[agent]][wrong[0]][1]}: {agent} scores {runs[references[agent]][wrong[0]][0]!r} "
+                              f"on track {wrong[0]}, where the protocol gives it {fresh[wrong[0]]:.6f}")
         board[agent] = [[tracks[t][0] for t in TRACKS] for tracks in runs.values()]
+        rows += [{"agent": agent, "run": run, "track": t, "mean_reward": tracks[t][0],
+                  "normalised": round(tracks[t][0] / oracle[t], 6),
+                  **({"episodes": min(budgets[agent])} if len(budgets.get(agent, ())) == 1 else {})}
+                 for run, tracks in runs.items() for t in TRACKS]
     return _write_board(board, rows, out, [], sum(len(runs) for runs in cells.values()), budgets)
+
+
+NUMBER = r"[-+]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][-+]?[0-9]{1,3})?"  # a decimal number as CSV files write it
 
 
 def budget_note(budgets: dict[str, set[int]]) -> list[str]:
@@ -178,8 +212,10 @@ NAME_LENGTH = 200  # an agent's or a run's name in a scores file: longer is not 
 
 
 def check_name(text: str, what: str) -> str | None:
-    """Why ``text`` cannot stand as an agent's or run's name in a table (None: it can): control characters
-    (a line break splits a table's row) or more than ``NAME_LENGTH`` characters."""
+    """Why ``text`` cannot stand as an agent's or run's name in a table (None: it can): empty or blank,
+    control characters (a line break splits a table's row) or more than ``NAME_LENGTH`` characters."""
+    if not text.strip():
+        return f"the {what} name is empty"
     if len(text) > NAME_LENGTH:
         return f"the {what} name is {len(text):,} characters long; a name is at most {NAME_LENGTH}"
     if not text.isprintable():
@@ -187,10 +223,15 @@ def check_name(text: str, what: str) -> str | None:
     return None
 
 
+MARKDOWN = set("\\`*_[]!|$~")  # what Markdown (and GitHub's maths) reads as markup inside a table cell
+
+
 def markdown_cell(text: str) -> str:
-    """``text`` as one cell of a Markdown table: its pipes and backslashes escaped, so that a name cannot
-    add a column or format the page."""
-    return text.replace("\\", "\\\\").replace("|", "\\|").replace("<", "&lt;")
+    """``text`` as one cell of a Markdown table, shown as written: every character Markdown may read as
+    markup escaped with a backslash, ``<`` and ``&`` as entities, so that a name cannot add a column,
+    link, embed, format or typeset anything."""
+    text = text.replace("&", "&amp;").replace("<", "&lt;")
+    return "".join("\\" + c if c in MARKDOWN else c for c in text)
 
 
 def _write_board(cells: dict[str, list[list[float]]], rows: list[dict], out: Path, skipped: list[str],

@@ -153,10 +153,14 @@ def read(path, limit: int, what: str = "file", follow: bool = False) -> bytes:
         if info.st_size > limit:
             raise FileRefused(f"{path} is {info.st_size:,} bytes, more than a {what} holds (at most {limit:,}): "
                               f"damaged, or not a {what}; it was not read")
-        try:
-            data = f.read(limit + 1)
+        chunks, total = [], 0
+        try:  # in pieces: one read of the limit would reserve the whole limit at once (fails under ulimit -v)
+            while total <= limit and (chunk := f.read(min(1 << 20, limit + 1 - total))):
+                chunks.append(chunk)
+                total += len(chunk)
         except OSError as err:
             raise _refusal(path, err, "read") from None
+        data = b"".join(chunks)
     if len(data) > limit:  # grew while read, or a file whose size the system does not report (/proc)
         raise FileRefused(f"{path} holds more than {limit:,} bytes, more than a {what} holds: not read further")
     return data
@@ -171,13 +175,30 @@ def read_text(path, limit: int, what: str = "file", follow: bool = False) -> str
         raise FileRefused(f"{path} is not text (UTF-8): byte {err.start} cannot be read; not a {what}") from None
 
 
-def read_csv(path, limit: int, what: str = "table", follow: bool = True) -> list[dict]:
-    """The rows of a CSV table (``read_text``'s rules; lines starting with '#' are comments)."""
+def read_csv(path, limit: int, what: str = "table", follow: bool = True, comments: bool = True) -> list[dict]:
+    """The rows of a CSV table (``read_text``'s rules; a UTF-8 byte-order mark is read past; with ``comments``,
+    lines starting with '#' are comments). A table whose header names a column twice, a row with more fields
+    than the header, or a field beyond the csv module's limit is refused (``FileRefused``), not read as
+    something else."""
     import csv
     import io
 
-    text = read_text(path, limit, what, follow)
-    return list(csv.DictReader(line for line in io.StringIO(text, newline="") if not line.startswith("#")))
+    text = read_text(path, limit, what, follow).removeprefix("\ufeff")
+    lines = (line for line in io.StringIO(text, newline="") if not (comments and line.startswith("#")))
+    try:
+        reader = csv.DictReader(lines)
+        header = reader.fieldnames or []
+        repeated = sorted({name for name in header if header.count(name) > 1})
+        if repeated:
+            raise FileRefused(f"{path}'s header names column {repeated[0]!r} twice: not a {what}")
+        rows = []
+        for row in reader:
+            if None in row:
+                raise FileRefused(f"{path} line {reader.line_num} has more fields than its header: not a {what}")
+            rows.append(row)
+    except csv.Error as err:
+        raise FileRefused(f"{path} is not a CSV table ({err}): not a {what}") from None
+    return rows
 
 
 @contextlib.contextmanager

@@ -134,7 +134,8 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
 def settings_problem(settings: dict, actor_state: dict) -> str | None:
     """Why a finished run's recorded settings cannot be built into its policy here (None: they can), decided
     before anything is allocated: settings no run could have (``RunConfig.from_record``: types, rules, every
-    ceiling), networks larger than the memory this machine has available, or an actor shaped by
+    ceiling), networks and acting (a planner's samples) larger than the memory this machine has available,
+    or an actor shaped by
     ``network.actor_hidden`` with more parameters than ``actor.pt`` holds (a record edited to ask for more)."""
     from engine.config import ConfigError, RunConfig
     from engine.limits import PARAMETER_COPIES, _gb, _mlp_parameters, available_bytes, estimate
@@ -145,10 +146,11 @@ def settings_problem(settings: dict, actor_state: dict) -> str | None:
         return f"records settings no run could have: {err}"
     parts = estimate(cfg)
     weights = parts["networks"] // (len(cfg.members) * PARAMETER_COPIES)  # one member's parameters, in bytes
+    acting = parts["acting"] // len(cfg.members)  # a planner's draws and samples for an episode
     available = available_bytes()
-    if available is not None and 2 * weights > available:  # built, then loaded from its state dict
-        return (f"its settings ask for networks of {_gb(weights)} ({weights // 4:,} parameters), more than this "
-                f"machine has available ({_gb(available)})")
+    if available is not None and 2 * weights + acting > available:  # built, then loaded from its state dict
+        return (f"its settings ask for networks of {_gb(weights)} ({weights // 4:,} parameters) and {_gb(acting)} "
+                f"to act with, more than this machine has available ({_gb(available)})")
     if cfg.algo.learner.networks is None:  # the actor is network.actor_hidden's multilayer perceptron
         asked = _mlp_parameters([cfg.env.observation_size, *cfg.network.actor_hidden, 2])
         held = sum(value.numel() for value in actor_state.values() if isinstance(value, torch.Tensor))

@@ -148,6 +148,20 @@ def check_outputs(parser, **outputs) -> None:
             parser.error(f"{name}: {err}")
 
 
+def check_output_folder(parser, option: str, path) -> None:
+    """Before a tool's work: the folder its ``option`` names for its outputs is not a run's folder nor
+    inside one (``engine.rundir.run_folder_of``, as ``check_outputs`` for files), and not a file; else
+    ``parser.error`` with one line."""
+    from engine.rundir import run_folder_of
+
+    if os.path.lexists(path) and not os.path.isdir(path):
+        parser.error(f"{option} {path} is not a folder; give the folder the outputs go to")
+    folder = run_folder_of(os.path.abspath(path))
+    if folder is not None:
+        parser.error(f"{option} {path} is the run folder {folder} or inside it, which holds only the run's own "
+                     "files; write the outputs elsewhere")
+
+
 def readable_output() -> None:
     """Standard output and error print what cannot be encoded (a folder name that is not UTF-8)
     escaped, instead of ending the tool in a ``UnicodeEncodeError``; the project's own warnings (a

@@ -643,6 +643,7 @@ def test_analysis_and_track_outputs_are_checked_before_the_work(tmp_path):
     (("algo", "spg", "num_samples"), 10**9, "above its ceiling"),
     (("env", "options", "max_steps"), 10**9, "max_steps must be an integer in"),
     (("env", "past_steps"), -3, "past_steps"),
+    (("algo", "loss"), "tdmpc2", "records settings no run could have"),  # another learner's record over SPG weights
 ])
 def test_a_run_whose_record_asks_for_more_than_it_holds_is_refused_before_anything_is_built(
         tmp_path, finished, path, value, words):
@@ -660,3 +661,18 @@ def test_a_run_whose_record_asks_for_more_than_it_holds_is_refused_before_anythi
     for script, args in (("evaluate.py", [str(folder)]), ("score.py", [str(folder), "--tracks", "1"])):
         line = one_line(run(script, *args, timeout=120))
         assert words in line and "summary.json" in line, (script, line)
+
+
+@pytest.mark.slow
+def test_a_planner_whose_record_asks_for_samples_beyond_the_machine_is_refused_before_it_plans(tmp_path):
+    """A TD-MPC2-style run resealed with samples=100,000, iterations=1,000, horizon=150 (each within its ceiling)
+    passed the weights' check and then asked the allocator for 120 GB, a traceback (found by a hostile trial; here
+    the horizon is the episode's 40 steps)."""
+    folder = tmp_path / "run"
+    train(["algo=tdmpc2", "er=memory", "episodes=1", "env.options.max_steps=40", "progress=false", "logger=none"],
+          folder)
+    summary = json.loads((folder / "summary.json").read_text())
+    summary["settings"]["algo"]["tdmpc2"].update(samples=100_000, iterations=1_000, horizon=40)
+    (folder / "summary.json").write_text(json.dumps(seal(summary)))
+    line = one_line(run("evaluate.py", str(folder), timeout=120))
+    assert "to act with, more than this machine has available" in line, line
