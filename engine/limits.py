@@ -14,7 +14,7 @@ measured to allocate per step and per member (``speed/memory_estimate.py`` print
 measured peaks over a grid of sizes: each within 1.5 times of its peak), against the RAM the machine
 has available (``available_bytes``: the kernel's MemAvailable, or a cgroup's limit if lower). A run
 that would not fit is refused with the estimate, part by part. The per-step parts are set near the
-low end of what was measured (one configuration's peak varies between processes, by up to 1.65
+middle of what was measured (one configuration's peak varies between processes, by up to 1.65
 times for Monte-Carlo populations); the estimate is not a promise that a run it allows fits beside
 other work.
 """
@@ -33,10 +33,12 @@ TABLE_BYTES = 16  # a track's ray tables, per squared checkpoint, kept (racing.p
 CHECKPOINT_COPIES = 2  # a checkpoint holds the whole replay storage (allocated at its full size), serialised and read
 # A collected step of the whole population (one step of every car) is about a dozen small tensors, each a few
 # hundred bytes of bookkeeping whatever its size, kept until the episode is stacked; TorchRL's collector adds a
-# TensorDict per step around them. A Monte-Carlo population's steps cost that much per member (measured, not
-# itemised: 3 and 9 members take 3 and 9 times a solo run's bytes per step; an off-policy population's do not).
-# Measured (speed/memory_estimate.py: peak RSS of one-episode runs of 200 to 200,000 steps and 1 to 9 members):
+# TensorDict per step around them. Measured (speed/memory_estimate.py: peak RSS of one-episode runs of 200 to
+# 200,000 steps and 1 to 9 members):
 COLLECTED_STEP_BYTES = {"direct": 5_400, "torchrl": 7_300}
+# A Monte-Carlo population's step costs about as much again per member beyond the first (measured, not itemised:
+# 6.9 KB per added member from 3 to 9 members; an off-policy population's steps do not grow so).
+MONTE_CARLO_MEMBER_STEP_BYTES = 6_500
 MEMBER_STEP_BYTES = 100  # per member and step besides: its rows of the stacked episode (and 16 bytes per observation)
 UPDATE_STEP_BYTES = 600  # per member and gradient step of an off-policy episode: the step's diagnostics, kept until
 #                         the episode's end (learners.base.MetricTotals), and what the allocator keeps around them
@@ -81,7 +83,8 @@ def estimate(cfg) -> dict[str, int]:
     return {
         "replay memory": members * stored * transition,
         "checkpoints": members * stored * transition * CHECKPOINT_COPIES if cfg.checkpoint_every else 0,
-        "episodes": steps * (COLLECTED_STEP_BYTES[cfg.env.collector] * (1 if algo.td is not None else members)
+        "episodes": steps * (COLLECTED_STEP_BYTES[cfg.env.collector]
+                             + (0 if algo.td is not None else (members - 1) * MONTE_CARLO_MEMBER_STEP_BYTES)
                              + members * (MEMBER_STEP_BYTES + 16 * obs)),
         "track tables": (members + 8) * TABLE_BYTES * checkpoints**2,
         "networks": members * parameters * 4 * PARAMETER_COPIES,

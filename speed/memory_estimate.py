@@ -6,8 +6,7 @@ Each row is one ``train.py`` run in a fresh process (one episode, progress and l
 temporary folder); its peak resident memory is the process's ``ru_maxrss`` as the kernel reports it at
 exit. The table gives the estimate, the measured peak and their ratio (estimate / peak), each meant to
 lie within 1.5 times either way. One configuration's peak is not one number: a population of nine
-Monte-Carlo members over a 20,000-step episode peaked at 1.07 GB in one process and 1.76 GB in
-another (the allocator's doing, by how the steps' small tensors fall among freed larger ones; not
+Monte-Carlo members over a 20,000-step episode peaked between 1.07 GB and 1.76 GB over six processes (the allocator's doing, by how the steps' small tensors fall among freed larger ones; not
 itemised), so a row can move between runs of this script. The default grid spans the sizes that
 move the estimate: episode length (200 to 200,000 steps), population size (1 to 9), both collectors,
 both families; ``quick`` is its cheapest rows (tests/test_limits.py). Not in it: the replay memory,
