@@ -178,7 +178,7 @@ def read_run(folder: Path) -> Run:
                    wall / size if wall is not None else None, numerics_label(summary),
                    int(((settings.get("env") or {}).get("options") or {}).get("max_steps") or EPISODE_STEPS),
                    summary["cpu_time_s"] / size if summary.get("cpu_time_s") is not None else None,
-                   sealed=DIGEST_KEY in summary, budget=int(summary.get("episodes_planned") or summary["episodes"]),
+                   sealed=DIGEST_KEY in summary, budget=rundir.training_budget(summary),
                    identity=identity)
     except (KeyError, TypeError, ValueError, AttributeError) as err:
         return Run(folder, "damaged", rewards=rewards, problem=f"{folder / SUMMARY_FILE}: a field is malformed ({err!r})")

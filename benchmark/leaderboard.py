@@ -21,6 +21,7 @@ ones), without running an episode.
 from __future__ import annotations
 
 import argparse
+import functools
 import re
 import sys
 from pathlib import Path
@@ -98,23 +99,33 @@ def main(argv: list[str] | None = None) -> int:
         except AgentError as err:
             skipped.append(f"{run}: {err}")
             continue
-        from engine.rundir import state
+        from engine.rundir import state, training_budget
 
         summary = state(run).summary
         cell = f"{NAMES.get(summary['algo'], summary['algo'])}, {summary['er']}"
-        episodes = int(summary.get("episodes_planned") or summary["episodes"])  # its training budget
+        episodes = training_budget(summary)
         budgets.setdefault(cell, set()).add(episodes)
         per_track = score(agent, TRACKS)
         cells.setdefault(cell, []).append([per_track[t] for t in TRACKS])
         rows += [{"agent": cell, "run": str(run), "track": t, "mean_reward": round(per_track[t], 6),
                   "normalised": round(per_track[t] / oracle[t], 6), "episodes": episodes} for t in TRACKS]
-    for name in ("ray_follower", "pure_pursuit"):
-        per_track = score(load_agent(name), TRACKS)
-        cells[f"reference: {name.replace('_', ' ')}"] = [[per_track[t] for t in TRACKS]]
-        rows += [{"agent": f"reference: {name.replace('_', ' ')}", "run": name, "track": t,
-                  "mean_reward": round(per_track[t], 6), "normalised": round(per_track[t] / oracle[t], 6)}
-                 for t in TRACKS]
+    for agent, (name, per_track) in reference_scores().items():
+        cells[agent] = [[per_track[t] for t in TRACKS]]
+        rows += [{"agent": agent, "run": name, "track": t, "mean_reward": round(per_track[t], 6),
+                  "normalised": round(per_track[t] / oracle[t], 6)} for t in TRACKS]
     return _write_board(cells, rows, args.out, skipped, len(runs), budgets)
+
+
+# The reference drivers a board scores itself (the oracle's scores are shipped): {board name: driver}.
+REFERENCES = {f"reference: {name.replace('_', ' ')}": name for name in ("ray_follower", "pure_pursuit")}
+
+
+@functools.cache
+def reference_scores() -> dict[str, tuple[str, dict[int, float]]]:
+    """{board name: (driver, {track: mean total reward})} of ``REFERENCES`` under the protocol, scored once."""
+    from benchmark.protocol import TRACKS, load_agent, score
+
+    return {agent: (name, score(load_agent(name), TRACKS)) for agent, name in REFERENCES.items()}
 
 
 MAX_RUNS = 1_000  # runs of one agent a board takes: its interval resamples them 10,000 times
@@ -127,13 +138,12 @@ def _from_scores(paths: list[Path], out: Path) -> int:
     are named and nothing is written. The reference drivers are scored here, as a board from sweeps scores
     them; a file's rows of them must agree, and no agent of a file may take a reference's name. The
     ``runs.csv`` written is made from the values read, not copied from the files' text."""
-    from benchmark.protocol import TRACKS, check_score, load_agent, read_oracle, score
+    from benchmark.protocol import TRACKS, check_score, read_oracle
     from door import files
 
     oracle = read_oracle()
     cells: dict[str, dict[str, dict[int, tuple[float, str]]]] = {}
     budgets: dict[str, set[int]] = {}
-    references = {f"reference: {name.replace('_', ' ')}": name for name in ("ray_follower", "pure_pursuit")}
 
     def refuse(message: str) -> int:
         print(f"leaderboard: {message}", file=sys.stderr)
@@ -159,7 +169,7 @@ def _from_scores(paths: list[Path], out: Path) -> int:
             episodes = row.get("episodes") or ""
             if not problem and episodes and not re.fullmatch(r"[0-9]{1,9}", episodes):
                 problem = f"episodes {episodes[:20]!r} is not a number of episodes"
-            if not problem and agent.startswith("reference:") and references.get(agent) != run:
+            if not problem and agent.startswith("reference:") and REFERENCES.get(agent) != run:
                 problem = f"agent {agent!r} takes a reference driver's name, which the board scores itself"
             if problem:
                 return refuse(f"{where}: {problem}")
@@ -179,11 +189,11 @@ def _from_scores(paths: list[Path], out: Path) -> int:
             return refuse(f"{agent}'s run {missing[0]} lacks benchmark tracks in {', '.join(map(str, paths))}")
         if len(runs) > MAX_RUNS:
             return refuse(f"{agent} has {len(runs):,} runs; a board takes at most {MAX_RUNS:,} runs of one agent")
-        if agent in references:
-            fresh = score(load_agent(references[agent]), TRACKS)
-            wrong = [t for t in TRACKS if abs(runs[references[agent]][t][0] - fresh[t]) > 1e-5]
+        if agent in REFERENCES:
+            fresh = reference_scores()[agent][1]
+            wrong = [t for t in TRACKS if abs(runs[REFERENCES[agent]][t][0] - fresh[t]) > 1e-5]
             if wrong:
-                return refuse(f"{runs[references[agent]][wrong[0]][1]}: {agent} scores {runs[references[agent]][wrong[0]][0]!r} "
+                return refuse(f"{runs[REFERENCES[agent]][wrong[0]][1]}: {agent} scores {runs[REFERENCES[agent]][wrong[0]][0]!r} "
                               f"on track {wrong[0]}, where the protocol gives it {fresh[wrong[0]]:.6f}")
         board[agent] = [[tracks[t][0] for t in TRACKS] for tracks in runs.values()]
         rows += [{"agent": agent, "run": run, "track": t, "mean_reward": tracks[t][0],

@@ -100,6 +100,12 @@ def holds_a_run(folder) -> bool:
     return any(name in RUN_MARKS or _CHECKPOINT_NAME.fullmatch(name) for name in names)
 
 
+def training_budget(summary: dict) -> int:
+    """The episodes a finished run was planned for (its summary's ``episodes_planned``; the episodes it ran,
+    for summaries written before that key): what runs of one budget have in common."""
+    return int(summary.get("episodes_planned") or summary["episodes"])
+
+
 def run_folder_of(path) -> Path | None:
     """The run folder ``path`` lies in (the nearest folder at or above it that ``holds_a_run``), or None."""
     folder = Path(os.path.abspath(path))
