@@ -453,6 +453,7 @@ class RunConfig:
     resume_numerics: str
     eval_seeds: tuple[int, ...] | None = capped(length=(100_000, "evaluation tracks"))
     eval_episodes: int = capped((100_000, "episodes per evaluation track"))
+    eval_every: int = capped((10_000_000, "episodes"))
     algo: AlgoConfig
     er: ERConfig
     env: EnvConfig
@@ -481,6 +482,7 @@ class RunConfig:
         _choice("numerics", self.numerics, NUMERIC_MODES)
         _choice("resume_numerics", self.resume_numerics, ("same", "any"))
         _at_least("eval_episodes", self.eval_episodes, 1)
+        _at_least("eval_every", self.eval_every, 0)
         if self.eval_seeds is not None:
             if not self.eval_seeds:
                 raise ConfigError("eval_seeds must be null (no evaluation) or a non-empty list of track seeds")
@@ -616,10 +618,17 @@ class RunConfig:
 
         from hydra import compose, initialize_config_dir
 
+        from hydra.core.global_hydra import GlobalHydra
+
         conf = CONF_DIR
         register_resolvers()
-        with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-            cfg = compose("config", overrides=list(overrides))
+        running = GlobalHydra.instance().hydra  # inside Hydra's app (train.py reading a started run): set aside
+        GlobalHydra.instance().clear()
+        try:
+            with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+                cfg = compose("config", overrides=list(overrides))
+        finally:
+            GlobalHydra.instance().hydra = running
         return config_mapping(cfg)
 
     @classmethod

@@ -62,6 +62,7 @@ class Member:
                 "metrics": self.metrics.record() if self.metrics is not None else None}
 
 
+DETERMINISTIC_COLUMN = "deterministic"  # metrics.csv: eval_every's score of the deterministic policy
 NUMERICS_KEYS = ("mode", "kernels", "mkl_branch", "products")  # what decides a run's bits (numerics.in_effect)
 
 
@@ -160,7 +161,7 @@ class RunContext:
     def training(self, collector, on_start=None):
         """The members' metrics files and the progress line, open while the loop runs; ``on_start()`` once
         they are. A second signal (or Ctrl-C outside ``StopSignals``) stops the run at once, in one line."""
-        columns = metric_columns(self.run.learner.phases)
+        columns = metric_columns(self.run.learner.phases) + ([DETERMINISTIC_COLUMN] if self.cfg.eval_every else [])
         try:
             for member in self.members:
                 member.metrics = MetricsWriter(member.folder, columns, self.cfg.logger, keep_rows=len(member.rewards),
@@ -201,9 +202,13 @@ class RunContext:
         checkpoint when one is due or a stop was asked for (then ``RunStopped``)."""
         cfg, members = self.cfg, self.members
         diagnostics = totals.means(len(members))
+        scored = cfg.eval_every and (episode + 1) % cfg.eval_every == 0  # the policy as it stands after the episode
         for r, member in enumerate(members):
             if member.status == "running":
                 row = {**_episode_results(episode, batch, r), **diagnostics[r]}
+                if scored:  # reads the weights only: no generator, no training state
+                    row[DETERMINISTIC_COLUMN] = _own_track_score(
+                        cfg, member.seed, *_deterministic_policy(cfg, self.run.learner.member_weights(r)))
                 member.metrics.write(row)
                 member.rewards.append(row["total_reward"])
         _show(self.progress, members, max(1, min(cfg.final_window, cfg.episodes)))
@@ -259,6 +264,7 @@ class RunContext:
                 **{f"time/{key}": round(value, 3) for key, value in {**self.timing, **self.compile_time()}.items()},
                 "population": {"seeds": list(self.seeds), "size": len(self.seeds)},
                 **({"evaluation": evaluation} if evaluation is not None else {}),
+                **({"start": run.starts[r]} if run.starts else {}),
                 **({"track_file": run.env.sim.file_track.reading.record()} if run.env.sim.file_track is not None
                    else {}),
                 "code": self.code, "software": software_versions(), "numerics": _numerics_record(self.segments),
@@ -283,7 +289,19 @@ def _numerics_record(segments: list[dict]) -> dict:
 def _evaluate(cfg: RunConfig, seed: int, weights: dict) -> dict:
     """The final deterministic policy's mean total reward on its own track and on ``cfg.eval_seeds`` (``weights``:
     the member's {"actor": ..., "critic": ...})."""
-    from engine.evaluation import evaluate, make_policy, own_track
+    from engine.evaluation import evaluate
+
+    policy, settings = _deterministic_policy(cfg, weights)
+    own = _own_track_score(cfg, seed, policy, settings)
+    others = evaluate(policy, settings, list(cfg.eval_seeds), cfg.eval_episodes)
+    return {"episodes": cfg.eval_episodes, "own_track": own, "tracks": {str(k): v for k, v in others.items()},
+            "mean": _mean(list(others.values()))}
+
+
+def _deterministic_policy(cfg: RunConfig, weights: dict):
+    """The member's deterministic policy as ``evaluate.py`` builds it from its files, and the settings
+    ``engine.evaluation.evaluate`` reads."""
+    from engine.evaluation import make_policy
     from racing.config import RacingConfig
 
     network = {"actor_hidden": list(cfg.network.actor_hidden), "activation": cfg.network.activation}
@@ -292,11 +310,16 @@ def _evaluate(cfg: RunConfig, seed: int, weights: dict) -> dict:
     settings = {"env": {"options": dict(cfg.env.options), "nearest_ray": cfg.env.nearest_ray}}
     settings["env"].update(track=cfg.env.track, track_file=cfg.env.track_file, track_scale=cfg.env.track_scale,
                            track_closed=cfg.env.track_closed)
+    return policy, settings
+
+
+def _own_track_score(cfg: RunConfig, seed: int, policy, settings: dict) -> float:
+    """The deterministic policy's mean total reward over ``cfg.eval_episodes`` episodes on the member's own
+    track (start states from seeds 0, 1, ...): the end-of-run evaluation's, and ``eval_every``'s."""
+    from engine.evaluation import evaluate, own_track
+
     track = own_track({"env": settings["env"], "seed": seed})
-    own = evaluate(policy, settings, [track], cfg.eval_episodes)[track]
-    others = evaluate(policy, settings, list(cfg.eval_seeds), cfg.eval_episodes)
-    return {"episodes": cfg.eval_episodes, "own_track": own, "tracks": {str(k): v for k, v in others.items()},
-            "mean": _mean(list(others.values()))}
+    return evaluate(policy, settings, [track], cfg.eval_episodes)[track]
 
 
 def _payload(episodes_done: int, timing: dict, settings: dict | None, parts: dict, env, code: dict, segments: list,

@@ -17,7 +17,8 @@ import torch
 
 import learners
 from collectors import ReplayMemory, ReplaySchedule, make_collector
-from engine.config import RunConfig
+from engine.config import ConfigError, RunConfig
+from engine.start import start_actors
 from learners.base import Learner
 from racing.torchrl_env import RacingTorchEnv
 
@@ -32,6 +33,7 @@ class Run:
     learner: Learner  # networks, acting policy, loss, optimisers, replay memory, update phase
     schedule: ReplaySchedule  # when to train on memory and on recent experience
     minibatch_size: int  # per member, after the er mode's fraction
+    starts: list[dict] | None = None  # algo.td.start_from: what each member's actor started from (summary.json)
 
 
 def build(cfg: RunConfig, seeds: tuple[int, ...]) -> Run:
@@ -41,9 +43,11 @@ def build(cfg: RunConfig, seeds: tuple[int, ...]) -> Run:
     seed_everything(seeds[0])
     generators = make_generators(seeds, cfg.device)
     env = make_env(cfg, seeds)
-    learner = make_learner(cfg, env, generators)
+    starts = start_actors(cfg, seeds)  # algo.td.start_from: another run's actor per member (engine.start)
+    learner = make_learner(cfg, env, generators, starts)
     schedule = make_schedule(cfg)
-    return Run(generators, env, learner, schedule, schedule.minibatch_size(cfg.algo.minibatch_size))
+    return Run(generators, env, learner, schedule, schedule.minibatch_size(cfg.algo.minibatch_size),
+               [start["record"] for start in starts] if starts else None)
 
 
 def seed_everything(seed: int) -> None:
@@ -82,10 +86,17 @@ def make_env(cfg: RunConfig, seeds: tuple[int, ...]) -> RacingTorchEnv:
 
 
 # -------------------------------------------------------------------------------- learner
-def make_learner(cfg: RunConfig, env: RacingTorchEnv, generators: list[torch.Generator]) -> Learner:
-    """The replay memory, then the learner family's networks, loss, optimisers and update phase."""
+def make_learner(cfg: RunConfig, env: RacingTorchEnv, generators: list[torch.Generator],
+                 starts: list[dict] | None = None) -> Learner:
+    """The replay memory, then the learner family's networks, loss, optimisers and update phase; ``starts``
+    (``engine.start.start_actors``): the members' actors start from other runs' weights."""
     memory = ReplayMemory(cfg.er.buffer_size, members=len(generators), device=cfg.device, priority=cfg.er.priority)
-    return learners.family(cfg.algo.loss).build(cfg, env, generators, memory)
+    if starts is None:
+        return learners.family(cfg.algo.loss).build(cfg, env, generators, memory)
+    try:
+        return learners.family(cfg.algo.loss).build(cfg, env, generators, memory, starts=starts)
+    except ValueError as err:  # a start whose actor is not this run's
+        raise ConfigError(f"algo.td.start_from: {err}") from None
 
 
 # ------------------------------------------------------------------------------ collector

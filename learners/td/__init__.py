@@ -48,6 +48,10 @@ class TDOptions:
     critic_history: int = 0  # the Q-networks also see the car's last this-many observations and actions (its own past)
     pessimism: float | None = None  # the target and the actor combine the Q-networks as mean - this x std
     #                                 (losses.td.q_reduce); None: their minimum (TorchRL's)
+    start_from: str | None = None  # a finished run's folder (or a population's) whose actor starts this run's
+    #                                (engine.start; docs/beyond.md's decisive experiment)
+    critic_first_episodes: int = capped((10_000_000, "episodes"), default=0)  # the steps before episodes 1..this
+    #                                train the critics only (TDPhaseRunner.actor_held)
 
     def __post_init__(self) -> None:
         positive("algo.td.updates_per_step", self.updates_per_step)
@@ -66,6 +70,9 @@ class TDOptions:
         at_least("algo.td.critic_weight_decay", self.critic_weight_decay, 0)
         at_least("algo.td.reset_every", self.reset_every, 0)
         at_least("algo.td.critic_history", self.critic_history, 0)
+        at_least("algo.td.critic_first_episodes", self.critic_first_episodes, 0)
+        if self.start_from is not None and (not isinstance(self.start_from, str) or not self.start_from.strip()):
+            raise ConfigError(f"algo.td.start_from must be null or a run folder's path, got {self.start_from!r}")
         if self.critic_history > MAX_HISTORY:
             raise ConfigError(f"algo.td.critic_history must be at most {MAX_HISTORY} past steps, got {self.critic_history}")
         if self.pessimism is not None and not -PESSIMISM_LIMIT <= self.pessimism <= PESSIMISM_LIMIT:
@@ -185,8 +192,9 @@ def check(algo, learner) -> None:
                           f"the Q-networks by 1 - lr x decay), got {decay} x {algo.critic_lr}")
 
 
-def build(cfg, env, generators, memory):
-    """The members' networks, loss, optimisers and update phase: a ``learners.base.Learner``."""
+def build(cfg, env, generators, memory, starts=None):
+    """The members' networks, loss, optimisers and update phase: a ``learners.base.Learner``; ``starts``
+    (``engine.start``): the members' actors' starting weights."""
     from learners.td.learner import build
 
-    return build(cfg, env, generators, memory)
+    return build(cfg, env, generators, memory, starts)

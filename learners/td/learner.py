@@ -350,6 +350,7 @@ class TDPhaseRunner:
         self.steps_of = steps = self.spec.torch_half()
         self.td = cfg.algo.td
         self.norm = norm
+        self.actor_held = False  # the actor's optimiser skips its steps (``run``: algo.td.critic_first_episodes)
         self.entropy_schedule = None  # algo.sac.target_entropy_end: (episode, first, last) -> the entropy target
         if cfg.algo.sac is not None and cfg.algo.sac.target_entropy_end is not None:  # from the loss's own start
             self.entropy_schedule = functools.partial(linear_schedule, float(loss.target_entropy),
@@ -410,6 +411,7 @@ class TDPhaseRunner:
 
     def run(self, data: TensorDictBase, minibatch_size: int, totals: MetricTotals, episode: int = 0) -> dict[int, str]:
         done, todo = self.updates(episode)
+        self.actor_held = episode <= self.td.critic_first_episodes  # the steps on its first episodes: critics only
         if self.entropy_schedule is not None:
             self.set_target_entropy(episode)
         if self.td.reset_every and episode > 0 and episode % self.td.reset_every == 0:
@@ -440,11 +442,14 @@ class TDPhaseRunner:
         return self.preact_penalty * member_means(body(batch.get("observation")).square())
 
     def minimise(self, per_member: torch.Tensor, *optimisers: MemberAdam) -> None:
+        """One step of ``optimisers`` on the active members' losses; the actor's (actor and temperature) is
+        skipped while ``actor_held`` (``algo.td.critic_first_episodes``)."""
         for optimiser in optimisers:
             optimiser.zero_grad()
         (per_member * self.active).sum().backward()
         for optimiser in optimisers:
-            optimiser.step()
+            if not (self.actor_held and optimiser is self.optimisers.actor):
+                optimiser.step()
 
     @torch.no_grad()
     def reset_networks(self) -> None:
@@ -489,10 +494,39 @@ class TDPhaseRunner:
                 for k, v in critic_params(self.loss).flatten_keys(".").items()}
 
 
-def build(cfg, env, generators: Sequence[torch.Generator], memory: ReplayMemory) -> Learner:
+@torch.no_grad()
+def start_actors(actor_net: nn.Module, starts: Sequence[dict], gaussian: bool) -> None:
+    """Write each member's start (``engine.start.start_actors``: a finished run's actor weights under a solo
+    actor's names) into the members' stacked actor ``actor_net``. A Gaussian actor's weights (its last layer's
+    rows: the mean's, then the scale's) start a deterministic actor (``gaussian`` False) with the mean's rows:
+    tanh of the mean, the Gaussian's deterministic policy, is then its action. ``ValueError`` on any other
+    mismatch."""
+    own = actor_net.state_dict()
+    for member, start in enumerate(starts):
+        state = start["state"]
+        if set(state) != set(own):
+            raise ValueError(f"the start's actor has entries {sorted(state)}, this run's {sorted(own)}")
+        if start["gaussian"] and not gaussian:  # the mean's rows of the output layer
+            last = max((k for k in state if k.endswith(".weight")), key=lambda k: list(own).index(k))
+            rows = own[last].shape[1]
+            state = {k: (v[:rows] if k in (last, last.removesuffix("weight") + "bias") else v) for k, v in state.items()}
+        elif gaussian and not start["gaussian"]:
+            raise ValueError("a deterministic actor has no scale to start a Gaussian actor's from")
+        for name, value in state.items():
+            if value.shape != own[name].shape[1:]:
+                raise ValueError(f"the start's actor has {name} of shape {list(value.shape)}, this run's "
+                                 f"{list(own[name].shape[1:])}")
+            own[name][member].copy_(value.to(own[name].device))
+
+
+def build(cfg, env, generators: Sequence[torch.Generator], memory: ReplayMemory,
+          starts: Sequence[dict] | None = None) -> Learner:
     """Networks, loss, optimisers and update phase of ``cfg.algo`` (an off-policy learner of ``learners.registry``)
-    for one member per generator."""
+    for one member per generator; ``starts`` (``engine.start``): each member's actor starts from another run's
+    weights, written before the loss copies them into any target network."""
     networks = make_networks(cfg, env, generators)
+    if starts is not None:
+        start_actors(networks.actor_net, starts, learner_spec(cfg.algo.loss).gaussian_actor)
     loss = make_loss(cfg, networks, generators)
     own = getattr(learner_spec(cfg.algo.loss).torch_half(), "acting_policy", None)
     if own is not None:  # an acting policy that reads the trained loss (a planner: its model and Q-networks)

@@ -1,0 +1,134 @@
+"""A run started from another run's actor (``algo.td.start_from``, ``engine.start``), its critics fitted first
+(``algo.td.critic_first_episodes``), and the deterministic policy scored during training (``eval_every``): the
+pieces of docs/beyond.md's decisive experiment.
+
+Checked: the started actor is the start's, bit for bit (a held actor ends as it began, its temperature too); a
+Gaussian actor's mean starts a deterministic one that acts as the Gaussian's deterministic policy; a member of a
+population starts from its own member folder, as its solo run does; the critics train while the actor is held,
+and the actor trains after; ``eval_every`` changes no training number and scores what ``evaluate.py`` scores; a
+start that cannot be this run's actor is refused in one line.
+"""
+
+import csv
+import json
+
+import numpy as np
+import torch
+
+from engine.config import ConfigError, RunConfig
+from engine.evaluation import evaluate, load_policy
+from engine.runner import train_population
+from tests.test_config import load
+from tests.test_offpolicy import A, B
+from tests.test_train import run_train
+
+TINY = ["er=memory", "env.options.max_steps=40", "er.buffer_size=400", "algo.td.warmup_episodes=1",
+        "algo.td.updates_per_step=0.25", "progress=false", "logger=none", "final_window=2"]
+
+
+def train(folder, *overrides):
+    """A run of ``overrides`` into ``folder``, its settings recorded as train.py records them."""
+    settings = RunConfig.compose_mapping(*overrides)
+    return train_population(RunConfig.from_mapping(settings), folder, settings)
+
+
+def rows(folder):
+    with open(folder / "metrics.csv") as f:
+        return list(csv.DictReader(f))
+
+
+def start_run(tmp_path, algo="sac", seeds=(A,)):
+    """A finished run to start from (a population's folder when several seeds)."""
+    folder = tmp_path / f"start_{algo}_{len(seeds)}"
+    members = f"seed={seeds[0]}" if len(seeds) == 1 else f"seeds=[{','.join(map(str, seeds))}]"
+    train(folder, f"algo={algo}", *TINY, "episodes=3", members)
+    return folder
+
+
+def states(folder):
+    from engine.checkpoint import load_tensors
+
+    return load_tensors(folder / "actor.pt", "actor")
+
+
+def test_a_held_actor_ends_as_the_start_began_and_its_critics_train(tmp_path):
+    start = start_run(tmp_path)
+    run = tmp_path / "held"
+    summary = train(run, "algo=sac", *TINY, "episodes=3", f"seed={A}", "algo.td.warmup_episodes=0",
+          f"algo.td.start_from={start}", "algo.td.critic_first_episodes=3")[0]
+    ours, theirs = states(run), states(start)
+    assert ours.keys() == theirs.keys() and all(torch.equal(ours[k], theirs[k]) for k in ours)
+    metrics = rows(run)
+    assert [r["actor/alpha"] for r in metrics[1:]] == ["1.0", "1.0"]  # the temperature held as well
+    assert metrics[1]["critic/loss_qvalue"] != metrics[2]["critic/loss_qvalue"]
+    assert summary["start"]["folder"] == str(start.resolve()) and summary["start"]["episodes"] == 3
+    assert len(summary["start"]["actor_sha256"]) == 64
+    # one episode fewer held: the actor's steps before the last episode move it
+    moved = tmp_path / "moved"
+    train(moved, "algo=sac", *TINY, "episodes=3", f"seed={A}", "algo.td.warmup_episodes=0",
+          f"algo.td.start_from={start}", "algo.td.critic_first_episodes=1")
+    assert not torch.equal(states(moved)["0.layers.0.weight"], theirs["0.layers.0.weight"])
+    assert rows(moved)[2]["actor/alpha"] != "1.0"
+
+
+def test_a_gaussian_actor_s_mean_starts_a_deterministic_actor_that_drives_as_it_did(tmp_path):
+    start = start_run(tmp_path)
+    run = tmp_path / "td3"
+    train(run, "algo=td3", *TINY, "episodes=2", f"seed={A}", f"algo.td.start_from={start}",
+          "algo.td.critic_first_episodes=2")
+    sac, _ = load_policy(start)
+    td3, settings = load_policy(run)
+    observations = torch.rand(64, 6, generator=torch.Generator().manual_seed(0)) * 2
+    assert torch.equal(sac.actions(observations), td3.actions(observations))
+    assert evaluate(sac, settings, [A], 1) == evaluate(td3, settings, [A], 1)
+    refused = run_train("algo=sac", *TINY, "episodes=2", f"seed={A}", f"algo.td.start_from={run}",
+                        f"hydra.run.dir={tmp_path / 'back'}")
+    assert refused.returncode != 0
+    assert "algo.td.start_from: a deterministic actor has no scale" in refused.stderr, refused.stderr[-2000:]
+
+
+def test_a_member_starts_from_its_own_member_folder_as_its_solo_run_does(tmp_path):
+    start = start_run(tmp_path, seeds=(A, B))
+    common = ["algo=sac", *TINY, "episodes=2", f"algo.td.start_from={start}", "algo.td.critic_first_episodes=1"]
+    members = train(tmp_path / "pop", *common, f"seeds=[{A},{B}]")
+    solo = train(tmp_path / "solo", *common, f"seed={B}")[0]
+    assert [m["start"]["folder"] for m in members] == [str((start / f"seed{s}").resolve()) for s in (A, B)]
+    assert solo["start"] == members[1]["start"]
+    assert (tmp_path / "solo" / "metrics.csv").read_bytes() == (tmp_path / "pop" / f"seed{B}" / "metrics.csv").read_bytes()
+
+
+def test_eval_every_scores_the_policy_as_evaluate_does_and_changes_no_training_number(tmp_path):
+    plain = ["algo=sac", *TINY, "episodes=4", f"seed={A}", "eval_seeds=[1001]", "eval_episodes=2"]
+    train(tmp_path / "plain", *plain)
+    summary = train(tmp_path / "scored", *plain, "eval_every=2")[0]
+    without, with_scores = rows(tmp_path / "plain"), rows(tmp_path / "scored")
+    assert [{k: v for k, v in r.items() if k != "deterministic"} for r in with_scores] == without
+    scores = [r["deterministic"] for r in with_scores]
+    assert scores[0] == scores[2] == "" and scores[1] and scores[3]
+    assert float(scores[3]) == summary["evaluation"]["own_track"]  # the final policy, as the end-of-run evaluation
+    policy, settings = load_policy(tmp_path / "scored")
+    assert evaluate(policy, settings, [A], 2)[A] == float(scores[3])
+
+
+def test_a_start_that_cannot_be_this_run_s_actor_is_refused_in_one_line(tmp_path):
+    start = start_run(tmp_path)
+    cases = {
+        f"algo.td.start_from={tmp_path / 'nowhere'}": "algo.td.start_from:",
+        "network.actor_hidden=[7]": "algo.td.start_from: ",
+        "algo.td.observation_norm=true": "observation_norm",
+    }
+    for i, (override, said) in enumerate(cases.items()):
+        extra = [] if "start_from" in override else [f"algo.td.start_from={start}"]
+        result = run_train("algo=sac", *TINY, "episodes=2", f"seed={A}", override, *extra,
+                           f"hydra.run.dir={tmp_path / f'refused{i}'}")
+        assert result.returncode != 0, override
+        lines = [line for line in result.stderr.splitlines() if line.strip()]
+        assert said in lines[-1] and "Traceback" not in result.stderr, (override, result.stderr[-2000:])
+    for value in ("' '", "[1]"):
+        try:
+            load("algo=sac", f"algo.td.start_from={value}")
+        except ConfigError as err:
+            assert "start_from" in str(err)
+        else:
+            raise AssertionError(value)
+    assert np.isfinite(json.loads((start / "summary.json").read_text())["final_mean"])
