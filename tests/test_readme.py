@@ -66,9 +66,21 @@ def stand_in_circuits(args: list[str], folder: Path) -> list[str]:
     return out
 
 
+def stand_in_start(args: list[str], folder: Path) -> list[str]:
+    """``args`` with the run ``algo.td.start_from`` names replaced by a two-episode SAC run of the command's seed
+    in ``folder`` (the docs name a run a reader has trained)."""
+    if not any(a.startswith("algo.td.start_from=") for a in args):
+        return args
+    seed = next((a for a in args if a.startswith("seed=")), "seed=2067791")
+    result = run_train("algo=sac", "er=prioritised", seed, "episodes=2", "progress=false", f"hydra.run.dir={folder}")
+    assert result.returncode == 0, result.stderr[-3000:]
+    return [f"algo.td.start_from={folder}" if a.startswith("algo.td.start_from=") else a for a in args]
+
+
 def tiny(args: list[str], out: Path) -> list[str]:
     """The same command at two episodes, writing into ``out``."""
     args = stand_in_circuits(args, out / "circuits")
+    args = stand_in_start(args, out.parent / f"{out.name}-start")
     keep = [a for a in args if not a.startswith("episodes=")]
     extra = ["episodes=2", "progress=false"]
     if "-m" in args:
@@ -204,7 +216,7 @@ DOCUMENTED_TOOLS = {
     "clean_sweep.py": "tests/test_readme.py", "tracks.py": "tests/test_track_files.py",
     "score.py": "tests/test_benchmark.py", "drive.py": "tests/test_benchmark.py", "baseline.py": "tests/test_baseline.py",
     "imitate.py": "tests/test_imitation.py", "-m analysis.driving": "tests/test_driving.py",
-    "-m analysis.pessimism": "tests/test_pessimism.py",
+    "-m analysis.pessimism": "tests/test_pessimism.py", "-m pupil.search": "tests/test_search.py",
     "-m benchmark.leaderboard": "tests/test_benchmark.py", "-m tests.fault_injection": "tests/test_fault_injection.py",
     "-m tests.slurm_cluster": "tests/test_slurm.py", "-m pytest": "tests/test_readme.py",
 }
