@@ -95,8 +95,8 @@ def make_learner(cfg: RunConfig, env: RacingTorchEnv, generators: list[torch.Gen
         return learners.family(cfg.algo.loss).build(cfg, env, generators, memory)
     try:
         return learners.family(cfg.algo.loss).build(cfg, env, generators, memory, starts=starts)
-    except ValueError as err:  # a start whose actor is not this run's
-        raise ConfigError(f"algo.td.start_from: {err}") from None
+    except ValueError as err:  # a start whose networks are not this run's (the learner names its option)
+        raise ConfigError(str(err)) from None
 
 
 # ------------------------------------------------------------------------------ collector

@@ -1,13 +1,21 @@
-"""A run whose actor starts from another run's (``algo.td.start_from``): which finished run each member starts
-from, that run's actor weights, and what the member's summary records of them.
+"""A run whose networks start from others' (``algo.td.start_from``, ``algo.td.start_critics_from``): which
+source each member starts from, its weights, and what the member's summary records of them.
 
-``start_from`` names a finished run's folder (every member starts from it) or a population's folder (member
-``<seed>`` starts from its ``seed<seed>/``, so a member starts where its solo run would). The folder is read
-as every tool reads a run (``engine.evaluation.load_policy``: a finished, intact run whose actor builds);
-its actor must have this run's sizes (``network.actor_hidden``, ``network.activation``, the observation it
-reads). The weights are written into the members' actors before the loss is built
-(``learners.td.learner.start_actors``), so target networks start from them too; critics, temperature and
-optimisers start fresh (``algo.td.critic_first_episodes`` fits the critics to the started policy first).
+``start_from`` names, for each member ``<seed>``:
+
+- a finished run's folder (every member starts from its actor), or a population's folder whose ``seed<seed>/``
+  is one (a member starts where its solo run would);
+- a folder of ``python -m pupil.search --out`` results, whose ``policy-<seed>.pt`` holds an actor's weights
+  (a run's names and shapes), or one such file for every member.
+
+A run is read as every tool reads one (``engine.evaluation.load_policy``: a finished, intact run whose actor
+builds); a weights file through the door (``engine.checkpoint.load_tensors``: plain tensors, finite). The
+actor must have this run's sizes (``network.actor_hidden``, ``network.activation``, the observation it reads);
+the weights are written into the members' actors before the loss is built (``learners.td.learner``), so
+target networks start from them too. ``start_critics_from`` names a finished run (or a population's folder)
+whose ``critic.pt`` starts the Q-networks and their targets (the same learner's shapes); without it critics,
+temperature and optimisers start fresh (``algo.td.critic_first_episodes`` fits the critics to the started
+policy first).
 """
 
 from __future__ import annotations
@@ -20,49 +28,83 @@ from engine.config import ConfigError, RunConfig
 from engine.outputs import RunFolderError, file_digest
 
 
-def start_folder(base: Path, seed: int) -> Path:
-    """The finished run member ``seed`` starts from: ``base`` itself if it holds a run, else ``base/seed<seed>``."""
+def start_source(base: Path, seed: int) -> Path:
+    """What member ``seed`` starts from: ``base`` if it is a file or holds a finished run, else its
+    ``seed<seed>/`` (a population's member) or its ``policy-<seed>.pt`` (a search's result), else ``base``
+    (whose reading then says what is wrong)."""
     base = Path(base)
-    if rundir.state(base).kind == "empty" and (base / f"seed{seed}").is_dir():
-        return base / f"seed{seed}"
+    if base.is_file() or rundir.state(base).kind == "finished":
+        return base
+    for candidate in (base / f"seed{seed}", base / f"policy-{seed}.pt"):
+        if candidate.exists():
+            return candidate
     return base
 
 
-def start_actors(cfg: RunConfig, seeds: tuple[int, ...]) -> list[dict] | None:
-    """Per member of ``seeds``: {"state": the start's actor weights (a solo actor's names), "gaussian": whether
-    they are a Gaussian actor's (loc and scale), "record": what summary.json says of the start}; None without
-    ``algo.td.start_from``. ``ConfigError`` in one line when a start cannot be this run's actor."""
+def _finished_run(folder: Path, option: str) -> dict:
+    """The settings of the finished run in ``folder``, read as every tool reads a run."""
     from engine.evaluation import load_policy
-    from learners.registry import spec
 
+    try:
+        return load_policy(folder)[1]
+    except (RunFolderError, ValueError) as err:
+        raise ConfigError(f"{option}: {err}") from None
+
+
+def _tensors(path: Path, what: str, option: str) -> dict:
+    import torch
+
+    try:
+        state = load_tensors(path, what)
+    except (ValueError, OSError) as err:
+        raise ConfigError(f"{option}: {err}") from None
+    if not all(isinstance(v, torch.Tensor) and torch.isfinite(v).all() for v in state.values()):
+        raise ConfigError(f"{option}: {path} holds non-finite weights or entries that are not tensors")
+    return {k.removeprefix("module."): v for k, v in state.items()} if what == "actor" else state
+
+
+def start_actors(cfg: RunConfig, seeds: tuple[int, ...]) -> list[dict] | None:
+    """Per member of ``seeds``: {"state": the start's actor weights (a solo actor's names), "critic": its
+    Q-networks' (``start_critics_from``) or None, "record": what summary.json says of the start}; None
+    without ``algo.td.start_from``. ``ConfigError`` in one line when a start cannot be this run's."""
     td = getattr(cfg.algo, "td", None)
     if td is None or td.start_from is None:
+        if td is not None and td.start_critics_from is not None:
+            raise ConfigError("algo.td.start_critics_from starts the critics of a started actor; give algo.td.start_from too")
         return None
+    option = "algo.td.start_from"
     if td.observation_norm:
-        raise ConfigError("algo.td.start_from with algo.td.observation_norm: the started actor would read "
+        raise ConfigError(f"{option} with algo.td.observation_norm: the started actor would read "
                           "observations normalised by fresh statistics; start without observation_norm")
+    ours = (list(cfg.network.actor_hidden), cfg.network.activation, cfg.env.past_steps)
     starts = []
     for seed in seeds:
-        folder = start_folder(Path(td.start_from), seed)
-        try:
-            _, settings = load_policy(folder)
-        except (RunFolderError, ValueError) as err:
-            raise ConfigError(f"algo.td.start_from: {err}") from None
-        state = load_tensors(folder / "actor.pt", "actor")
-        state = {k.removeprefix("module."): v for k, v in state.items()}  # TorchRL's layout (until da21af2)
+        source = start_source(Path(td.start_from), seed)
+        if source.is_file():  # a search's weights: its shapes are checked where they are written
+            record = {"file": str(source.resolve())}
+            path = source
+        else:
+            settings = _finished_run(source, option)
+            network, env = settings["network"], settings["env"]
+            theirs = (list(network["actor_hidden"]), network["activation"], env.get("past_steps", 0))
+            if ours != theirs:
+                raise ConfigError(f"{option}: {source}'s actor has hidden layers {theirs[0]}, activation {theirs[1]} "
+                                  f"and past steps {theirs[2]}; this run's {ours[0]}, {ours[1]} and {ours[2]}")
+            summary = rundir.state(source).summary
+            record = {"folder": str(source.resolve()), "algo": settings["algo"].get("name"),
+                      "seed": summary.get("seed"), "episodes": summary.get("episodes")}
+            path = source / "actor.pt"
+        state = _tensors(path, "actor", option)
         if any(k.startswith("norm.") for k in state):
-            raise ConfigError(f"algo.td.start_from: {folder} acted on normalised observations "
-                              "(algo.td.observation_norm); its actor cannot start one that reads them as they are")
-        ours = (list(cfg.network.actor_hidden), cfg.network.activation, cfg.env.past_steps)
-        network, env = settings["network"], settings["env"]
-        theirs = (list(network["actor_hidden"]), network["activation"], env.get("past_steps", 0))
-        if ours != theirs:
-            raise ConfigError(f"algo.td.start_from: {folder}'s actor has hidden layers {theirs[0]}, activation "
-                              f"{theirs[1]} and past steps {theirs[2]}; this run's {ours[0]}, {ours[1]} and {ours[2]}")
-        loss = settings["algo"]["loss"]
-        summary = rundir.state(folder).summary
-        starts.append({"state": state, "gaussian": spec(loss).gaussian_actor,
-                       "record": {"folder": str(folder.resolve()), "algo": settings["algo"].get("name"),
-                                  "seed": summary.get("seed"), "episodes": summary.get("episodes"),
-                                  "actor_sha256": file_digest(folder / "actor.pt")["sha256"]}})
+            raise ConfigError(f"{option}: {path} acted on normalised observations (algo.td.observation_norm); "
+                              "it cannot start an actor that reads them as they are")
+        record["actor_sha256"] = file_digest(path)["sha256"]
+        critic = None
+        if td.start_critics_from is not None:
+            folder = start_source(Path(td.start_critics_from), seed)
+            _finished_run(folder, "algo.td.start_critics_from")
+            critic = _tensors(folder / "critic.pt", "critic", "algo.td.start_critics_from")
+            record["critics"] = {"folder": str(folder.resolve()),
+                                 "critic_sha256": file_digest(folder / "critic.pt")["sha256"]}
+        starts.append({"state": state, "critic": critic, "record": record})
     return starts

@@ -45,10 +45,48 @@ def start_run(tmp_path, algo="sac", seeds=(A,)):
     return folder
 
 
-def states(folder):
+def states(folder, name="actor"):
     from engine.checkpoint import load_tensors
 
-    return load_tensors(folder / "actor.pt", "actor")
+    return load_tensors(folder / f"{name}.pt", name)
+
+
+def test_a_run_started_with_critics_holds_its_start_s_networks_until_its_first_steps(tmp_path):
+    start = start_run(tmp_path)
+    run = tmp_path / "both"
+    summary = train(run, "algo=sac", *TINY, "episodes=1", f"seed={A}", "algo.td.warmup_episodes=0",
+                    f"algo.td.start_from={start}", f"algo.td.start_critics_from={start}")[0]
+    for name in ("actor", "critic"):
+        ours, theirs = states(run, name), states(start, name)
+        assert ours.keys() == theirs.keys() and all(torch.equal(ours[k], theirs[k]) for k in ours), name
+    assert summary["start"]["critics"]["folder"] == str(start.resolve())
+    narrow = tmp_path / "narrow"
+    train(narrow, "algo=sac", *TINY, "episodes=2", f"seed={A}", "network.critic_hidden=[8,8]")
+    refused = run_train("algo=sac", *TINY, "episodes=1", f"seed={A}", f"algo.td.start_from={start}",
+                        f"algo.td.start_critics_from={narrow}", f"hydra.run.dir={tmp_path / 'other'}")
+    assert refused.returncode != 0 and "algo.td.start_critics_from" in refused.stderr.splitlines()[-1]
+    alone = run_train("algo=sac", *TINY, "episodes=1", f"seed={A}", f"algo.td.start_critics_from={start}",
+                      f"hydra.run.dir={tmp_path / 'alone'}")
+    assert alone.returncode != 0 and "give algo.td.start_from too" in alone.stderr
+
+
+def test_a_search_s_weights_start_a_run_from_its_folder_or_file(tmp_path):
+    from engine.checkpoint import save_tensors
+
+    start = start_run(tmp_path)
+    found = tmp_path / "found"
+    found.mkdir()
+    weights = {k: v + 0.01 for k, v in states(start).items()}
+    save_tensors(found / f"policy-{A}.pt", weights)
+    for source in (found, found / f"policy-{A}.pt"):
+        run = tmp_path / f"from_{source.name}"
+        summary = train(run, "algo=td3", *TINY, "episodes=1", f"seed={A}", f"algo.td.start_from={source}")[0]
+        assert torch.equal(states(run)["0.layers.1.weight"], weights["0.layers.1.weight"][:2])
+        assert summary["start"]["file"] == str((found / f"policy-{A}.pt").resolve())
+    save_tensors(found / f"policy-{A}.pt", {**weights, "0.layers.0.bias": torch.full((100,), float("nan"))})
+    refused = run_train("algo=td3", *TINY, "episodes=1", f"seed={A}", f"algo.td.start_from={found}",
+                        f"hydra.run.dir={tmp_path / 'nan'}")
+    assert refused.returncode != 0 and "non-finite" in refused.stderr.splitlines()[-1]
 
 
 def test_a_held_actor_ends_as_the_start_began_and_its_critics_train(tmp_path):

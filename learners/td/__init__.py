@@ -48,8 +48,10 @@ class TDOptions:
     critic_history: int = 0  # the Q-networks also see the car's last this-many observations and actions (its own past)
     pessimism: float | None = None  # the target and the actor combine the Q-networks as mean - this x std
     #                                 (losses.td.q_reduce); None: their minimum (TorchRL's)
-    start_from: str | None = None  # a finished run's folder (or a population's) whose actor starts this run's
-    #                                (engine.start; docs/beyond.md's decisive experiment)
+    start_from: str | None = None  # a finished run's folder (or a population's, or a search's weights) whose actor
+    #                                starts this run's (engine.start; docs/beyond.md's decisive experiment)
+    start_critics_from: str | None = None  # a finished run's folder (or a population's) whose critic.pt starts the
+    #                                Q-networks and their targets
     critic_first_episodes: int = capped((10_000_000, "episodes"), default=0)  # the steps before episodes 1..this
     #                                train the critics only (TDPhaseRunner.actor_held)
 
@@ -71,8 +73,10 @@ class TDOptions:
         at_least("algo.td.reset_every", self.reset_every, 0)
         at_least("algo.td.critic_history", self.critic_history, 0)
         at_least("algo.td.critic_first_episodes", self.critic_first_episodes, 0)
-        if self.start_from is not None and (not isinstance(self.start_from, str) or not self.start_from.strip()):
-            raise ConfigError(f"algo.td.start_from must be null or a run folder's path, got {self.start_from!r}")
+        for key in ("start_from", "start_critics_from"):
+            value = getattr(self, key)
+            if value is not None and (not isinstance(value, str) or not value.strip()):
+                raise ConfigError(f"algo.td.{key} must be null or a path, got {value!r}")
         if self.critic_history > MAX_HISTORY:
             raise ConfigError(f"algo.td.critic_history must be at most {MAX_HISTORY} past steps, got {self.critic_history}")
         if self.pessimism is not None and not -PESSIMISM_LIMIT <= self.pessimism <= PESSIMISM_LIMIT:

@@ -495,38 +495,62 @@ class TDPhaseRunner:
 
 
 @torch.no_grad()
-def start_actors(actor_net: nn.Module, starts: Sequence[dict], gaussian: bool) -> None:
-    """Write each member's start (``engine.start.start_actors``: a finished run's actor weights under a solo
-    actor's names) into the members' stacked actor ``actor_net``. A Gaussian actor's weights (its last layer's
-    rows: the mean's, then the scale's) start a deterministic actor (``gaussian`` False) with the mean's rows:
-    tanh of the mean, the Gaussian's deterministic policy, is then its action. ``ValueError`` on any other
-    mismatch."""
+def start_actors(actor_net: nn.Module, starts: Sequence[dict]) -> None:
+    """Write each member's start (``engine.start.start_actors``: an actor's weights under a solo actor's names)
+    into the members' stacked actor ``actor_net``. A Gaussian actor's weights (its output layer's rows: the
+    mean's, then the scale's) start a deterministic actor (half as many output rows) with the mean's rows: tanh
+    of the mean, the Gaussian's deterministic policy, is then its action. ``ValueError`` on any other mismatch."""
     own = actor_net.state_dict()
+    last = max((k for k in own if k.endswith(".weight")), key=list(own).index)  # the output layer
+    rows = own[last].shape[1]
     for member, start in enumerate(starts):
         state = start["state"]
         if set(state) != set(own):
-            raise ValueError(f"the start's actor has entries {sorted(state)}, this run's {sorted(own)}")
-        if start["gaussian"] and not gaussian:  # the mean's rows of the output layer
-            last = max((k for k in state if k.endswith(".weight")), key=lambda k: list(own).index(k))
-            rows = own[last].shape[1]
+            raise ValueError(f"algo.td.start_from: the start's actor has entries {sorted(state)}, this run's {sorted(own)}")
+        given = state[last].shape[0]
+        if given == 2 * rows:  # a Gaussian's mean starts a deterministic actor
             state = {k: (v[:rows] if k in (last, last.removesuffix("weight") + "bias") else v) for k, v in state.items()}
-        elif gaussian and not start["gaussian"]:
-            raise ValueError("a deterministic actor has no scale to start a Gaussian actor's from")
+        elif 2 * given == rows:
+            raise ValueError("algo.td.start_from: a deterministic actor has no scale to start a Gaussian actor's from")
         for name, value in state.items():
             if value.shape != own[name].shape[1:]:
-                raise ValueError(f"the start's actor has {name} of shape {list(value.shape)}, this run's "
+                raise ValueError(f"algo.td.start_from: the start's actor has {name} of shape {list(value.shape)}, this run's "
                                  f"{list(own[name].shape[1:])}")
             own[name][member].copy_(value.to(own[name].device))
+
+
+@torch.no_grad()
+def start_critics(loss, starts: Sequence[dict]) -> None:
+    """Write each member's start critics (``critic.pt``: the Q-networks as ``member_critic`` saves them) into
+    the loss's Q-networks and their target networks. ``ValueError`` if they are not this learner's shapes."""
+    name, dim = critic_layout(loss)
+    tables = [critic_params(loss).flatten_keys(".")]
+    if hasattr(loss, f"target_{name}_params"):
+        tables.append(critic_params(loss, target=True).flatten_keys("."))
+    for member, start in enumerate(starts):
+        state = start["critic"]
+        own = tables[0]
+        if set(state) != set(own.keys()):
+            raise ValueError(f"algo.td.start_critics_from: the start's critic has entries {sorted(state)}, this run's "
+                             f"{sorted(own.keys())}")
+        for key, value in state.items():
+            for table in tables:
+                target = table.get(key).select(dim, member)
+                if value.shape != target.shape:
+                    raise ValueError(f"algo.td.start_critics_from: the start's critic has {key} of shape "
+                                     f"{list(value.shape)}, this run's "
+                                     f"{list(target.shape)}")
+                target.copy_(value.to(target.device))
 
 
 def build(cfg, env, generators: Sequence[torch.Generator], memory: ReplayMemory,
           starts: Sequence[dict] | None = None) -> Learner:
     """Networks, loss, optimisers and update phase of ``cfg.algo`` (an off-policy learner of ``learners.registry``)
-    for one member per generator; ``starts`` (``engine.start``): each member's actor starts from another run's
-    weights, written before the loss copies them into any target network."""
+    for one member per generator; ``starts`` (``engine.start``): each member's actor starts from other weights,
+    written before the loss copies them into any target network, and its critics too where they are given."""
     networks = make_networks(cfg, env, generators)
     if starts is not None:
-        start_actors(networks.actor_net, starts, learner_spec(cfg.algo.loss).gaussian_actor)
+        start_actors(networks.actor_net, starts)
     loss = make_loss(cfg, networks, generators)
     own = getattr(learner_spec(cfg.algo.loss).torch_half(), "acting_policy", None)
     if own is not None:  # an acting policy that reads the trained loss (a planner: its model and Q-networks)
@@ -534,5 +558,7 @@ def build(cfg, env, generators: Sequence[torch.Generator], memory: ReplayMemory,
     optimisers = make_optimisers(cfg, loss)
     phases = TDPhaseRunner(cfg, loss, optimisers, generators, memory if cfg.er.priority else None,
                            actor_net=networks.actor_net, qvalue_nets=networks.qvalue_nets, norm=networks.norm)
+    if starts is not None and starts[0]["critic"] is not None:  # once the target updater is TorchRL's to know
+        start_critics(loss, starts)
     keys = TD_TRANSITION_KEYS + tuple(k for key in critic_extras(cfg.algo.td) for k in (key, ("next", key)))
     return Learner(networks, loss, optimisers, memory, phases, keys, monte_carlo=False, n_step=cfg.algo.td.n_step)
