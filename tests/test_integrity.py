@@ -306,7 +306,8 @@ def _capped_fields():
         for name, caps in ceilings(cls).items():
             yield cls, name, caps
         for f in fields(cls):
-            assert f.name in ceilings(cls) or not any(word in f.name for word in ("size", "critics", "samples")), \
+            sized = any(word in f.name for word in ("size", "critics", "samples")) and not str(f.type).startswith("str")
+            assert f.name in ceilings(cls) or not sized, \
                 f"{cls.__name__}.{f.name} sets an allocation: declare its ceiling (learners.options.capped)"
 
 
