@@ -1,0 +1,106 @@
+"""The decisive experiment's reading (docs/results/caution/README.md): runs started from a fast policy
+(``algo.td.start_from``) that scored their deterministic policy every few episodes (``eval_every``).
+
+    python -m analysis.caution SWEEP_OR_RUNS... [--last 5] [--table caution.csv]
+
+Per run, as fractions of the oracle's score on its track (``analysis/data/oracle*.csv``): S0, the first
+evaluation (the started policy while its actor is held: ``algo.td.critic_first_episodes`` covers it), the
+lowest evaluation after it, S_end (the mean of the last ``--last`` evaluations) and the drift S_end - S0;
+the training metric (summary.json's final performance). Then per configuration (the folder above the
+run: ``<algo>/<er>``) the mean over its tracks, and the reading the README fixed before the runs:
+"prefers caution" if every track drifts by -0.010 or lower, "holds" if the mean drift is -0.005 or higher
+and no track is below -0.010, else "mixed".
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+CAUTION, HOLDS = -0.010, -0.005  # the README's thresholds, in fractions of the oracle
+COLUMNS = ("configuration", "track", "s0", "lowest", "s_end", "drift", "training", "evaluations")
+
+
+def run_rows(runs: list[Path], oracle: dict, last: int = 5) -> list[dict]:
+    from door import files
+    from engine.outputs import read_summary
+
+    rows = []
+    for run in runs:
+        summary = read_summary(run)
+        track = summary["seed"]
+        o = oracle.get(track)
+        if o is None:
+            raise ValueError(f"{run}: no oracle score for track {track} (analysis/data/oracle*.csv)")
+        table = files.read_csv(run / "metrics.csv", 64 * 2**20, "metrics")
+        scored = [(int(r["episode"]), float(r["deterministic"])) for r in table if r.get("deterministic")]
+        if len(scored) < last + 1:
+            raise ValueError(f"{run}: {len(scored)} evaluations of the deterministic policy; the reading needs "
+                             f"at least {last + 1} (train with eval_every)")
+        s0, end = scored[0][1], math.fsum(v for _, v in scored[-last:]) / last
+        rows.append({"configuration": f"{run.parent.parent.name}/{run.parent.name}", "track": track,
+                     "s0": s0 / o, "lowest": min(v for _, v in scored[1:]) / o, "s_end": end / o,
+                     "drift": (end - s0) / o, "training": summary["final_mean"] / o,
+                     "evaluations": len(scored)})
+    return rows
+
+
+def reading(drifts: list[float]) -> str:
+    if all(d <= CAUTION for d in drifts):
+        return "prefers caution"
+    if sum(drifts) / len(drifts) >= HOLDS and min(drifts) >= CAUTION:
+        return "holds"
+    return "mixed"
+
+
+def summary_rows(rows: list[dict]) -> list[dict]:
+    out = []
+    for name in sorted({r["configuration"] for r in rows}):
+        mine = [r for r in rows if r["configuration"] == name]
+        mean = {k: math.fsum(r[k] for r in mine) / len(mine) for k in ("s0", "lowest", "s_end", "drift", "training")}
+        out.append({"configuration": name, "tracks": len(mine), **mean, "reading": reading([r["drift"] for r in mine])})
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("paths", type=Path, nargs="+", help="run folders, or sweep folders holding them")
+    parser.add_argument("--last", type=int, default=5, help="evaluations averaged into S_end (default 5)")
+    parser.add_argument("--table", type=Path, default=None, help="also write the per-run rows as CSV")
+    args = parser.parse_args(argv)
+    from engine.processes import check_outputs
+
+    check_outputs(parser, table=args.table)
+    if not 1 <= args.last <= 10_000:
+        parser.error(f"--last must be in [1, 10,000], got {args.last}")
+    from analysis.report import read_oracles
+    from engine.outputs import RunFolderError
+    from engine.rundir import find_runs
+
+    try:
+        rows = run_rows(find_runs(args.paths), read_oracles(), args.last)
+    except (RunFolderError, ValueError) as err:
+        print(f"caution: {err}", file=sys.stderr)
+        return 2
+    show = lambda v: f"{v:.3f}" if isinstance(v, float) else str(v)  # noqa: E731
+    print("| " + " | ".join(COLUMNS) + " |\n|" + "---|" * len(COLUMNS))
+    for row in rows:
+        print("| " + " | ".join(show(row[c]) for c in COLUMNS) + " |")
+    summaries = summary_rows(rows)
+    keys = list(summaries[0])
+    print("\n| " + " | ".join(keys) + " |\n|" + "---|" * len(keys))
+    for row in summaries:
+        print("| " + " | ".join(show(row[k]) for k in keys) + " |")
+    if args.table is not None:
+        from engine.outputs import write_table
+
+        write_table(args.table, rows)
+    return 0
+
+
+if __name__ == "__main__":
+    from engine.processes import run_tool
+
+    raise SystemExit(run_tool("analysis.caution", main))
