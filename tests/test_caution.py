@@ -1,0 +1,43 @@
+"""The decisive experiment's reading (``python -m analysis.caution``): its numbers are the runs' own evaluations
+on the oracle's scale, its verdict the rule docs/results/caution/README.md wrote before the runs, and a run it
+cannot read is refused in one line."""
+
+import csv
+import math
+
+from analysis import caution
+from analysis.report import read_oracles
+from tests.test_offpolicy import A
+from tests.test_readme import readme_commands
+from tests.test_start import TINY, rows, train
+
+
+def test_the_verdict_is_the_written_rule():
+    assert caution.reading([-0.010, -0.02, -0.5]) == "prefers caution"
+    assert caution.reading([-0.009, -0.02, -0.5]) == "mixed"
+    assert caution.reading([0.0, -0.004, -0.010]) == "holds"  # mean -0.0047, none below -0.010
+    assert caution.reading([0.0, 0.0, -0.011]) == "mixed"
+    assert caution.reading([0.02, -0.02, -0.02]) == "mixed"  # mean -0.0067
+
+
+def test_a_started_run_is_read_on_the_oracle_s_scale_and_one_without_evaluations_is_refused(tmp_path, capsys):
+    start = tmp_path / "start"
+    train(start, "algo=sac", *TINY, "episodes=2", f"seed={A}")
+    sweep = tmp_path / "sweep" / "sac" / "memory"
+    train(sweep / f"seed{A}", "algo=sac", *TINY, "episodes=7", f"seed={A}", f"algo.td.start_from={start}",
+          "algo.td.critic_first_episodes=1", "eval_every=1", "eval_episodes=1")
+    scores = [float(r["deterministic"]) for r in rows(sweep / f"seed{A}")]
+    oracle = read_oracles()[A]
+    [row] = caution.run_rows([sweep / f"seed{A}"], read_oracles(), last=5)
+    assert row["configuration"] == "sac/memory" and row["evaluations"] == 7
+    assert row["s0"] == scores[0] / oracle and row["lowest"] == min(scores[1:]) / oracle
+    assert math.isclose(row["s_end"], math.fsum(scores[2:]) / 5 / oracle)
+    assert math.isclose(row["drift"], row["s_end"] - row["s0"])
+    for args in readme_commands("-m analysis.caution") or [["outputs/sweeps/caution"]]:
+        args = [str(tmp_path / "sweep") if a.startswith("outputs/") else a for a in args]
+        assert caution.main([*args, "--table", str(tmp_path / "c.csv")]) == 0
+    printed = capsys.readouterr().out
+    assert "| sac/memory | 1 |" in printed
+    assert list(csv.DictReader((tmp_path / "c.csv").read_text().splitlines()))[0]["track"] == str(A)
+    assert caution.main([str(start)]) == 2
+    assert "train with eval_every" in capsys.readouterr().err
