@@ -6,8 +6,8 @@
 Per run, as fractions of the oracle's score on its track (``analysis/data/oracle*.csv``): S0, the first
 evaluation (the started policy while its actor is held: ``algo.td.critic_first_episodes`` covers it), the
 lowest evaluation after it, S_end (the mean of the last ``--last`` evaluations) and the drift S_end - S0;
-the training metric (summary.json's final performance). Then per configuration (the folder above the
-run: ``<algo>/<er>``) the mean over its tracks, and the reading the README fixed before the runs:
+the training metric (summary.json's final performance). Then per configuration (the run's folder's last
+three names: ``<sweep>/<algo>/<er>``) the mean over its tracks, and the reading the README fixed before the runs:
 "prefers caution" if every track drifts by -0.010 or lower, "holds" if the mean drift is -0.005 or higher
 and no track is below -0.010, else "mixed".
 """
@@ -40,7 +40,7 @@ def run_rows(runs: list[Path], oracle: dict, last: int = 5) -> list[dict]:
             raise ValueError(f"{run}: {len(scored)} evaluations of the deterministic policy; the reading needs "
                              f"at least {last + 1} (train with eval_every)")
         s0, end = scored[0][1], math.fsum(v for _, v in scored[-last:]) / last
-        rows.append({"configuration": f"{run.parent.parent.name}/{run.parent.name}", "track": track,
+        rows.append({"configuration": "/".join(run.parent.parts[-3:]), "track": track,
                      "s0": s0 / o, "lowest": min(v for _, v in scored[1:]) / o, "s_end": end / o,
                      "drift": (end - s0) / o, "training": summary["final_mean"] / o,
                      "evaluations": len(scored)})

@@ -29,7 +29,7 @@ def test_a_started_run_is_read_on_the_oracle_s_scale_and_one_without_evaluations
     scores = [float(r["deterministic"]) for r in rows(sweep / f"seed{A}")]
     oracle = read_oracles()[A]
     [row] = caution.run_rows([sweep / f"seed{A}"], read_oracles(), last=5)
-    assert row["configuration"] == "sac/memory" and row["evaluations"] == 7
+    assert row["configuration"] == "sweep/sac/memory" and row["evaluations"] == 7
     assert row["s0"] == scores[0] / oracle and row["lowest"] == min(scores[1:]) / oracle
     assert math.isclose(row["s_end"], math.fsum(scores[2:]) / 5 / oracle)
     assert math.isclose(row["drift"], row["s_end"] - row["s0"])
@@ -37,7 +37,7 @@ def test_a_started_run_is_read_on_the_oracle_s_scale_and_one_without_evaluations
         args = [str(tmp_path / "sweep") if a.startswith("outputs/") else a for a in args]
         assert caution.main([*args, "--table", str(tmp_path / "c.csv")]) == 0
     printed = capsys.readouterr().out
-    assert "| sac/memory | 1 |" in printed
+    assert "| sweep/sac/memory | 1 |" in printed
     assert list(csv.DictReader((tmp_path / "c.csv").read_text().splitlines()))[0]["track"] == str(A)
     assert caution.main([str(start)]) == 2
     assert "train with eval_every" in capsys.readouterr().err
