@@ -140,7 +140,7 @@ def load_tensors_from(source: io.BytesIO, path, what: str = "file"):
         if reason.startswith("Unsupported global"):
             raise ValueError(f"{path} holds objects other than tensors and plain containers "
                              f"({reason.split(' was not')[0].split(' whose module')[0][:120]}); it "
-                             f"was refused unread, as loading them could run code (not a {what} written here)") from None
+                             f"was refused unread, as loading them could run code (not {'an' if what[:1] in 'aeiou' else 'a'} {what} written here)") from None
         raise ValueError(f"{path} is not a readable {what} (UnpicklingError: {reason[:200]})") from None
     except (RuntimeError, EOFError, OSError, zipfile.BadZipFile, TypeError, AttributeError, KeyError) as err:
         raise ValueError(f"{path} is not a readable {what} ({first_line(err)})") from None

@@ -28,11 +28,14 @@ from engine.config import ConfigError, RunConfig
 from engine.outputs import RunFolderError, file_digest
 
 
-def start_source(base: Path, seed: int) -> Path:
+def start_source(base: Path, seed: int, option: str = "algo.td.start_from") -> Path:
     """What member ``seed`` starts from: ``base`` if it is a file or holds a finished run, else its
     ``seed<seed>/`` (a population's member) or its ``policy-<seed>.pt`` (a search's result), else ``base``
-    (whose reading then says what is wrong)."""
+    (whose reading then says what is wrong); ``ConfigError`` if ``base`` does not exist."""
     base = Path(base)
+    if not base.exists():
+        raise ConfigError(f"{option}: {base} does not exist: give a finished run's folder, a population's, or a search's "
+                          "weights (engine/start.py)")
     if base.is_file() or rundir.state(base).kind == "finished":
         return base
     for candidate in (base / f"seed{seed}", base / f"policy-{seed}.pt"):
@@ -58,8 +61,11 @@ def _tensors(path: Path, what: str, option: str) -> dict:
         state = load_tensors(path, what)
     except (ValueError, OSError) as err:
         raise ConfigError(f"{option}: {err}") from None
-    if not all(isinstance(v, torch.Tensor) and torch.isfinite(v).all() for v in state.values()):
-        raise ConfigError(f"{option}: {path} holds non-finite weights or entries that are not tensors")
+    if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor)
+                                              for k, v in state.items()):
+        raise ConfigError(f"{option}: {path} is not an {what}'s weights (a mapping of names to tensors)")
+    if not all(torch.isfinite(v).all() for v in state.values()):
+        raise ConfigError(f"{option}: {path} holds non-finite weights")
     return {k.removeprefix("module."): v for k, v in state.items()} if what == "actor" else state
 
 
@@ -101,7 +107,7 @@ def start_actors(cfg: RunConfig, seeds: tuple[int, ...]) -> list[dict] | None:
         record["actor_sha256"] = file_digest(path)["sha256"]
         critic = None
         if td.start_critics_from is not None:
-            folder = start_source(Path(td.start_critics_from), seed)
+            folder = start_source(Path(td.start_critics_from), seed, "algo.td.start_critics_from")
             _finished_run(folder, "algo.td.start_critics_from")
             critic = _tensors(folder / "critic.pt", "critic", "algo.td.start_critics_from")
             record["critics"] = {"folder": str(folder.resolve()),
