@@ -13,6 +13,7 @@ import csv
 import json
 
 import numpy as np
+import pytest
 import torch
 
 from engine.config import ConfigError, RunConfig
@@ -51,6 +52,7 @@ def states(folder, name="actor"):
     return load_tensors(folder / f"{name}.pt", name)
 
 
+@pytest.mark.slow
 def test_a_run_started_with_critics_holds_its_start_s_networks_until_its_first_steps(tmp_path):
     start = start_run(tmp_path)
     run = tmp_path / "both"
@@ -148,6 +150,7 @@ def test_eval_every_scores_the_policy_as_evaluate_does_and_changes_no_training_n
     assert evaluate(policy, settings, [A], 2)[A] == float(scores[3])
 
 
+@pytest.mark.slow
 def test_a_start_that_cannot_be_this_run_s_actor_is_refused_in_one_line(tmp_path):
     start = start_run(tmp_path)
     torch.save([1, 2, 3], tmp_path / "list.pt")
