@@ -7,7 +7,7 @@ Per run, as fractions of the oracle's score on its track (``analysis/data/oracle
 evaluation (the started policy while its actor is held: ``algo.td.critic_first_episodes`` covers it), the
 lowest evaluation after it, S_end (the mean of the last ``--last`` evaluations) and the drift S_end - S0;
 the training metric (summary.json's final performance). Then per configuration (the run's folder's last
-three names: ``<sweep>/<algo>/<er>``) the mean over its tracks, and the reading the README fixed before the runs:
+three names: ``<sweep>/<algo>/<er>``) the mean over its tracks (the drift with its 95% t interval over them), and the reading the README fixed before the runs:
 "prefers caution" if every track drifts by -0.010 or lower, "holds" if the mean drift is -0.005 or higher
 and no track is below -0.010, else "mixed".
 """
@@ -56,11 +56,16 @@ def reading(drifts: list[float]) -> str:
 
 
 def summary_rows(rows: list[dict]) -> list[dict]:
+    """Per configuration: the means over its tracks, the drift's 95% t interval over them, the reading."""
+    from analysis.factors import t_interval
+
     out = []
     for name in sorted({r["configuration"] for r in rows}):
         mine = [r for r in rows if r["configuration"] == name]
         mean = {k: math.fsum(r[k] for r in mine) / len(mine) for k in ("s0", "lowest", "s_end", "drift", "training")}
-        out.append({"configuration": name, "tracks": len(mine), **mean, "reading": reading([r["drift"] for r in mine])})
+        _, low, high = t_interval([r["drift"] for r in mine])  # each track's drift is a paired difference
+        out.append({"configuration": name, "tracks": len(mine), **mean, "drift_low": low, "drift_high": high,
+                    "reading": reading([r["drift"] for r in mine])})
     return out
 
 

@@ -20,6 +20,16 @@ def test_the_verdict_is_the_written_rule():
     assert caution.reading([0.02, -0.02, -0.02]) == "mixed"  # mean -0.0067
 
 
+def test_a_configuration_s_drift_has_its_t_interval_over_tracks():
+    rows = [{"configuration": "c", "s0": 1.0, "lowest": 0.9, "s_end": 0.9 + d, "drift": d - 0.1, "training": 0.9}
+            for d in (0.0, 0.01, 0.05)]
+    [row] = caution.summary_rows(rows)
+    drifts = [-0.1, -0.09, -0.05]
+    sd = math.sqrt(sum((x - sum(drifts) / 3) ** 2 for x in drifts) / 2)
+    assert math.isclose(row["drift"], sum(drifts) / 3) and math.isclose(row["drift_high"] - row["drift"], 4.303 * sd / math.sqrt(3))
+    assert row["reading"] == "prefers caution"
+
+
 def test_a_started_run_is_read_on_the_oracle_s_scale_and_one_without_evaluations_is_refused(tmp_path, capsys):
     start = tmp_path / "start"
     train(start, "algo=sac", *TINY, "episodes=2", f"seed={A}")
