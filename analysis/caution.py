@@ -89,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     except (RunFolderError, ValueError) as err:
         print(f"caution: {err}", file=sys.stderr)
         return 2
-    show = lambda v: f"{v:.3f}" if isinstance(v, float) else str(v)  # noqa: E731
+    show = lambda v: f"{v:.3f}" if isinstance(v, float) else str(v)
     print("| " + " | ".join(COLUMNS) + " |\n|" + "---|" * len(COLUMNS))
     for row in rows:
         print("| " + " | ".join(show(row[c]) for c in COLUMNS) + " |")

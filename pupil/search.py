@@ -26,9 +26,9 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -201,9 +201,9 @@ def search(track: int, state: dict[str, torch.Tensor], gaussian: bool, settings:
 
     def scores(flat: torch.Tensor) -> dict:
         policy = make_policy("td3", net, config.obs_size, actor.state(flat))  # a deterministic actor, as a run's
-        settings_ = {"env": {"options": dict(env_options or {})}}
-        fresh = [evaluate(policy, settings_, [track], 1, seed=SCORE_SEED + i)[track] for i in range(settings.score)]
-        return {"protocol": evaluate(policy, settings_, [track], settings.protocol)[track],
+        env = {"env": {"options": dict(env_options or {})}}
+        fresh = [evaluate(policy, env, [track], 1, seed=SCORE_SEED + i)[track] for i in range(settings.score)]
+        return {"protocol": evaluate(policy, env, [track], settings.protocol)[track],
                 "fresh": math.fsum(fresh) / len(fresh), "fresh_episodes": fresh}
 
     return SearchResult(track, scores(actor.theta), scores(best), chosen, history, in_layout(actor.state(best), state),
@@ -234,9 +234,12 @@ def _search_run(folder: Path, settings: SearchSettings) -> SearchResult:
                          "no observation normalisation)")
     state = {k.removeprefix("module."): v for k, v in load_tensors(folder / "actor.pt", "actor").items()}
     track = own_track(recorded)
-    say = lambda line: print(line, file=sys.stderr, flush=True)  # noqa: E731
     return search(track, state, spec(recorded["algo"]["loss"]).gaussian_actor, settings,
-                  network=recorded["network"], env_options=recorded["env"].get("options") or {}, progress=say)
+                  network=recorded["network"], env_options=recorded["env"].get("options") or {}, progress=_say)
+
+
+def _say(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
 
 
 COLUMNS = ("track", "oracle", "start_protocol", "found_protocol", "start_fresh", "found_fresh", "start_fraction",
