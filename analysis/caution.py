@@ -27,9 +27,28 @@ def run_rows(runs: list[Path], oracle: dict, last: int = 5) -> list[dict]:
     from door import files
     from engine.outputs import read_summary
 
-    rows = []
+    from engine.config import RunConfig
+
+    rows, seen, configurations = [], set(), {}
     for run in runs:
+        if run.resolve() in seen:
+            raise ValueError(f"{run} is given twice: each run is one track's drift")
+        seen.add(run.resolve())
         summary = read_summary(run)
+        settings = summary.get("settings") or {}
+        if not summary.get("start"):
+            raise ValueError(f"{run} did not start from another policy (algo.td.start_from): its first evaluation is "
+                             "no start's score")
+        td, every = (settings.get("algo") or {}).get("td") or {}, settings.get("eval_every") or 0
+        if td.get("critic_first_episodes", 0) < every - 1:
+            raise ValueError(f"{run}: its first evaluation (after episode {every - 1}) comes after its actor moved "
+                             f"(algo.td.critic_first_episodes={td.get('critic_first_episodes', 0)}), so it is not the "
+                             "start's score")
+        name = "/".join(p for p in run.parent.parts[-3:] if p != "/")
+        same = {k: v for k, v in RunConfig.run_settings(settings).items() if k not in ("seed", "seeds")}
+        if configurations.setdefault(name, (same, run))[0] != same:
+            raise ValueError(f"{configurations[name][1]} and {run} are read as one configuration ({name}) but differ "
+                             "in settings besides the track; give their folders separately")
         track = summary["seed"]
         o = oracle.get(track)
         if o is None:
@@ -40,7 +59,7 @@ def run_rows(runs: list[Path], oracle: dict, last: int = 5) -> list[dict]:
             raise ValueError(f"{run}: {len(scored)} evaluations of the deterministic policy; the reading needs "
                              f"at least {last + 1} (train with eval_every)")
         s0, end = scored[0][1], math.fsum(v for _, v in scored[-last:]) / last
-        rows.append({"configuration": "/".join(run.parent.parts[-3:]), "track": track,
+        rows.append({"configuration": name, "track": track,
                      "s0": s0 / o, "lowest": min(v for _, v in scored[1:]) / o, "s_end": end / o,
                      "drift": (end - s0) / o, "training": summary["final_mean"] / o,
                      "evaluations": len(scored)})

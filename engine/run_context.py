@@ -30,7 +30,7 @@ from tensordict import TensorDictBase
 
 from door import files
 from engine import checkpoint, numerics, rundir
-from engine.config import RunConfig
+from engine.config import ConfigError, RunConfig
 from engine.outputs import MetricsWriter, file_record, metric_columns, write_summary
 from engine.processes import RunStopped, StopSignals
 from engine.progress import Progress
@@ -128,6 +128,10 @@ class RunContext:
 
     def _continue(self, payload: dict) -> None:
         run = self.run
+        if payload.get("starts") != run.starts:  # algo.td.start_from's files changed since the run began
+            raise ConfigError(f"{self.checkpoint_path} began from other weights than algo.td.start_from (or "
+                              "start_critics_from) holds now; put back the start it recorded, or pass overwrite=true "
+                              "to start afresh from what is there now")
         self.first, self.timing = _restore(payload, self.parts, run.env, run.generators, run.learner.phases,
                                            self.members)
         self.saved = self.first
@@ -220,10 +224,10 @@ class RunContext:
                       **({} if self.earlier_cpu is None else
                          {"cpu_s": self.earlier_cpu + time.process_time() - self.cpu_start})}
             run = self.run
-            checkpoint.save(self.checkpoint_path, _payload(done, {**self.timing, **so_far, **self.compile_time()},
-                                                           self.settings, self.parts, run.env, self.code, self.segments,
-                                                           self.paths, run.generators, run.learner.phases, members,
-                                                           run.learner.sampler))
+            payload = _payload(done, {**self.timing, **so_far, **self.compile_time()}, self.settings, self.parts, run.env,
+                               self.code, self.segments, self.paths, run.generators, run.learner.phases, members,
+                               run.learner.sampler)
+            checkpoint.save(self.checkpoint_path, {**payload, "starts": run.starts})  # what its networks started from
             self.saved = done
         if stopping:
             raise RunStopped(_stopped(self.stop.requested, done, cfg.episodes, self.saved, self.checkpoint_path))

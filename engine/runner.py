@@ -42,6 +42,7 @@ from engine.processes import (RunStopped, StopSignals, descendants, exit_with_pa
                               spawn_context, stop_at_once)
 from engine.config import ConfigError, RunConfig, settings_difference
 from engine.outputs import METRICS_FILE, kept_rows
+from engine.start import check_starts
 from engine.run_context import (NUMERICS_KEYS, RunContext, same_numerics, member_folder,  # noqa: F401 (member_folder: this
                                 numerics_segment)                                       # module's interface too)
 from learners import compiling
@@ -120,6 +121,7 @@ def _train_locked(cfg: RunConfig, out_dir: Path, folders: list[Path], settings: 
         if problem:
             raise rundir.RunFolderError(f"{folder} cannot be used: {problem}")
     if cfg.overwrite:  # start afresh: no checkpoint is continued
+        check_starts(cfg, out_dir)  # a start that cannot be read (or lies in this folder) refuses before anything is cleared
         for path in checkpoint.in_folder(out_dir):
             files.remove(path)
     for folder in folders:

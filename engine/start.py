@@ -114,3 +114,19 @@ def start_actors(cfg: RunConfig, seeds: tuple[int, ...]) -> list[dict] | None:
                                  "critic_sha256": file_digest(folder / "critic.pt")["sha256"]}
         starts.append({"state": state, "critic": critic, "record": record})
     return starts
+
+
+def check_starts(cfg: RunConfig, out_dir: Path) -> None:
+    """Before a run clears or writes anything (``engine.runner``): every member's start can be read and is this
+    run's, and none lies in the run's own folder (``overwrite=true`` would clear it first); ``ConfigError``."""
+    td = getattr(cfg.algo, "td", None)
+    if td is None:
+        return
+    out = Path(out_dir).resolve()
+    for option, value in (("algo.td.start_from", td.start_from), ("algo.td.start_critics_from", td.start_critics_from)):
+        for seed in cfg.members if value is not None else ():
+            source = start_source(Path(value), seed, option).resolve()
+            if source == out or out in source.parents:
+                raise ConfigError(f"{option}: {source} is in this run's own folder {out}; a run cannot start from "
+                                  "itself: copy the start elsewhere first")
+    start_actors(cfg, cfg.members)

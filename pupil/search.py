@@ -229,6 +229,9 @@ def _search_run(folder: Path, settings: SearchSettings) -> SearchResult:
     if recorded["env"].get("track") != "fixed":
         raise ValueError(f"{folder}: the search drives one fixed track; this run trained on env.track="
                          f"{recorded['env'].get('track')}")
+    if recorded["network"].get("activation") != "tanh":
+        raise ValueError(f"{folder}: the search's actor computes tanh hidden units; this run's are "
+                         f"{recorded['network'].get('activation')}")
     if recorded["env"].get("past_steps", 0) or recorded["algo"].get("td", {}).get("observation_norm"):
         raise ValueError(f"{folder}: the search takes an actor that reads the observation as it is (no past steps, "
                          "no observation normalisation)")
@@ -296,7 +299,7 @@ def main(argv: list[str] | None = None) -> int:
     from concurrent.futures import ProcessPoolExecutor
 
     from engine import numerics
-    from engine.outputs import RunFolderError
+    from engine.outputs import RunFolderError, read_summary
     from engine.processes import spawn_context
     from engine.rundir import find_runs, runs_numerics
 
@@ -307,6 +310,17 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     from analysis.report import read_oracles
 
+    tracks = {}
+    for run in args.runs:  # each track's result is one row and one policy-<track>.pt
+        try:
+            summary = read_summary(run) or {}
+        except RunFolderError:
+            continue  # the search's own reading says what is wrong with it
+        if summary.get("seed") in tracks:
+            print(f"search: {tracks[summary['seed']]} and {run} trained on track {summary['seed']}; search one run a "
+                  "track (their results would share a row and policy file)", file=sys.stderr)
+            return 2
+        tracks[summary.get("seed")] = run
     try:
         if args.processes == 1:
             results = [_search_run(run, settings) for run in args.runs]

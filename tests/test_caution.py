@@ -50,4 +50,10 @@ def test_a_started_run_is_read_on_the_oracle_s_scale_and_one_without_evaluations
     assert "| sweep/sac/memory | 1 |" in printed
     assert list(csv.DictReader((tmp_path / "c.csv").read_text().splitlines()))[0]["track"] == str(A)
     assert caution.main([str(start)]) == 2
+    assert "did not start from another policy" in capsys.readouterr().err
+    unscored = tmp_path / "unscored"
+    train(unscored, "algo=sac", *TINY, "episodes=2", f"seed={A}", f"algo.td.start_from={start}")
+    assert caution.main([str(unscored)]) == 2
     assert "train with eval_every" in capsys.readouterr().err
+    assert caution.main([str(sweep / f"seed{A}"), str(sweep / f"seed{A}")]) == 2
+    assert "is given twice" in capsys.readouterr().err

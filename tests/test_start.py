@@ -175,3 +175,33 @@ def test_a_start_that_cannot_be_this_run_s_actor_is_refused_in_one_line(tmp_path
         else:
             raise AssertionError(value)
     assert np.isfinite(json.loads((start / "summary.json").read_text())["final_mean"])
+
+
+@pytest.mark.slow
+def test_a_bad_start_refuses_before_overwrite_clears_and_a_changed_start_is_not_resumed(tmp_path):
+    import shutil
+
+    from engine.processes import STOP_FILE, RunStopped
+
+    start = start_run(tmp_path)
+    finished = tmp_path / "finished"
+    train(finished, "algo=sac", *TINY, "episodes=2", f"seed={A}")
+    kept = (finished / "summary.json").read_bytes()
+    for source in (tmp_path / "nowhere", finished):  # missing; the run's own folder (overwrite would clear it)
+        result = run_train("algo=sac", *TINY, "episodes=2", f"seed={A}", "overwrite=true",
+                           f"algo.td.start_from={source}", f"hydra.run.dir={finished}")
+        assert result.returncode != 0 and "algo.td.start_from" in result.stderr.splitlines()[-1], result.stderr[-2000:]
+        assert (finished / "summary.json").read_bytes() == kept and (finished / "actor.pt").exists()
+    # a run stopped after its first episode keeps what it started from; another start under the same path is refused
+    stopped = tmp_path / "stopped"
+    stopped.mkdir()
+    (stopped / STOP_FILE).write_text("")
+    overrides = ["algo=sac", *TINY, "episodes=3", f"seed={A}", f"algo.td.start_from={start}", "checkpoint_every=1"]
+    settings = RunConfig.compose_mapping(*overrides)
+    with pytest.raises(RunStopped, match="saved at episode 1"):
+        train_population(RunConfig.from_mapping(settings), stopped, settings, stop_file=stopped / STOP_FILE)
+    (stopped / STOP_FILE).unlink()
+    shutil.rmtree(start)
+    train(start, "algo=sac", *TINY, "episodes=3", f"seed={A}", "algo.td.updates_per_step=0.5")  # other weights
+    with pytest.raises(ConfigError, match="began from other weights"):
+        train(stopped, *overrides)
