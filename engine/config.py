@@ -508,6 +508,12 @@ class RunConfig:
                 _note(f"algo.td.warmup_episodes={td.warmup_episodes} of {self.env.episode_steps:,} steps: {steps:,} "
                       "steps of uniform random actions before the first gradient step (the default 5 episodes are "
                       "1,000 steps at 200 an episode)")
+        if td is not None and td.critic_first_episodes and td.critic_first_episodes >= self.episodes - 1:
+            _note(f"algo.td.critic_first_episodes={td.critic_first_episodes} with episodes={self.episodes}: the actor "
+                  "is held through the whole run (only the critics train)")
+        if self.eval_every > self.episodes:
+            _note(f"eval_every={self.eval_every} is larger than episodes={self.episodes}: metrics.csv's deterministic "
+                  "column stays empty")
         _choice("logger", self.logger, LOGGERS)
         if self.logger == "tensorboard":
             import importlib.util

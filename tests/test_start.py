@@ -205,3 +205,12 @@ def test_a_bad_start_refuses_before_overwrite_clears_and_a_changed_start_is_not_
     train(start, "algo=sac", *TINY, "episodes=3", f"seed={A}", "algo.td.updates_per_step=0.5")  # other weights
     with pytest.raises(ConfigError, match="began from other weights"):
         train(stopped, *overrides)
+
+
+def test_a_held_actor_for_the_whole_run_and_an_empty_deterministic_column_are_noted(capsys):
+    load("algo=sac", "episodes=4", "algo.td.critic_first_episodes=3", "eval_every=7")
+    said = capsys.readouterr().err
+    assert "algo.td.critic_first_episodes=3 with episodes=4: the actor is held through the whole run" in said
+    assert "eval_every=7 is larger than episodes=4: metrics.csv's deterministic column stays empty" in said
+    load("algo=sac", "episodes=5", "algo.td.critic_first_episodes=3", "eval_every=5")
+    assert "held through" not in capsys.readouterr().err
