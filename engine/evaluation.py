@@ -185,8 +185,7 @@ def make_policy(loss: str, network: dict, obs_size: int, state: dict, past_steps
         from learners.networks import NormalisedActor, ObservationNorm, load_member_state_dict
 
         net = make_actor_net(learner, 1, width, 2, network, algo)
-        if all(k.startswith("module.") for k in state):  # the layout of TorchRL's parameters (until da21af2)
-            state = {k.removeprefix("module."): v for k, v in state.items()}
+        state = saved_actor(state)
         if any(k.startswith("norm.") for k in state):  # algo.td.observation_norm: the statistics it acted with
             net = NormalisedActor(ObservationNorm(1, width), net)
         load_member_state_dict(net, 0, state)
@@ -198,6 +197,14 @@ def make_policy(loss: str, network: dict, obs_size: int, state: dict, past_steps
         net.load_state_dict(state)
     net.eval()
     return Policy(net, stacked, past_steps, obs_size)
+
+
+def saved_actor(state: dict) -> dict:
+    """An off-policy run's saved actor weights under today's names (TorchRL's layout of its parameters, until
+    da21af2, prefixed every name with ``module.``)."""
+    if state and all(k.startswith("module.") for k in state):
+        return {k.removeprefix("module."): v for k, v in state.items()}
+    return state
 
 
 def deterministic_action(policy: Policy, observation: np.ndarray) -> np.ndarray:

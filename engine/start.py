@@ -57,6 +57,8 @@ def _finished_run(folder: Path, option: str) -> dict:
 def _tensors(path: Path, what: str, option: str) -> dict:
     import torch
 
+    from engine.evaluation import saved_actor
+
     try:
         state = load_tensors(path, what)
     except (ValueError, OSError) as err:
@@ -66,7 +68,7 @@ def _tensors(path: Path, what: str, option: str) -> dict:
         raise ConfigError(f"{option}: {path} is not an {what}'s weights (a mapping of names to tensors)")
     if not all(torch.isfinite(v).all() for v in state.values()):
         raise ConfigError(f"{option}: {path} holds non-finite weights")
-    return {k.removeprefix("module."): v for k, v in state.items()} if what == "actor" else state
+    return saved_actor(state) if what == "actor" else state
 
 
 def start_actors(cfg: RunConfig, seeds: tuple[int, ...]) -> list[dict] | None:

@@ -119,10 +119,10 @@ def deterministic_state(state: dict[str, torch.Tensor], gaussian: bool) -> dict[
     """A saved actor's weights as a deterministic actor's: a Gaussian's last layer keeps its mean's rows."""
     if not gaussian:
         return dict(state)
+    from learners.td.learner import gaussian_mean
+
     last = max(k for k in state if k.endswith(".weight"))
-    rows = state[last].shape[0] // 2
-    bias = last.removesuffix("weight") + "bias"
-    return {k: (v[:rows] if k in (last, bias) else v) for k, v in state.items()}
+    return gaussian_mean(state, last, state[last].shape[0] // 2)
 
 
 def returns(actor: Actor, flat: torch.Tensor, track: int, seeds: list[int], config) -> np.ndarray:
@@ -222,7 +222,7 @@ def _one(args: tuple) -> SearchResult:
 
 def _search_run(folder: Path, settings: SearchSettings) -> SearchResult:
     from engine.checkpoint import load_tensors
-    from engine.evaluation import load_policy, own_track
+    from engine.evaluation import load_policy, own_track, saved_actor
     from learners.registry import spec
 
     _, recorded = load_policy(folder)  # a finished, intact run whose actor builds (every tool's check)
@@ -235,7 +235,7 @@ def _search_run(folder: Path, settings: SearchSettings) -> SearchResult:
     if recorded["env"].get("past_steps", 0) or recorded["algo"].get("td", {}).get("observation_norm"):
         raise ValueError(f"{folder}: the search takes an actor that reads the observation as it is (no past steps, "
                          "no observation normalisation)")
-    state = {k.removeprefix("module."): v for k, v in load_tensors(folder / "actor.pt", "actor").items()}
+    state = saved_actor(load_tensors(folder / "actor.pt", "actor"))
     track = own_track(recorded)
     return search(track, state, spec(recorded["algo"]["loss"]).gaussian_actor, settings,
                   network=recorded["network"], env_options=recorded["env"].get("options") or {}, progress=_say)

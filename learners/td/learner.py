@@ -494,6 +494,13 @@ class TDPhaseRunner:
                 for k, v in critic_params(self.loss).flatten_keys(".").items()}
 
 
+def gaussian_mean(state: dict[str, torch.Tensor], last: str, rows: int) -> dict[str, torch.Tensor]:
+    """A Gaussian actor's weights as the deterministic actor of its mean: the output layer ``last`` (its
+    ``.weight``'s name) keeps its first ``rows`` rows, the mean's (the scale's follow them)."""
+    bias = last.removesuffix("weight") + "bias"
+    return {k: (v[:rows] if k in (last, bias) else v) for k, v in state.items()}
+
+
 @torch.no_grad()
 def start_actors(actor_net: nn.Module, starts: Sequence[dict]) -> None:
     """Write each member's start (``engine.start.start_actors``: an actor's weights under a solo actor's names)
@@ -509,7 +516,7 @@ def start_actors(actor_net: nn.Module, starts: Sequence[dict]) -> None:
             raise ValueError(f"algo.td.start_from: the start's actor has entries {sorted(state)}, this run's {sorted(own)}")
         given = state[last].shape[0]
         if given == 2 * rows:  # a Gaussian's mean starts a deterministic actor
-            state = {k: (v[:rows] if k in (last, last.removesuffix("weight") + "bias") else v) for k, v in state.items()}
+            state = gaussian_mean(state, last, rows)
         elif 2 * given == rows:
             raise ValueError("algo.td.start_from: a deterministic actor has no scale to start a Gaussian actor's from")
         for name, value in state.items():
