@@ -37,7 +37,8 @@ if TYPE_CHECKING:
 
 CHOICE_SEED = 10_000  # the choice set's start states: seeds CHOICE_SEED + k
 SCORE_SEED = 20_000  # the fresh scoring episodes: seeds SCORE_SEED + k (the protocol's are 0..k)
-SEARCH_SEEDS = (100_000, 2**31)  # each generation's start states are drawn from this range
+SEARCH_SEEDS = (100_000, 2**31)
+MAX_CARS = 100_000  # cars one generation drives at once (2 x pairs x episodes): of the order of 100 MB (simulator state and the actors' activations)  # each generation's start states are drawn from this range
 
 
 @dataclass(frozen=True)
@@ -57,6 +58,9 @@ class SearchSettings:
         for name in ("generations", "pairs", "episodes", "choose_every", "choice", "protocol", "score"):
             if not 1 <= getattr(self, name) <= 1_000_000:
                 raise ValueError(f"{name} must be in [1, 1,000,000], got {getattr(self, name)}")
+        if 2 * self.pairs * self.episodes > MAX_CARS:  # one batched simulator drives every candidate at once
+            raise ValueError(f"2 x pairs x episodes is {2 * self.pairs * self.episodes:,} cars at once, above "
+                             f"{MAX_CARS:,}; give fewer pairs or episodes")
         for name in ("sigma", "lr"):
             if not 0 < getattr(self, name) < 10:
                 raise ValueError(f"{name} must be in (0, 10), got {getattr(self, name)}")

@@ -80,6 +80,11 @@ def test_the_documented_search_runs_small_and_refuses_what_it_cannot_search(tmp_
     assert rows[0]["track"] == str(A) and math.isfinite(float(rows[0]["found_fresh"]))
     assert set(load_tensors(out / f"policy-{A}.pt", "policy")) == {"0.layers.0.weight", "0.layers.0.bias",
                                                                    "0.layers.1.weight", "0.layers.1.bias"}
+    try:
+        es.main([str(folder), "--pairs", "32000", "--episodes", "8"])  # a thousand times the default pairs
+    except SystemExit as stop:
+        assert stop.code == 2
+    assert "cars at once, above 100,000" in capsys.readouterr().err
     assert es.main([str(tmp_path / "nowhere")]) == 2
     assert "search:" in capsys.readouterr().err
     assert es.main([str(folder), str(folder), "--generations", "1"]) == 2  # one run a track: one row, one file
