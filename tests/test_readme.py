@@ -217,7 +217,7 @@ DOCUMENTED_TOOLS = {
     "score.py": "tests/test_benchmark.py", "drive.py": "tests/test_benchmark.py", "baseline.py": "tests/test_baseline.py",
     "imitate.py": "tests/test_imitation.py", "-m analysis.driving": "tests/test_driving.py",
     "-m analysis.pessimism": "tests/test_pessimism.py", "-m pupil.search": "tests/test_search.py",
-    "-m analysis.caution": "tests/test_caution.py",
+    "-m analysis.caution": "tests/test_caution.py", "-m analysis.planner": "tests/test_planner.py",
     "-m benchmark.leaderboard": "tests/test_benchmark.py", "-m tests.fault_injection": "tests/test_fault_injection.py",
     "-m tests.slurm_cluster": "tests/test_slurm.py", "-m pytest": "tests/test_readme.py",
 }
