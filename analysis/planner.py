@@ -299,6 +299,49 @@ def pooled(run: str, track, variant: str, parts: list[dict]) -> dict:
             "value_error_elsewhere": _ratio(sum(p["far_gap"] for p in parts), sum(p["far"] for p in parts))}
 
 
+SUMMARY_COLUMNS = ("variant", "runs", "group", "crashes_per_episode", "mean_reward", "gain", "gain_low", "gain_high",
+                   "foreseen_0", "foreseen_1", "foreseen_2", "avoidable_0", "avoidable_2", "avoidable_5", "avoidable_10",
+                   "model_way_out_0", "value_gap", "value_gap_low", "value_gap_high")
+POOLED = ("foreseen_0", "foreseen_1", "foreseen_2", "avoidable_0", "avoidable_2", "avoidable_5", "avoidable_10",
+          "model_way_out_0")
+
+
+def summary_rows(rows: list[dict], crashing: float) -> list[dict]:
+    """Per variant, over the runs whose policy as trained leaves the track at least ``crashing`` times an episode
+    (group ``crashing``), the others (``other``) and all: the crashes an episode, the mean score and its gain over
+    the policy as trained (paired by run, 95% t interval), each crash share pooled over the group's crashes, and
+    ``value_gap``: value_error_before_crash - value_error_elsewhere, its mean over the group's runs with crashes
+    and 95% t interval."""
+    from analysis.factors import t_interval
+
+    trained = {r["run"]: r for r in rows if r["variant"] == AS_TRAINED}
+    groups = {"crashing": {run for run, r in trained.items() if float(r["crashes_per_episode"]) >= crashing}}
+    groups["other"] = set(trained) - groups["crashing"]
+    groups["all"] = set(trained)
+    out = []
+    for variant in dict.fromkeys(r["variant"] for r in rows):
+        for group, runs in groups.items():
+            chosen = [r for r in rows if r["variant"] == variant and r["run"] in runs]
+            if not chosen:
+                continue
+            crashes = sum(int(r["crashes"]) for r in chosen)
+            episodes = sum(int(r["episodes"]) for r in chosen)
+            row = {"variant": variant, "runs": len(chosen), "group": group,
+                   "crashes_per_episode": round(crashes / episodes, 3),
+                   "mean_reward": round(math.fsum(float(r["mean_reward"]) for r in chosen) / len(chosen), 2)}
+            gain = t_interval([float(r["mean_reward"]) - float(trained[r["run"]]["mean_reward"]) for r in chosen])
+            row.update(zip(("gain", "gain_low", "gain_high"), (round(g, 2) for g in gain)))
+            for column in POOLED:  # shares of the group's crashes
+                row[column] = _ratio(math.fsum(float(r[column]) * int(r["crashes"]) for r in chosen if int(r["crashes"])),
+                                     crashes)
+            gaps = [float(r["value_error_before_crash"]) - float(r["value_error_elsewhere"]) for r in chosen
+                    if not math.isnan(float(r["value_error_before_crash"]))]
+            gap = t_interval(gaps) if gaps else (math.nan,) * 3
+            row.update(zip(("value_gap", "value_gap_low", "value_gap_high"), (round(g, 3) for g in gap)))
+            out.append(row)
+    return out
+
+
 def planning_actor(policy, run):
     """The run's ``PlanningActor`` inside its deterministic ``policy``; ``RunFolderError`` if it does not plan."""
     from engine.outputs import RunFolderError
@@ -358,18 +401,24 @@ def main(argv: list[str] | None = None) -> int:
                         help="also drive with these planner settings (repeatable), or 'prior': the prior without planning")
     parser.add_argument("--processes", type=int, default=1, help="runs driven at once, one process each")
     parser.add_argument("--table", type=Path, default=None, help="also write the rows as CSV")
+    parser.add_argument("--crashing", type=float, default=1.0,
+                        help="the summary's crashing runs leave the track at least this often an episode as trained "
+                             "(default 1.0)")
+    parser.add_argument("--summary", type=Path, default=None, help="also write the summary (per variant and group) as CSV")
     args = parser.parse_args(argv)
     from engine.processes import check_outputs
 
-    check_outputs(parser, table=args.table)
+    check_outputs(parser, table=args.table, summary=args.summary)
+    if not 0 <= args.crashing <= 1_000_000:  # also refuses nan
+        parser.error(f"--crashing must be crashes an episode in [0, 1000000], got {args.crashing}")
     if not 1 <= args.episodes <= 1000:
         parser.error(f"--episodes must be in [1, 1000], got {args.episodes}")
     if not 0 <= args.seed < 2**32:
         parser.error(f"--seed must be in [0, 2**32), got {args.seed}")
     if not 1 <= args.processes <= 64:
         parser.error(f"--processes must be in [1, 64], got {args.processes}")
-    if args.table is not None and args.table.is_dir():
-        parser.error(f"--table {args.table} is a folder; give a file name (e.g. {args.table / 'planner.csv'})")
+    if args.table is not None and args.summary is not None and args.table.resolve() == args.summary.resolve():
+        parser.error(f"--table and --summary name one file ({args.table}); give two")
     if len({v.strip() for v in args.variant}) < len(args.variant):
         parser.error("a --variant is given twice")
     for text in args.variant:
@@ -401,10 +450,19 @@ def main(argv: list[str] | None = None) -> int:
     print("|" + "---|" * len(COLUMNS))
     for row in rows:
         print("| " + " | ".join(str(row[c]) for c in COLUMNS) + " |")
-    if args.table is not None:
-        from engine.outputs import write_table
+    summary = summary_rows(rows, args.crashing)
+    print(f"\nSummary (crashing: {args.crashing:g} or more crashes an episode as trained; gain: paired by run against "
+          "the policy as trained, 95% t interval; crash shares pooled over the group's crashes)")
+    print("| " + " | ".join(SUMMARY_COLUMNS) + " |")
+    print("|" + "---|" * len(SUMMARY_COLUMNS))
+    for row in summary:
+        print("| " + " | ".join(str(row[c]) for c in SUMMARY_COLUMNS) + " |")
+    from engine.outputs import write_table
 
+    if args.table is not None:
         write_table(args.table, rows)
+    if args.summary is not None:
+        write_table(args.summary, summary)
     return 0
 
 

@@ -94,6 +94,28 @@ def test_the_counts_are_those_of_the_predictions(run, monkeypatch):
     assert row["value_error_before_crash"] == 4.0 and row["value_error_elsewhere"] == 1.0
 
 
+def test_the_summary_pairs_each_variant_with_the_policy_as_trained_by_run():
+    def row(run, variant, reward, crashes, foreseen, before, elsewhere):
+        return {"run": run, "variant": variant, "episodes": "5", "mean_reward": str(reward),
+                "crashes_per_episode": str(crashes / 5), "crashes": str(crashes),
+                **{c: str(foreseen) for c in planner.POOLED}, "value_error_before_crash": str(before),
+                "value_error_elsewhere": str(elsewhere)}
+
+    rows = [row("a", "as trained", 100, 10, 0.5, 4.0, 1.0), row("b", "as trained", 150, 0, "nan", "nan", 0.5),
+            row("c", "as trained", 120, 5, 0.2, 3.0, 0.0),
+            row("a", "prior", 90, 20, 1.0, 1.0, 1.0), row("b", "prior", 140, 1, 0.0, 2.0, 0.0),
+            row("c", "prior", 130, 0, "nan", "nan", 0.0)]
+    found = {(r["variant"], r["group"]): r for r in planner.summary_rows(rows, 1.0)}
+    crashing = found[("as trained", "crashing")]
+    assert crashing["runs"] == 2 and crashing["crashes_per_episode"] == 1.5 and crashing["mean_reward"] == 110
+    assert crashing["foreseen_0"] == round((0.5 * 10 + 0.2 * 5) / 15, 4) and crashing["gain"] == 0
+    assert crashing["value_gap"] == crashing["value_gap_high"] == 3.0  # 3.0 on both runs
+    prior = found[("prior", "crashing")]  # runs a and c: gains -10 and +10
+    assert (prior["gain"], prior["gain_low"]) == (0.0, round(-12.706 * math.sqrt(200) / math.sqrt(2), 2))
+    assert prior["foreseen_2"] == 1.0 and prior["crashes_per_episode"] == 2.0
+    assert found[("prior", "other")]["runs"] == 1 and found[("prior", "all")]["gain"] == round(-10 / 3, 2)
+
+
 def test_a_crash_is_avoidable_only_where_some_action_keeps_the_car_on_the_track():
     from racing.sim import RacingSim
 
@@ -113,7 +135,11 @@ def test_the_as_trained_row_is_the_evaluation_and_its_own_settings_drive_it_agai
     h = actor.options.horizon
     table = tmp_path / "p.csv"
     assert planner.main([str(run), "--episodes", "2", "--variant", f"horizon={h}", "--variant", "prior",
-                         "--table", str(table)]) == 0
+                         "--table", str(table), "--summary", str(tmp_path / "s.csv")]) == 0
+    with open(tmp_path / "s.csv", newline="") as f:
+        summary = list(csv.DictReader(f))
+    assert [(r["variant"], r["group"]) for r in summary if r["group"] == "all"] == [
+        ("as trained", "all"), (f"horizon={h}", "all"), ("prior", "all")] and list(summary[0]) == list(planner.SUMMARY_COLUMNS)
     with open(table, newline="") as f:
         rows = list(csv.DictReader(f))
     assert [r["variant"] for r in rows] == ["as trained", f"horizon={h}", "prior"]
@@ -124,8 +150,7 @@ def test_the_as_trained_row_is_the_evaluation_and_its_own_settings_drive_it_agai
     assert float(rows[2]["mean_reward"]) == round(evaluate(prior, settings, [A], 2)[A], 4)
     assert f"| {run} | {A} | prior | 2 |" in capsys.readouterr().out
     for args in readme_commands("-m analysis.planner") or [["outputs/planner"]]:
-        args = [str(run) if a.startswith("outputs/") else a for a in args]
-        args = [a for a in args if not a.startswith("--table") and not a.endswith(".csv")]
+        args = [str(run) if a.startswith("outputs/") else str(tmp_path / a) if a.endswith(".csv") else a for a in args]
         assert planner.main([*args, "--episodes", "1", "--processes", "1"]) == 0
 
 
@@ -141,6 +166,9 @@ def test_a_bad_variant_is_refused_in_one_line(variant, message, capsys):
 
 
 def test_variants_that_do_not_fit_the_run_and_runs_that_do_not_plan_are_refused(run, tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        planner.main([str(run), "--table", str(tmp_path / "x.csv"), "--summary", str(tmp_path / "x.csv")])
+    assert "name one file" in capsys.readouterr().err
     assert planner.main([str(run), "--variant", "samples=8,policy_samples=8"]) == 2
     assert "policy_samples (8) must be below samples (8)" in capsys.readouterr().err
     prior_only = tmp_path / "prior_only"
