@@ -1,6 +1,7 @@
 """What a trained run's critics think of the oracle's driving: do they rate the faster line lower?
 
     python -m analysis.pessimism RUN_DIR... [--episodes 2] [--seed 0] [--horizon 60] [--table pessimism.csv]
+                                            [--line oracle|policy] [--compare oracle|slower|faster] [--delta 0.1]
 
 For each run folder (or every run under a sweep's folder) of an off-policy learner whose Q-networks are
 MLPs of (observation, action) (SAC, TD3, REDQ, TQC's quantiles averaged; not DroQ's, BRO's or CrossQ's
@@ -20,7 +21,14 @@ Per run it prints the mean over the states of:
 - ``true_gap``: the same difference in discounted return (above zero: a* is better, then following pi);
 - ``spread_oracle``, ``spread_policy``: the Q-networks' standard deviation at a* and at pi(s): the
   pessimism penalty (the minimum is the mean minus this, with two networks) paid by each action;
-- ``misranked``: the share of states where the true returns prefer a* but the minimum prefers pi(s).
+- ``misranked``: the share of states where the true returns prefer a* but the minimum prefers pi(s);
+  ``misled``: where the minimum prefers a* but the true returns prefer pi(s).
+
+``--line policy`` takes the states of the run's own deterministic policy's episodes instead of the oracle's;
+``--compare slower`` (``faster``) scores, in the oracle's action's place, the policy's own action with its
+throttle lowered (raised) by ``--delta``, clipped to [-1, 1]: at a policy's own states, whether its critics
+would move it to slower (faster) driving where the simulator says that loses (a', then pi, against pi). The
+columns keep their names, a* standing for the action compared.
 
 SAC's critics estimate soft values (each future step's entropy bonus included) and every critic
 estimates the value of its own noisy policy, so the gaps, not the levels, are compared. Loads torch.
@@ -35,7 +43,7 @@ import sys
 from pathlib import Path
 
 COLUMNS = ("run", "loss", "track", "states", "critic_gap_min", "critic_gap_mean", "true_gap", "spread_oracle",
-           "spread_policy", "misranked")
+           "spread_policy", "misranked", "misled")
 
 
 def oracle_line(env, episodes: int, seed: int, policy) -> dict:
@@ -59,6 +67,41 @@ def oracle_line(env, episodes: int, seed: int, policy) -> dict:
             observation, _, terminated, truncated, _ = env.step(action)
             done = terminated or truncated
     return {"cars": cars, "observations": np.stack(observations), "oracle": np.stack(oracle_actions)}
+
+
+def policy_line(env, episodes: int, seed: int, policy) -> dict:
+    """The states (the car's state and observation) of ``policy``'s own ``episodes`` episodes and its actions
+    there (``oracle_line``'s layout, the policy's actions under ``"oracle"`` too)."""
+    import numpy as np
+
+    from racing.oracle import Oracle
+
+    sim = env.unwrapped.sim
+    cars, observations, actions = [], [], []
+    for k in range(episodes):
+        observation, _ = env.reset(seed=seed + k)
+        policy.reset()
+        done = False
+        while not done:
+            cars.append({name: np.copy(getattr(sim, name)[0]) for name in Oracle.STATE})
+            observations.append(np.asarray(observation, np.float32))
+            action = policy(observation)
+            actions.append(action)
+            observation, _, terminated, truncated, _ = env.step(action)
+            done = terminated or truncated
+    return {"cars": cars, "observations": np.stack(observations), "oracle": np.stack(actions)}
+
+
+def compared_actions(own, line: dict, compare: str, delta: float):
+    """The action scored against the policy's own ``own`` ``[N, 2]`` at each state: the oracle's (``line``'s),
+    or ``own`` with its throttle lowered (``slower``) or raised (``faster``) by ``delta``, in [-1, 1]."""
+    import torch
+
+    if compare == "oracle":
+        return torch.as_tensor(line["oracle"], dtype=torch.float32)
+    out = own.clone()
+    out[:, 0] = (out[:, 0] + (delta if compare == "faster" else -delta)).clamp(-1.0, 1.0)
+    return out
 
 
 def discounted_returns(sim, line: dict, first_actions, policy, gamma: float, horizon: int):
@@ -131,7 +174,8 @@ def load_critics(run: Path, settings: dict):
     return critics
 
 
-def measure(run: Path, episodes: int, seed: int, horizon: int) -> dict:
+def measure(run: Path, episodes: int, seed: int, horizon: int, line_of: str = "oracle", compare: str = "oracle",
+            delta: float = 0.1) -> dict:
     import numpy as np
     import torch
 
@@ -144,10 +188,10 @@ def measure(run: Path, episodes: int, seed: int, horizon: int) -> dict:
     if horizon >= env.unwrapped.sim.config.max_steps:
         raise RunFolderError(f"{run}: --horizon must be below the episode's {env.unwrapped.sim.config.max_steps} "
                              f"steps, got {horizon}")
-    line = oracle_line(env, episodes, seed, policy)
+    line = (oracle_line if line_of == "oracle" else policy_line)(env, episodes, seed, policy)
     observations = torch.as_tensor(line["observations"])
     own = policy.actions(observations)
-    oracle = torch.as_tensor(line["oracle"], dtype=torch.float32)
+    oracle = compared_actions(own, line, compare, delta)
     networks = next(critics.parameters()).shape[0]
     with torch.no_grad():
         def values(actions):  # [Q, N]: each Q-network's value (a quantile critic's mean over its quantiles)
@@ -156,7 +200,8 @@ def measure(run: Path, episodes: int, seed: int, horizon: int) -> dict:
         at_oracle, at_own = values(oracle), values(own)
     gamma = float(settings["gamma"])
     sim = env.unwrapped.sim
-    true_oracle = discounted_returns(sim, line, line["oracle"], policy, gamma, horizon)
+    first = line["oracle"] if compare == "oracle" else oracle.double().numpy()
+    true_oracle = discounted_returns(sim, line, first, policy, gamma, horizon)
     true_own = discounted_returns(sim, line, own.double().numpy(), policy, gamma, horizon)
     env.close()
     gap_min = (at_oracle.min(0)[0] - at_own.min(0)[0]).numpy()
@@ -169,7 +214,8 @@ def measure(run: Path, episodes: int, seed: int, horizon: int) -> dict:
             "true_gap": round(float(true_gap.mean()), 4),
             "spread_oracle": round(float(at_oracle.std(0, correction=0).mean()), 4),
             "spread_policy": round(float(at_own.std(0, correction=0).mean()), 4),
-            "misranked": round(float(np.mean((true_gap > 0) & (gap_min < 0))), 4)}
+            "misranked": round(float(np.mean((true_gap > 0) & (gap_min < 0))), 4),
+            "misled": round(float(np.mean((true_gap < 0) & (gap_min > 0))), 4)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -180,6 +226,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--horizon", type=int, default=60,
                         help="steps of each true return (default 60: gamma 0.9 leaves 0.2%% of the value beyond)")
     parser.add_argument("--table", type=Path, default=None, help="also write the rows as CSV")
+    parser.add_argument("--line", choices=("oracle", "policy"), default="oracle",
+                        help="whose episodes' states are scored: the oracle's (default) or the run's own policy's")
+    parser.add_argument("--compare", choices=("oracle", "slower", "faster"), default="oracle",
+                        help="the action scored against the policy's own: the oracle's (default), or the policy's with "
+                             "its throttle lowered or raised by --delta")
+    parser.add_argument("--delta", type=float, default=0.1, help="the throttle change of --compare slower/faster "
+                                                                   "(default 0.1)")
     args = parser.parse_args(argv)
     from engine.processes import check_outputs
 
@@ -190,6 +243,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--seed must be in [0, 2**32), got {args.seed}")
     if not 1 <= args.horizon < 200:
         parser.error(f"--horizon must be in [1, 200) steps, got {args.horizon}")
+    if not 0 < args.delta <= 2:  # also refuses nan
+        parser.error(f"--delta must be a throttle change in (0, 2], got {args.delta}")
     from engine import numerics
     from engine.outputs import RunFolderError
     from engine.rundir import find_runs, runs_numerics
@@ -206,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         seen.add(Path(run).resolve())
         try:
-            rows.append(measure(run, args.episodes, args.seed, args.horizon))
+            rows.append(measure(run, args.episodes, args.seed, args.horizon, args.line, args.compare, args.delta))
         except RunFolderError as err:
             print(f"pessimism: skipped {err}", file=sys.stderr)
             skipped += 1

@@ -125,6 +125,40 @@ def test_a_true_return_is_the_discounted_sum_of_one_car_s_rewards(run):
         assert batched[i] == pytest.approx(total, abs=1e-9)
 
 
+def test_along_the_policy_s_own_line_its_own_action_s_true_return_is_its_episode_s(run):
+    """--line policy: the states are the policy's own episode's, so taking its own action there and following it
+    drives that episode on: the discounted return equals the episode's own rewards from that step; --compare
+    slower/faster moves only the throttle, by delta, within [-1, 1]."""
+    import numpy as np
+
+    from analysis.pessimism import compared_actions, discounted_returns, policy_line
+    from engine.evaluation import drive_episode, load_policy, make_env
+
+    policy, settings = load_policy(run)
+    env = make_env(settings, 1001)
+    rewards = []
+    original = env.step
+
+    def step(action):
+        out = original(action)
+        rewards.append(float(out[1]))
+        return out
+
+    env.step = step
+    drive_episode(lambda e, o: policy(o), env, 0, reset=policy.reset)
+    del env.step
+    line = policy_line(env, 1, 0, policy)
+    own = policy.actions(torch.as_tensor(line["observations"]))
+    assert np.array_equal(line["oracle"], own.numpy()) and len(line["cars"]) == len(rewards) == 30
+    returns = discounted_returns(env.unwrapped.sim, line, own.double().numpy(), policy, 0.9, 10)
+    for i in (0, 11, 20):
+        assert returns[i] == pytest.approx(sum(0.9 ** j * rewards[i + j] for j in range(10)), abs=1e-9)
+    own = torch.tensor([[0.95, 0.3], [-0.95, -0.2], [0.0, 1.0]])
+    slower, faster = compared_actions(own, line, "slower", 0.1), compared_actions(own, line, "faster", 0.1)
+    assert torch.allclose(slower, torch.tensor([[0.85, 0.3], [-1.0, -0.2], [-0.1, 1.0]]))
+    assert torch.allclose(faster, torch.tensor([[1.0, 0.3], [-0.85, -0.2], [0.1, 1.0]]))
+
+
 @pytest.mark.slow
 def test_the_table_holds_a_row_per_run_and_bad_input_is_one_line(run, tmp_path, capsys):
     import csv
@@ -142,6 +176,15 @@ def test_the_table_holds_a_row_per_run_and_bad_input_is_one_line(run, tmp_path, 
     with pytest.raises(SystemExit):
         pessimism.main([str(run), "--episodes", "0"])
     assert "--episodes must be in [1, 100]" in capsys.readouterr().err
+    for bad in ("0", "nan", "3"):
+        with pytest.raises(SystemExit):
+            pessimism.main([str(run), "--compare", "slower", "--delta", bad])
+        assert "--delta must be a throttle change in (0, 2]" in capsys.readouterr().err
+    assert pessimism.main([str(run), "--episodes", "1", "--horizon", "10", "--line", "policy", "--compare", "slower",
+                           "--table", str(tmp_path / "s.csv")]) == 0
+    with open(tmp_path / "s.csv", newline="") as f:
+        [row] = list(csv.DictReader(f))
+    assert row["states"] == "30" and 0 <= float(row["misled"]) <= 1
 
 
 def test_a_run_it_cannot_read_is_named_and_skipped_and_the_others_measured(run, tmp_path, capsys):
