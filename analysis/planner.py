@@ -14,7 +14,7 @@ without planning. Nothing is trained.
 
 After each episode, the run's model reads what happened (``readout``): from the latent state of every step t
 it rolls its dynamics along the actions the car then took and predicts the rewards of steps t, t + 1, ...
-A crash (the car left the track: the step's reward lost the crash penalty) at step c is *foreseen at k* when
+A crash (a step on which the car left the track, as the simulator counts them) at step c is *foreseen at k* when
 the reward the model predicted for step c from step c - k is below minus half the penalty; a false alarm is such a
 prediction for a step without a crash. The value the plan's scoring gives what the car did, V(t) (the
 predicted rewards of ``horizon`` steps, then gamma^horizon x the Q-networks' mean at the rolled state and the
@@ -117,14 +117,13 @@ GRID = 9  # throttles x steerings of the constant actions tried at a crash (-1, 
 
 def drive(policy, env, seed: int) -> Episode:
     """One episode of ``policy`` (``engine.evaluation.Policy``) from the start state of ``seed``, recorded: a step
-    crashed when its reward is below minus half the crash penalty (a step's reward is otherwise its speed's share
-    of the top speed, in [0, 1])."""
+    crashed when the simulator counted the car leaving the track on it."""
     import numpy as np
 
     from engine.evaluation import drive_episode
 
     episode = Episode()
-    penalty = float(env.unwrapped.config.crash_penalty)
+    sim = env.unwrapped.sim
 
     def recorded(env, observation):
         sim = env.unwrapped.sim
@@ -137,9 +136,10 @@ def drive(policy, env, seed: int) -> Episode:
     original_step = env.step
 
     def step(action):
+        before = int(sim.crashes[0])
         out = original_step(action)
         episode.rewards.append(float(out[1]))
-        episode.crashed.append(float(out[1]) < -penalty / 2)
+        episode.crashed.append(int(sim.crashes[0]) > before)
         return out
 
     env.step = step
@@ -158,7 +158,7 @@ def grid_actions():
     return np.stack(np.meshgrid(levels, levels, indexing="ij"), -1).reshape(-1, 2)
 
 
-def avoidable(sim, car: dict, steps: int, penalty: float) -> bool:
+def avoidable(sim, car: dict, steps: int) -> bool:
     """Whether some constant action of the grid, held ``steps`` steps from the car state ``car`` on ``sim``'s track,
     keeps the car on the track throughout (the true simulator: a fresh ``RacingSim`` of one car per action)."""
     import numpy as np
@@ -171,13 +171,12 @@ def avoidable(sim, car: dict, steps: int, penalty: float) -> bool:
     trial.reset()
     for name in CAR:
         getattr(trial, name)[:] = car[name]
-    safe = np.ones(len(actions), dtype=bool)
+    trial.crashes[:] = 0
     for _ in range(steps):
-        reward, terminated, _, _ = trial.step(actions[:, 0].copy(), actions[:, 1].copy())
-        safe &= reward > -penalty / 2
+        _, terminated, _, _ = trial.step(actions[:, 0].copy(), actions[:, 1].copy())
         if terminated.any():  # past the last checkpoint: that car is safe from here on
             break
-    return bool(safe.any())
+    return bool((trial.crashes == 0).any())
 
 
 def predictions(actor, episode: Episode, gamma: float):
@@ -255,7 +254,7 @@ def readout(actor, episode: Episode, gamma: float, penalty: float, sim=None) -> 
             for c in crash_steps:
                 for i, k in enumerate(EARLIER):
                     if c >= k:
-                        ways_out[i] += avoidable(sim, episode.cars[c - k], k + 1, penalty)
+                        ways_out[i] += avoidable(sim, episode.cars[c - k], k + 1)
     quiet_alarms = quiet = 0
     errors, error_count = 0.0, 0
     for k in range(LOOKAHEAD):
@@ -356,6 +355,7 @@ def planning_actor(policy, run):
 def run_rows(run: Path, variants: list[str], episodes: int, seed: int) -> list[dict]:
     """The rows of one run: as trained, then each variant (``--variant``'s texts, checked by ``parse_variant``)."""
     from engine.evaluation import Policy, load_policy, make_env, own_track
+    from engine.outputs import RunFolderError
     from learners.latent import PlanningActor
 
     policy, settings = load_policy(run)
@@ -363,6 +363,10 @@ def run_rows(run: Path, variants: list[str], episodes: int, seed: int) -> list[d
     track = own_track(settings)
     env = make_env(settings, track)
     penalty = float(env.unwrapped.config.crash_penalty)
+    if penalty <= 0:
+        env.close()
+        raise RunFolderError(f"{run}: trained with env.options.crash_penalty={penalty:g}; the read-out knows a predicted "
+                             "crash by its penalty (a reward below minus half of it), so it reads runs with a penalty")
     gamma = actor.options.gamma
     rows = []
     try:

@@ -64,6 +64,18 @@ def test_predictions_are_the_model_s_rollout_and_the_plan_s_own_scoring(run):
             assert returns[t] == pytest.approx(sum(gamma ** j * r for j, r in enumerate(episode.rewards[t:])))
 
 
+def test_an_episode_s_crashes_are_the_simulator_s(run):
+    from engine.evaluation import make_env
+
+    _, policy, settings = _actor(run)
+    env = make_env(settings, A)
+    episode = planner.drive(policy, env, 0)
+    assert len(episode.rewards) == len(episode.cars) == len(episode.actions) == 40
+    assert sum(episode.crashed) == int(env.unwrapped.sim.crashes[0])
+    assert episode.crashed == [r < -5 for r in episode.rewards]  # a crash costs 10, any other step earns 0 to 1
+    assert episode.cars[0]["t"] == 0 and episode.cars[-1]["t"] == 39
+
+
 def test_the_counts_are_those_of_the_predictions(run, monkeypatch):
     """A crash at step 30 of 80, foreseen from steps 30 and 28 (not 29); one false alarm at step 5; the plan's
     values one above the returns, four in the ten steps before the crash."""
@@ -123,10 +135,10 @@ def test_a_crash_is_avoidable_only_where_some_action_keeps_the_car_on_the_track(
     sim.seed(0)
     sim.reset()
     at_rest = {"x": 0.0, "y": 0.0, "theta": 0.0, "speed": 0.0, "checkpoint": 0, "t": 0}
-    assert planner.avoidable(sim, at_rest, 5, 10.0)
+    assert planner.avoidable(sim, at_rest, 5)
     # 10 px from the right wall (x = 100), heading straight at it at top speed: every action leaves in one step
     at_the_wall = {**at_rest, "x": 90.0, "y": 50.0, "theta": math.pi / 2, "speed": 50.0}
-    assert not planner.avoidable(sim, at_the_wall, 1, 10.0)
+    assert not planner.avoidable(sim, at_the_wall, 1)
 
 
 @pytest.mark.slow
@@ -171,6 +183,10 @@ def test_variants_that_do_not_fit_the_run_and_runs_that_do_not_plan_are_refused(
     assert "name one file" in capsys.readouterr().err
     assert planner.main([str(run), "--variant", "samples=8,policy_samples=8"]) == 2
     assert "policy_samples (8) must be below samples (8)" in capsys.readouterr().err
+    no_penalty = tmp_path / "no_penalty"
+    train(no_penalty, "algo=tdmpc2", *SHORT, "episodes=2", "env.options.crash_penalty=0", f"seed={A}")
+    assert planner.main([str(no_penalty)]) == 2
+    assert "crash_penalty=0" in capsys.readouterr().err
     prior_only = tmp_path / "prior_only"
     train(prior_only, "algo=tdmpc2", *SHORT, "episodes=2", "algo.tdmpc2.planning=false", f"seed={A}")
     assert planner.main([str(prior_only)]) == 2
