@@ -161,8 +161,6 @@ def grid_actions():
 def avoidable(sim, car: dict, steps: int) -> bool:
     """Whether some constant action of the grid, held ``steps`` steps from the car state ``car`` on ``sim``'s track,
     keeps the car on the track throughout (the true simulator: a fresh ``RacingSim`` of one car per action)."""
-    import numpy as np
-
     from racing.sim import RacingSim
 
     actions = grid_actions()
