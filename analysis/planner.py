@@ -436,7 +436,11 @@ def main(argv: list[str] | None = None) -> int:
     from engine.rundir import find_runs, runs_numerics
 
     try:
-        runs = list(dict.fromkeys(Path(r).resolve() for r in find_runs(args.paths)))  # a run named twice drives once
+        runs, seen = [], set()
+        for run in find_runs(args.paths):  # a run named twice (or through a link) drives once, named as first given
+            if Path(run).resolve() not in seen:
+                seen.add(Path(run).resolve())
+                runs.append(Path(run))
         numerics.apply(runs_numerics(runs))  # before torch loads: the runs' own numerics
         jobs = [(run, args.variant, args.episodes, args.seed, numerics.applied()) for run in runs]
         if args.processes == 1 or len(runs) == 1:

@@ -183,6 +183,11 @@ def test_variants_that_do_not_fit_the_run_and_runs_that_do_not_plan_are_refused(
     assert "name one file" in capsys.readouterr().err
     assert planner.main([str(run), "--variant", "samples=8,policy_samples=8"]) == 2
     assert "policy_samples (8) must be below samples (8)" in capsys.readouterr().err
+    link = tmp_path / "link"
+    link.symlink_to(run)
+    assert planner.main([str(run), str(link), "--episodes", "1"]) == 0  # one run, named as first given
+    printed = capsys.readouterr().out
+    assert printed.count(f"| {A} | as trained |") == 1 and f"| {run} | {A} | as trained |" in printed
     no_penalty = tmp_path / "no_penalty"
     train(no_penalty, "algo=tdmpc2", *SHORT, "episodes=2", "env.options.crash_penalty=0", f"seed={A}")
     assert planner.main([str(no_penalty)]) == 2
