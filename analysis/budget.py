@@ -60,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from engine.processes import check_outputs
 
-    check_outputs(parser, table=args.table)
+    check_outputs(parser, reads=args.folders, table=args.table)
 
     if min(args.budgets) < 1 or args.window < 1:
         parser.error("--budgets and --window must be positive")

@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from engine.processes import check_outputs
 
-    check_outputs(parser, table=args.table)
+    check_outputs(parser, reads=args.paths, table=args.table)
     if not 1 <= args.last <= 10_000:
         parser.error(f"--last must be in [1, 10,000], got {args.last}")
     from analysis.report import read_oracles

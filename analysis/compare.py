@@ -130,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from engine.processes import check_outputs
 
-    check_outputs(parser, markdown=args.markdown)
+    check_outputs(parser, reads=[args.new, args.old], markdown=args.markdown)
 
     new, old = read_runs(args.new), read_runs(args.old)
     heading = ""

@@ -107,14 +107,14 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from engine.processes import check_outputs
 
-    check_outputs(parser, table=args.table)
+    check_outputs(parser, reads=args.paths, table=args.table)
 
     if args.full_throttle_above is not None and not -1 <= args.full_throttle_above <= 1:
         parser.error(f"--full-throttle-above must be a throttle in [-1, 1], got {args.full_throttle_above}")
     if not 1 <= args.episodes <= 1000:
         parser.error(f"--episodes must be in [1, 1000], got {args.episodes}")
-    if not 0 <= args.seed < 2**32:
-        parser.error(f"--seed must be in [0, 2**32), got {args.seed}")
+    if not 0 <= args.seed <= 2**32 - args.episodes:
+        parser.error(f"--seed must be in [0, 2**32 - --episodes] (episode k starts from seed + k), got {args.seed}")
     if args.table is not None and args.table.is_dir():  # refused before the driving, not after it
         parser.error(f"--table {args.table} is a folder; give a file name (e.g. {args.table / 'driving.csv'})")
     from engine import numerics

@@ -138,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from engine.processes import check_outputs
 
-    check_outputs(parser, markdown=args.markdown, table=args.table)
+    check_outputs(parser, reads=[args.sweep], markdown=args.markdown, table=args.table)
 
     for path in (args.markdown, args.table):
         if path is not None and not path.parent.is_dir():

@@ -149,6 +149,9 @@ def load_critics(run: Path, settings: dict):
     if settings["env"].get("past_steps") or td.get("critic_history") or td.get("privileged_critic"):
         raise RunFolderError(f"{run}: its critics read more than (observation, action) (past steps, the car's "
                              "past or true state); this analysis reads critics of (observation, action) only")
+    if td.get("observation_norm"):
+        raise RunFolderError(f"{run}: its critics read normalised observations (algo.td.observation_norm); this "
+                             "analysis reads critics of the observation as the simulator gives it")
     try:
         state = {k.removeprefix("module."): v for k, v in load_tensors(run / "critic.pt", "critic").items()}
     except ValueError as err:
@@ -236,13 +239,15 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from engine.processes import check_outputs
 
-    check_outputs(parser, table=args.table)
+    check_outputs(parser, reads=args.paths, table=args.table)
     if not 1 <= args.episodes <= 100:
         parser.error(f"--episodes must be in [1, 100], got {args.episodes}")
-    if not 0 <= args.seed < 2**32:
-        parser.error(f"--seed must be in [0, 2**32), got {args.seed}")
+    if not 0 <= args.seed <= 2**32 - args.episodes:
+        parser.error(f"--seed must be in [0, 2**32 - --episodes] (episode k starts from seed + k), got {args.seed}")
     if not 1 <= args.horizon < 200:
         parser.error(f"--horizon must be in [1, 200) steps, got {args.horizon}")
+    if args.line == "policy" and args.compare == "oracle":
+        parser.error("--line policy scores the policy's own actions; compare them with --compare slower or faster")
     if not 0 < args.delta <= 2:  # also refuses nan
         parser.error(f"--delta must be a throttle change in (0, 2], got {args.delta}")
     from engine import numerics

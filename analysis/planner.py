@@ -4,7 +4,8 @@ Q-values promised where the plans end, and what other planner settings do with t
     python -m analysis.planner RUN_DIR... [--episodes 5] [--seed 0] [--variant KEY=VALUE[,KEY=VALUE...]]...
                                           [--variant prior] [--processes 2] [--table planner.csv]
 
-Each run (``algo=tdmpc2`` with planning; or every such run under a sweep's folder) drives ``--episodes``
+Each run (``algo=tdmpc2`` with planning; or every such run under a sweep's folder, others skipped with a line
+and exit status 2) drives ``--episodes``
 episodes on its own track from the start states of ``--seed``, ``--seed + 1``, ... with its deterministic
 policy as ``evaluate.py`` drives it (MPPI without the executed action's noise, its draws seeded 0 at every
 episode's start), then with each ``--variant``: the same saved networks planning under other settings
@@ -350,31 +351,47 @@ def planning_actor(policy, run):
     return policy.net
 
 
-def run_rows(run: Path, variants: list[str], episodes: int, seed: int) -> list[dict]:
-    """The rows of one run: as trained, then each variant (``--variant``'s texts, checked by ``parse_variant``)."""
-    from engine.evaluation import Policy, load_policy, make_env, own_track
+def readable(run: Path, variants: list[str]) -> tuple:
+    """The run's (policy, settings, planning actor, {variant: its PlanOptions}) if this read-out can drive it under
+    every variant; ``RunFolderError`` saying why not (not a planning run, no crash penalty) and ``VariantError``
+    naming the variant and the run that do not fit together. Nothing is driven."""
+    from engine.evaluation import load_policy
     from engine.outputs import RunFolderError
-    from learners.latent import PlanningActor
+    from racing.config import RacingConfig
 
     policy, settings = load_policy(run)
     actor = planning_actor(policy, run)
-    track = own_track(settings)
-    env = make_env(settings, track)
-    penalty = float(env.unwrapped.config.crash_penalty)
+    penalty = RacingConfig(**settings["env"].get("options", {})).crash_penalty
     if penalty <= 0:
-        env.close()
         raise RunFolderError(f"{run}: trained with env.options.crash_penalty={penalty:g}; the read-out knows a predicted "
                              "crash by its penalty (a reward below minus half of it), so it reads runs with a penalty")
-    gamma = actor.options.gamma
+    options = {}
+    for name in variants:
+        changes = parse_variant(name)
+        if changes:
+            try:
+                options[name] = planned_options(actor.options, changes)
+            except VariantError as err:
+                raise VariantError(f"--variant {name.strip()!r} does not fit {run}: {err}") from None
+    return policy, settings, actor, options
+
+
+def run_rows(run: Path, variants: list[str], episodes: int, seed: int) -> list[dict]:
+    """The rows of one run: as trained, then each variant (``--variant``'s texts; ``readable`` checks them)."""
+    from engine.evaluation import Policy, make_env, own_track
+    from learners.latent import PlanningActor
+
+    policy, settings, actor, options = readable(run, variants)
+    track = own_track(settings)
+    env = make_env(settings, track)
+    penalty, gamma = float(env.unwrapped.config.crash_penalty), actor.options.gamma
     rows = []
     try:
         for name in [AS_TRAINED, *variants]:
-            changes = {} if name == AS_TRAINED else parse_variant(name)
             if name.strip() == PRIOR:
                 driver = Policy(actor.net, stacked=True)  # the prior's tanh(loc), behind the run's observation norm
-            elif changes:
-                options = planned_options(actor.options, changes)
-                driver = Policy(PlanningActor(actor.net, actor.qvalues, options, actor.support).eval(), stacked=True)
+            elif name in options:
+                driver = Policy(PlanningActor(actor.net, actor.qvalues, options[name], actor.support).eval(), stacked=True)
             else:
                 driver = policy
             parts = [readout(actor, drive(driver, env, seed + k), gamma, penalty, env.unwrapped.sim) for k in range(episodes)]
@@ -410,13 +427,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from engine.processes import check_outputs
 
-    check_outputs(parser, table=args.table, summary=args.summary)
+    check_outputs(parser, reads=args.paths, table=args.table, summary=args.summary)
     if not 0 <= args.crashing <= 1_000_000:  # also refuses nan
         parser.error(f"--crashing must be crashes an episode in [0, 1000000], got {args.crashing}")
     if not 1 <= args.episodes <= 1000:
         parser.error(f"--episodes must be in [1, 1000], got {args.episodes}")
-    if not 0 <= args.seed < 2**32:
-        parser.error(f"--seed must be in [0, 2**32), got {args.seed}")
+    if not 0 <= args.seed <= 2**32 - args.episodes:
+        parser.error(f"--seed must be in [0, 2**32 - --episodes] (episode k starts from seed + k), got {args.seed}")
     if not 1 <= args.processes <= 64:
         parser.error(f"--processes must be in [1, 64], got {args.processes}")
     if args.table is not None and args.summary is not None and args.table.resolve() == args.summary.resolve():
@@ -436,12 +453,22 @@ def main(argv: list[str] | None = None) -> int:
     from engine.rundir import find_runs, runs_numerics
 
     try:
-        runs, seen = [], set()
+        found_runs, seen = [], set()
         for run in find_runs(args.paths):  # a run named twice (or through a link) drives once, named as first given
             if Path(run).resolve() not in seen:
                 seen.add(Path(run).resolve())
-                runs.append(Path(run))
-        numerics.apply(runs_numerics(runs))  # before torch loads: the runs' own numerics
+                found_runs.append(Path(run))
+        numerics.apply(runs_numerics(found_runs))  # before torch loads: the runs' own numerics
+        runs, skipped = [], 0
+        for run in found_runs:  # every run and variant checked before any driving; a run it cannot read is skipped
+            try:
+                readable(run, args.variant)
+                runs.append(run)
+            except RunFolderError as err:
+                print(f"planner: skipped {err}", file=sys.stderr)
+                skipped += 1
+        if not runs:
+            return 2
         jobs = [(run, args.variant, args.episodes, args.seed, numerics.applied()) for run in runs]
         if args.processes == 1 or len(runs) == 1:
             found = [run_rows(*job[:4]) for job in jobs]
@@ -469,7 +496,7 @@ def main(argv: list[str] | None = None) -> int:
         write_table(args.table, rows)
     if args.summary is not None:
         write_table(args.summary, summary)
-    return 0
+    return 2 if skipped else 0
 
 
 if __name__ == "__main__":

@@ -124,8 +124,9 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
     except Exception as err:  # mismatched shapes or keys
         if plans and critic is None:
             raise RunFolderError(f"{run_dir} holds no critic.pt, which its policy needs ({first_line(err)})") from None
-        what = "actor" if critic is None else "actor or critic"
-        raise RunFolderError(f"{actor_path} is not this run's {what} ({first_line(err)})") from None
+        where = actor_path if critic is None else f"{actor_path} or {critic_path.name}"
+        raise RunFolderError(f"{where} is not this run's {'actor' if critic is None else 'actor or critic'} "
+                             f"({first_line(err)})") from None
     if not all(torch.isfinite(p).all() for p in policy.parameters()):
         raise RunFolderError(f"{actor_path} holds non-finite weights (the run diverged)")
     return policy, settings

@@ -123,19 +123,24 @@ def interrupt(number: int, frame) -> None:
         raise KeyboardInterrupt(signal.Signals(number).name)
 
 
-def check_outputs(parser, **outputs) -> None:
+def check_outputs(parser, reads=(), **outputs) -> None:
     """Before a tool's work: each output file its command line names (``table=args.table``, ...) can
     be written (``door.files.check_target``) and lies outside every run folder (``engine.rundir.run_folder_of``:
     a folder with a run's marks, finished, training or damaged, a population's top folder included, or below
     one: those hold only the run's own files, and an output there would replace one of them or damage the
-    run), else ``parser.error`` with one line."""
+    run), and is none of the files the tool reads (``reads``: its input paths; for a folder, the track file of
+    every run in it, ``engine.rundir.files_read``), else ``parser.error`` with one line."""
     from door import files
-    from engine.rundir import run_folder_of
+    from engine.rundir import files_read, run_folder_of
 
+    inputs = files_read(reads) if reads else {}
     for option, path in outputs.items():
         if path is None:
             continue
         name = f"--{option.replace('_', '-')}"
+        read = inputs.get(os.path.realpath(path))
+        if read is not None:
+            parser.error(f"{name} {path} is {read}, which this command reads; write the output elsewhere")
         if os.path.isdir(path):
             parser.error(f"{name} {path} is a folder; give a file name")
         folder = run_folder_of(os.path.dirname(os.path.abspath(path)))

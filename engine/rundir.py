@@ -397,6 +397,28 @@ def _release(folder: Path) -> None:
             os.close(entry[0])  # closing the descriptor releases the flock
 
 
+def files_read(paths) -> dict[str, str]:
+    """{real path: what it is} of the files a tool reading ``paths`` reads: each path that is not a folder (an
+    input file), and for a folder, the track file each run below it trained on (``env.track_file``; runs whose
+    summary cannot be read are left to the tool's own reading)."""
+    from engine.outputs import RunFolderError, read_summary
+
+    found = {}
+    for path in paths:
+        if not os.path.isdir(path):
+            found[os.path.realpath(path)] = "an input file"
+            continue
+        for summary in files.find(path, "summary.json"):
+            try:
+                settings = (read_summary(summary.parent) or {}).get("settings") or {}
+            except RunFolderError:
+                continue
+            track_file = (settings.get("env") or {}).get("track_file") if isinstance(settings, dict) else None
+            if isinstance(track_file, str) and track_file:
+                found.setdefault(os.path.realpath(track_file), f"the track file of the run {summary.parent}")
+    return found
+
+
 def find_runs(paths: list[Path]) -> list[Path]:
     """The run folders named by ``paths``: each one itself if it holds summary.json, else every
     folder below it that holds one (sorted)."""

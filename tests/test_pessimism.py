@@ -176,6 +176,13 @@ def test_the_table_holds_a_row_per_run_and_bad_input_is_one_line(run, tmp_path, 
     with pytest.raises(SystemExit):
         pessimism.main([str(run), "--episodes", "0"])
     assert "--episodes must be in [1, 100]" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        pessimism.main([str(run), "--line", "policy"])  # its own actions against themselves: nothing to compare
+    assert "--line policy scores the policy's own actions; compare them with --compare slower or faster" in \
+        capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        pessimism.main([str(run), "--episodes", "2", "--seed", str(2**32 - 1)])
+    assert "--seed must be in [0, 2**32 - --episodes]" in capsys.readouterr().err
     for bad in ("0", "nan", "3"):
         with pytest.raises(SystemExit):
             pessimism.main([str(run), "--compare", "slower", "--delta", bad])
@@ -188,7 +195,7 @@ def test_the_table_holds_a_row_per_run_and_bad_input_is_one_line(run, tmp_path, 
 
 
 def test_a_run_it_cannot_read_is_named_and_skipped_and_the_others_measured(run, tmp_path, capsys):
-    """A SimbaV2 run's critic (not an MLP) beside a SAC run: one line naming it, the SAC run's row written,
+    """A SimbaV2 run's critic (of normalised observations) beside a SAC run: one line naming it, the SAC run's row written,
     exit 2 (something was skipped); a run given twice is measured once."""
     import csv
 
@@ -206,9 +213,21 @@ def test_a_run_it_cannot_read_is_named_and_skipped_and_the_others_measured(run, 
     assert pessimism.main([str(other), str(run), str(run), "--episodes", "1", "--horizon", "5",
                            "--table", str(table)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "are not MLPs of network.critic_hidden" in err[0] and str(other) in err[0]
+    assert len(err) == 1 and "its critics read normalised observations" in err[0] and str(other) in err[0]
     with open(table, newline="") as f:
         assert [r["run"] for r in csv.DictReader(f)] == [str(run)]
+
+
+@pytest.mark.slow
+def test_critics_of_normalised_observations_are_skipped_in_one_line(tmp_path, capsys):
+    from analysis import pessimism
+    from tests.test_start import train
+
+    normed = tmp_path / "normed"
+    train(normed, "algo=sac", "er=memory", "episodes=2", "algo.td.warmup_episodes=1", "algo.td.updates_per_step=0.1",
+          "env.options.max_steps=30", "seed=1001", "progress=false", "logger=none", "algo.td.observation_norm=true")
+    assert pessimism.main([str(normed), "--episodes", "1", "--horizon", "5"]) == 2
+    assert "its critics read normalised observations" in capsys.readouterr().err
 
 
 def test_an_output_inside_a_run_folder_is_refused_before_any_work(run, capsys):

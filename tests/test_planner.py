@@ -177,6 +177,12 @@ def test_a_bad_variant_is_refused_in_one_line(variant, message, capsys):
     assert message in capsys.readouterr().err
 
 
+def test_the_start_states_stay_seeds(capsys):
+    with pytest.raises(SystemExit):
+        planner.main(["somewhere", "--episodes", "2", "--seed", str(2**32 - 1)])
+    assert "--seed must be in [0, 2**32 - --episodes]" in capsys.readouterr().err
+
+
 def test_variants_that_do_not_fit_the_run_and_runs_that_do_not_plan_are_refused(run, tmp_path, capsys):
     with pytest.raises(SystemExit):
         planner.main([str(run), "--table", str(tmp_path / "x.csv"), "--summary", str(tmp_path / "x.csv")])
@@ -196,3 +202,9 @@ def test_variants_that_do_not_fit_the_run_and_runs_that_do_not_plan_are_refused(
     train(prior_only, "algo=tdmpc2", *SHORT, "episodes=2", "algo.tdmpc2.planning=false", f"seed={A}")
     assert planner.main([str(prior_only)]) == 2
     assert "not a planning run" in capsys.readouterr().err
+    assert planner.main([str(run), str(prior_only), "--episodes", "1"]) == 2  # the other run read, this one named
+    out, err = capsys.readouterr()
+    assert f"| {run} | {A} | as trained |" in out and f"planner: skipped {prior_only}: not a planning run" in err
+    assert planner.main([str(prior_only), str(run), "--variant", "elites=65"]) == 2  # checked before any driving
+    out, err = capsys.readouterr()
+    assert f"--variant 'elites=65' does not fit {run}: elites (65) must be at most samples (64)" in err and not out

@@ -181,6 +181,36 @@ def test_training_on_a_file_track_records_the_file(tmp_path):
         RunConfig.from_mapping({**settings, "env": {**settings["env"], "track_file": str(changed)}})
 
 
+def test_no_tool_writes_its_output_over_a_file_it_reads(tmp_path, capsys):
+    """A table named as a run's track file (or as an input table) is refused in one line before any work: it
+    would replace the circuit the run trained on."""
+    import shutil
+
+    import evaluate
+    from analysis import compare, driving, pessimism, planner
+    from engine.config import RunConfig
+    from engine.runner import train_population
+
+    track = tmp_path / "oval.csv"
+    shutil.copy(example("oval"), track)
+    settings = RunConfig.compose_mapping("env.track=file", f"env.track_file={track}", "episodes=1", "progress=false",
+                                         "logger=none", "algo=spg", "er=recent", "env.options.max_steps=20",
+                                         "algo.minibatch_size=20")
+    train_population(RunConfig.from_mapping(settings), tmp_path / "sweep" / "run", settings)
+    before = track.read_bytes()
+    for tool in (driving.main, pessimism.main, planner.main, lambda a: evaluate.main(a)):
+        with pytest.raises(SystemExit):
+            tool([str(tmp_path / "sweep"), "--table", str(track)])
+        err = capsys.readouterr().err
+        assert f"--table {track} is the track file of the run" in err and "which this command reads" in err, err
+    table = tmp_path / "runs.csv"
+    table.write_text("x\n")
+    with pytest.raises(SystemExit):
+        compare.main([str(table), str(table), "--markdown", str(table)])
+    assert "is an input file, which this command reads" in capsys.readouterr().err
+    assert track.read_bytes() == before and table.read_text() == "x\n"
+
+
 def test_the_documented_track_commands_run(tmp_path):
     commands = readme_commands("tracks.py")
     assert {c[0] for c in commands} >= {"check", "show", "export"}
