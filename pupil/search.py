@@ -291,7 +291,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from engine.processes import check_output_folder, check_outputs
 
-    check_outputs(parser, table=args.table)
+    check_outputs(parser, reads=args.runs, table=args.table)
     if args.out is not None:
         check_output_folder(parser, "--out", args.out)
     if not 1 <= args.processes <= 64:
