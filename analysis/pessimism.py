@@ -46,32 +46,23 @@ COLUMNS = ("run", "loss", "track", "states", "critic_gap_min", "critic_gap_mean"
            "spread_policy", "misranked", "misled")
 
 
-def oracle_line(env, episodes: int, seed: int, policy) -> dict:
-    """The oracle's states (the car's state and observation) and actions over ``episodes`` episodes, and
-    the policy's own action at each of those states."""
-    import numpy as np
-
+def oracle_line(env, episodes: int, seed: int, policy=None) -> dict:
+    """The oracle's states (the car's state and observation) and its actions over ``episodes`` episodes."""
     from racing.oracle import Oracle
 
     planner, sim = Oracle(seed=seed), env.unwrapped.sim
-    cars, observations, oracle_actions = [], [], []
-    for k in range(episodes):
-        observation, _ = env.reset(seed=seed + k)
-        planner.reset()
-        done = False
-        while not done:
-            cars.append({name: np.copy(getattr(sim, name)[0]) for name in Oracle.STATE})
-            observations.append(np.asarray(observation, np.float32))
-            action = planner.act(sim, 0)
-            oracle_actions.append(action)
-            observation, _, terminated, truncated, _ = env.step(action)
-            done = terminated or truncated
-    return {"cars": cars, "observations": np.stack(observations), "oracle": np.stack(oracle_actions)}
+    return _line(env, episodes, seed, lambda observation: planner.act(sim, 0), planner.reset)
 
 
 def policy_line(env, episodes: int, seed: int, policy) -> dict:
-    """The states (the car's state and observation) of ``policy``'s own ``episodes`` episodes and its actions
-    there (``oracle_line``'s layout, the policy's actions under ``"oracle"`` too)."""
+    """The states of ``policy``'s own ``episodes`` episodes and its actions there (``oracle_line``'s layout, the
+    policy's actions under ``"oracle"``)."""
+    return _line(env, episodes, seed, policy, policy.reset)
+
+
+def _line(env, episodes: int, seed: int, act, reset) -> dict:
+    """The car's states, observations and the actions of ``act(observation)`` over ``episodes`` episodes from the
+    start states of ``seed``, ``seed + 1``, ... (``reset()`` at each episode's start)."""
     import numpy as np
 
     from racing.oracle import Oracle
@@ -80,12 +71,12 @@ def policy_line(env, episodes: int, seed: int, policy) -> dict:
     cars, observations, actions = [], [], []
     for k in range(episodes):
         observation, _ = env.reset(seed=seed + k)
-        policy.reset()
+        reset()
         done = False
         while not done:
             cars.append({name: np.copy(getattr(sim, name)[0]) for name in Oracle.STATE})
             observations.append(np.asarray(observation, np.float32))
-            action = policy(observation)
+            action = act(observation)
             actions.append(action)
             observation, _, terminated, truncated, _ = env.step(action)
             done = terminated or truncated
