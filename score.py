@@ -76,7 +76,9 @@ def main(argv: list[str] | None = None) -> int:
         video_track = _track(parser, args.video_track, args.track_scale, args.track_closed)
     from engine.processes import check_outputs  # before any episode: not after the work
 
-    check_outputs(parser, table=None if args.table is None or args.table.is_dir() else args.table, video=args.video)
+    reads = [*args.agents, *(path for path in (args.laps_on, args.video_track) if path)]
+    check_outputs(parser, reads=reads, table=None if args.table is None or args.table.is_dir() else args.table,
+                  video=args.video)
     if args.table is not None and args.table.is_dir():
         parser.error(f"--table {args.table} is a folder; give a file name (e.g. {args.table / 'scores.csv'})")
     folders = [Path(a) for a in args.agents if Path(a).is_dir()]

@@ -203,6 +203,12 @@ def test_no_tool_writes_its_output_over_a_file_it_reads(tmp_path, capsys):
             tool([str(tmp_path / "sweep"), "--table", str(track)])
         err = capsys.readouterr().err
         assert f"--table {track} is the track file of the run" in err and "which this command reads" in err, err
+    import score
+
+    for args in ([str(tmp_path / "sweep" / "run")], ["ray_follower", "--laps-on", str(track)]):
+        with pytest.raises(SystemExit):
+            score.main([*args, "--table", str(track)])
+        assert f"--table {track} is " in capsys.readouterr().err
     table = tmp_path / "runs.csv"
     table.write_text("x\n")
     with pytest.raises(SystemExit):
