@@ -192,6 +192,11 @@ def test_the_table_holds_a_row_per_run_and_bad_input_is_one_line(run, tmp_path, 
     with open(tmp_path / "s.csv", newline="") as f:
         [row] = list(csv.DictReader(f))
     assert row["states"] == "30" and 0 <= float(row["misled"]) <= 1
+    from tests.test_readme import readme_commands
+
+    for args in readme_commands("-m analysis.pessimism"):  # the documented lines, on the tiny run
+        args = [str(run) if a.startswith("outputs/") else a for a in args]
+        assert pessimism.main([*args, "--episodes", "1", "--horizon", "10"]) == 0, args
 
 
 def test_a_run_it_cannot_read_is_named_and_skipped_and_the_others_measured(run, tmp_path, capsys):
