@@ -65,15 +65,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--tracks must be track seeds in [0, 2**32), got {bad}")
     if not 0 <= args.seed < 2**32:
         parser.error(f"--seed must be in [0, 2**32) (the first start state's seed), got {args.seed}")
-    if args.seed + args.episodes > 2**32:
-        parser.error(f"--seed + --episodes must be at most 2**32 (episode k starts from seed + k), got {args.seed} + "
-                     f"{args.episodes}")
     if args.video is not None and args.video.suffix.lower() not in (".gif", ".mp4"):
         parser.error(f"--video must name a .gif or .mp4 file, got {str(args.video)!r}")
     for option, path in (("--table", args.table), ("--video", args.video)):
         if path is not None and path.is_dir():
             parser.error(f"{option} {path} is a folder; give a file name (e.g. {path / ('evaluation.csv' if option == '--table' else 'agent.gif')})")
-    from engine.processes import check_outputs  # before any episode: not after the work
+    from engine.processes import check_outputs, check_start_seeds  # before any episode: not after the work
+
+    check_start_seeds(parser, args.seed, args.episodes)
 
     check_outputs(parser, reads=[*args.paths, *([args.track_file] if args.track_file else [])], table=args.table,
                   video=args.video)

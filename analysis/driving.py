@@ -63,14 +63,11 @@ def driving_rows(runs: list[Path], episodes: int, seed: int = 0, oracle: bool = 
     """A row per run (its policy on its own track; with ``full_throttle_above``, a second row with its
     throttles at or above it made full), and per track the oracle's on the same episodes."""
     from engine.evaluation import load_policy, make_env, own_track
+    from engine.rundir import distinct_runs
     from racing.oracle import Oracle
 
-    rows, oracle_done, seen = [], set(), set()
-    for run in runs:
-        where = Path(run).resolve()
-        if where in seen:  # a run named twice drives once (named as first given)
-            continue
-        seen.add(where)
+    rows, oracle_done = [], set()
+    for run in distinct_runs(runs):  # a run named twice drives once (named as first given)
         policy, settings = load_policy(run)
         track = own_track(settings)
         env = make_env(settings, track)
@@ -105,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--full-throttle-above", type=float, default=None, metavar="T",
                         help="also drive each policy with its throttles >= T made full (a diagnostic)")
     args = parser.parse_args(argv)
-    from engine.processes import check_outputs
+    from engine.processes import check_outputs, check_start_seeds
 
     check_outputs(parser, reads=args.paths, table=args.table)
 
@@ -113,8 +110,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--full-throttle-above must be a throttle in [-1, 1], got {args.full_throttle_above}")
     if not 1 <= args.episodes <= 1000:
         parser.error(f"--episodes must be in [1, 1000], got {args.episodes}")
-    if not 0 <= args.seed <= 2**32 - args.episodes:
-        parser.error(f"--seed must be in [0, 2**32 - --episodes] (episode k starts from seed + k), got {args.seed}")
+    check_start_seeds(parser, args.seed, args.episodes)
     if args.table is not None and args.table.is_dir():  # refused before the driving, not after it
         parser.error(f"--table {args.table} is a folder; give a file name (e.g. {args.table / 'driving.csv'})")
     from engine import numerics

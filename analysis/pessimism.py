@@ -228,13 +228,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--delta", type=float, default=0.1, help="the throttle change of --compare slower/faster "
                                                                    "(default 0.1)")
     args = parser.parse_args(argv)
-    from engine.processes import check_outputs
+    from engine.processes import check_outputs, check_start_seeds
 
     check_outputs(parser, reads=args.paths, table=args.table)
     if not 1 <= args.episodes <= 100:
         parser.error(f"--episodes must be in [1, 100], got {args.episodes}")
-    if not 0 <= args.seed <= 2**32 - args.episodes:
-        parser.error(f"--seed must be in [0, 2**32 - --episodes] (episode k starts from seed + k), got {args.seed}")
+    check_start_seeds(parser, args.seed, args.episodes)
     if not 1 <= args.horizon < 200:
         parser.error(f"--horizon must be in [1, 200) steps, got {args.horizon}")
     if args.line == "policy" and args.compare == "oracle":
@@ -243,7 +242,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--delta must be a throttle change in (0, 2], got {args.delta}")
     from engine import numerics
     from engine.outputs import RunFolderError
-    from engine.rundir import find_runs, runs_numerics
+    from engine.rundir import distinct_runs, find_runs, runs_numerics
 
     try:
         runs = find_runs(args.paths)
@@ -251,11 +250,8 @@ def main(argv: list[str] | None = None) -> int:
     except (RunFolderError, numerics.NumericsError) as err:
         print(f"pessimism: {err}", file=sys.stderr)
         return 2
-    rows, skipped, seen = [], 0, set()
-    for run in runs:  # a run this analysis cannot read is named and skipped; the others are measured
-        if Path(run).resolve() in seen:
-            continue
-        seen.add(Path(run).resolve())
+    rows, skipped = [], 0
+    for run in distinct_runs(runs):  # a run this analysis cannot read is named and skipped; the others are measured
         try:
             rows.append(measure(run, args.episodes, args.seed, args.horizon, args.line, args.compare, args.delta))
         except RunFolderError as err:

@@ -425,15 +425,14 @@ def main(argv: list[str] | None = None) -> int:
                              "(default 1.0)")
     parser.add_argument("--summary", type=Path, default=None, help="also write the summary (per variant and group) as CSV")
     args = parser.parse_args(argv)
-    from engine.processes import check_outputs
+    from engine.processes import check_outputs, check_start_seeds
 
     check_outputs(parser, reads=args.paths, table=args.table, summary=args.summary)
     if not 0 <= args.crashing <= 1_000_000:  # also refuses nan
         parser.error(f"--crashing must be crashes an episode in [0, 1000000], got {args.crashing}")
     if not 1 <= args.episodes <= 1000:
         parser.error(f"--episodes must be in [1, 1000], got {args.episodes}")
-    if not 0 <= args.seed <= 2**32 - args.episodes:
-        parser.error(f"--seed must be in [0, 2**32 - --episodes] (episode k starts from seed + k), got {args.seed}")
+    check_start_seeds(parser, args.seed, args.episodes)
     if not 1 <= args.processes <= 64:
         parser.error(f"--processes must be in [1, 64], got {args.processes}")
     if args.table is not None and args.summary is not None and args.table.resolve() == args.summary.resolve():
@@ -450,14 +449,10 @@ def main(argv: list[str] | None = None) -> int:
     from engine import numerics
     from engine.outputs import RunFolderError
     from engine.processes import spawn_context
-    from engine.rundir import find_runs, runs_numerics
+    from engine.rundir import distinct_runs, find_runs, runs_numerics
 
     try:
-        found_runs, seen = [], set()
-        for run in find_runs(args.paths):  # a run named twice (or through a link) drives once, named as first given
-            if Path(run).resolve() not in seen:
-                seen.add(Path(run).resolve())
-                found_runs.append(Path(run))
+        found_runs = distinct_runs(find_runs(args.paths))  # a run named twice (or through a link) drives once
         numerics.apply(runs_numerics(found_runs))  # before torch loads: the runs' own numerics
         runs, skipped = [], 0
         for run in found_runs:  # every run and variant checked before any driving; a run it cannot read is skipped

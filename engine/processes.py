@@ -123,6 +123,13 @@ def interrupt(number: int, frame) -> None:
         raise KeyboardInterrupt(signal.Signals(number).name)
 
 
+def check_start_seeds(parser, seed: int, episodes: int) -> None:
+    """``parser.error`` in one line unless every episode's start seed, ``seed + k`` for k < ``episodes``, is a seed
+    (in [0, 2**32)); ``episodes`` at least 1, checked before."""
+    if not 0 <= seed <= 2**32 - episodes:
+        parser.error(f"--seed must be in [0, 2**32 - --episodes] (episode k starts from seed + k), got {seed}")
+
+
 def check_outputs(parser, reads=(), **outputs) -> None:
     """Before a tool's work: each output file its command line names (``table=args.table``, ...) can
     be written (``door.files.check_target``) and lies outside every run folder (``engine.rundir.run_folder_of``:

@@ -419,6 +419,17 @@ def files_read(paths) -> dict[str, str]:
     return found
 
 
+def distinct_runs(runs) -> list[Path]:
+    """``runs`` with each run once (by its resolved path: a run named twice, or through a link, counts once), under
+    the name it was first given, in order."""
+    out, seen = [], set()
+    for run in runs:
+        if Path(run).resolve() not in seen:
+            seen.add(Path(run).resolve())
+            out.append(Path(run))
+    return out
+
+
 def find_runs(paths: list[Path]) -> list[Path]:
     """The run folders named by ``paths``: each one itself if it holds summary.json, else every
     folder below it that holds one (sorted)."""
