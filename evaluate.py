@@ -34,7 +34,8 @@ from pathlib import Path
 
 from engine import numerics
 from engine.outputs import RunFolderError
-from engine.rundir import find_runs, runs_numerics  # noqa: F401 (evaluate.find_runs: the tools' own)
+from engine.rundir import runs_numerics
+from engine.runset import read_runs
 from racing.track_file import add_track_options
 
 
@@ -95,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     if agents and args.video is not None and len(agents) == len(args.paths) == 1:
         return _film_agent(str(agents[0]), args)  # any agent filmed: the oracle, a driver, a model.zip, ...
     try:
-        runs = find_runs(args.paths)
+        runs = read_runs(args.paths, say="evaluate").runs
         numerics.apply(args.numerics or runs_numerics(runs, "--numerics"))  # before torch loads
     except (RunFolderError, numerics.NumericsError) as err:
         print(f"evaluate: {err}", file=sys.stderr)

@@ -45,7 +45,7 @@ from pathlib import Path
 from engine import numerics
 from door import files
 from analysis.beyond import beyond_markdown, generalisation_markdown
-from analysis.report import (cells, code_versions, collapse_markdown, conclusions_markdown, copies, find_runs,
+from analysis.report import (cells, code_versions, collapse_markdown, conclusions_markdown, find_runs,
                              normalised_markdown, numerics_groups, read_oracle, read_paper_table, table_markdown,
                              versions_markdown, write_runs_csv, write_table_csv)
 
@@ -60,17 +60,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="report runs made under different numerics (modes or kernels) together")
     args = parser.parse_args(argv)
     try:
-        runs = find_runs(args.sweep_dir)
+        runs = find_runs(args.sweep_dir, say="report")  # each run once: a copy or link named, not counted
     except FileNotFoundError as err:
         print(f"report: {err}", file=sys.stderr)
-        return 2
-    twins = copies(runs)
-    if twins:
-        print(f"report: {args.sweep_dir} holds {len(twins)} run(s) in more than one folder (the same recorded "
-              "algorithm, replay mode, seed and settings: a copy, or the same run made twice), which would "
-              "count again; keep one of each:", file=sys.stderr)
-        for group in twins:
-            print("  " + ", ".join(str(run.path) for run in group), file=sys.stderr)
         return 2
     versions = code_versions(runs)
     if len(versions) > 1 and not args.allow_mixed_versions:

@@ -101,10 +101,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--last must be in [1, 10,000], got {args.last}")
     from analysis.report import read_oracles
     from engine.outputs import RunFolderError
-    from engine.rundir import find_runs
+    from engine.runset import read_runs
 
     try:
-        rows = run_rows(find_runs(args.paths), read_oracles(), args.last)
+        rows = run_rows(read_runs(args.paths, say="caution").runs, read_oracles(), args.last)
     except (RunFolderError, ValueError) as err:
         print(f"caution: {err}", file=sys.stderr)
         return 2

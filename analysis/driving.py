@@ -63,11 +63,10 @@ def driving_rows(runs: list[Path], episodes: int, seed: int = 0, oracle: bool = 
     """A row per run (its policy on its own track; with ``full_throttle_above``, a second row with its
     throttles at or above it made full), and per track the oracle's on the same episodes."""
     from engine.evaluation import load_policy, make_env, own_track
-    from engine.rundir import distinct_runs
     from racing.oracle import Oracle
 
     rows, oracle_done = [], set()
-    for run in distinct_runs(runs):  # a run named twice drives once (named as first given)
+    for run in runs:
         policy, settings = load_policy(run)
         track = own_track(settings)
         env = make_env(settings, track)
@@ -115,10 +114,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--table {args.table} is a folder; give a file name (e.g. {args.table / 'driving.csv'})")
     from engine import numerics
     from engine.outputs import RunFolderError
-    from engine.rundir import find_runs, runs_numerics
+    from engine.rundir import runs_numerics
+    from engine.runset import read_runs
 
     try:
-        runs = find_runs(args.paths)
+        runs = read_runs(args.paths, say="driving").runs  # each run once
         numerics.apply(runs_numerics(runs))  # before torch loads: the runs' own numerics
         rows = driving_rows(runs, args.episodes, args.seed, oracle=not args.no_oracle,
                             full_throttle_above=args.full_throttle_above)

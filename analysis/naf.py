@@ -19,15 +19,6 @@ from pathlib import Path
 import numpy as np
 
 
-def run_folders(paths: list[Path]) -> list[Path]:
-    """The run folders among ``paths``: each path itself, or its ``seed*`` members."""
-    found = []
-    for path in paths:
-        members = sorted(p for p in path.glob("seed*") if (p / "summary.json").exists())
-        found.extend(members if members and not (path / "summary.json").exists() else [path])
-    return found
-
-
 def curvature(run: Path) -> dict[str, float]:
     """The figures of the module docstring for one finished NAF run."""
     import torch
@@ -96,9 +87,10 @@ def main(argv: list[str] | None = None) -> int:
     from engine import numerics
     from engine.outputs import RunFolderError
     from engine.rundir import runs_numerics
+    from engine.runset import read_runs
 
-    runs = run_folders(args.runs)
     try:
+        runs = read_runs(args.runs, say="naf").runs  # each path a run, or the runs below it (a population's members)
         numerics.apply(runs_numerics(runs))  # before torch loads: the runs' own numerics
     except (RunFolderError, numerics.NumericsError) as err:
         print(f"naf: {err}", file=sys.stderr)

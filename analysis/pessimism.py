@@ -242,16 +242,17 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--delta must be a throttle change in (0, 2], got {args.delta}")
     from engine import numerics
     from engine.outputs import RunFolderError
-    from engine.rundir import distinct_runs, find_runs, runs_numerics
+    from engine.rundir import runs_numerics
+    from engine.runset import read_runs
 
     try:
-        runs = find_runs(args.paths)
+        runs = read_runs(args.paths, say="pessimism").runs  # each run once (links, copies)
         numerics.apply(runs_numerics(runs))  # before torch loads: the runs' own numerics
     except (RunFolderError, numerics.NumericsError) as err:
         print(f"pessimism: {err}", file=sys.stderr)
         return 2
     rows, skipped = [], 0
-    for run in distinct_runs(runs):  # a run this analysis cannot read is named and skipped; the others are measured
+    for run in runs:  # a run this analysis cannot read is named and skipped; the others are measured
         try:
             rows.append(measure(run, args.episodes, args.seed, args.horizon, args.line, args.compare, args.delta))
         except RunFolderError as err:

@@ -449,10 +449,11 @@ def main(argv: list[str] | None = None) -> int:
     from engine import numerics
     from engine.outputs import RunFolderError
     from engine.processes import spawn_context
-    from engine.rundir import distinct_runs, find_runs, runs_numerics
+    from engine.rundir import runs_numerics
+    from engine.runset import read_runs
 
     try:
-        found_runs = distinct_runs(find_runs(args.paths))  # a run named twice (or through a link) drives once
+        found_runs = read_runs(args.paths, say="planner").runs  # each run once (named twice, a link, a copy)
         numerics.apply(runs_numerics(found_runs))  # before torch loads: the runs' own numerics
         runs, skipped = [], 0
         for run in found_runs:  # every run and variant checked before any driving; a run it cannot read is skipped

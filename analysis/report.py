@@ -9,16 +9,14 @@ the reason, never counted.
 from __future__ import annotations
 
 import csv
-import hashlib
 import io
-import json
 import math
 import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from engine.config import algo_learners, algo_titles
-from engine.outputs import METRICS_FILE, ROWS_LIMIT, SUMMARY_FILE
+from engine.outputs import METRICS_FILE, ROWS_LIMIT, SUMMARY_FILE, RunFolderError
 from door import files
 
 PAPER_TABLE = Path(__file__).resolve().parent / "data" / "paper_table1.csv"
@@ -55,7 +53,6 @@ class Run:
     problem: str | None = None  # a damaged run's: which file, and what is wrong with it
     sealed: bool = True  # its summary carries its own digest (False: written before summaries were sealed)
     budget: int | None = None  # the episodes it was planned for (summary.json's episodes_planned): its training budget
-    identity: str | None = None  # what the run is, as it recorded it (algo, er, seed, settings): copies share it
 
     @property
     def version(self) -> str:
@@ -128,19 +125,21 @@ def _finished_by(runs: list[Run], key) -> dict[str, list[Run]]:
     return groups
 
 
-def find_runs(sweep_dir: Path) -> list[Run]:
-    """Every run folder under ``sweep_dir`` (any depth), finished or not."""
+def find_runs(sweep_dir: Path, say: str | None = None) -> list[Run]:
+    """Every run folder under ``sweep_dir`` (any depth), finished or not, each run once
+    (``engine.runset.read_runs``: links and copies counted once; ``say``: the tool that names them)."""
+    from engine.runset import read_runs
+
     sweep_dir = Path(sweep_dir)
     if not sweep_dir.is_dir():
         raise FileNotFoundError(f"{sweep_dir} is not a folder; give the sweep's output folder "
                                 "(e.g. outputs/sweeps/paper_grid)")
-    folders = sorted({p.parent for p in files.find(sweep_dir, METRICS_FILE)}
-                     | {p.parent for p in files.find(sweep_dir, SUMMARY_FILE)})  # links never followed
-    folders = [f for f in folders if "report" not in f.relative_to(sweep_dir).parts]
-    if not folders:
+    try:
+        found = read_runs([sweep_dir], unfinished=True, skip_named="report", say=say)
+    except RunFolderError:
         raise FileNotFoundError(f"no runs under {sweep_dir}: expected folders with {SUMMARY_FILE} and "
-                                f"{METRICS_FILE}, as train.py writes them")
-    return [read_run(folder) for folder in folders]
+                                f"{METRICS_FILE}, as train.py writes them") from None
+    return [read_run(folder) for folder in found.runs]
 
 
 def read_run(folder: Path) -> Run:
@@ -164,8 +163,6 @@ def read_run(folder: Path) -> Run:
         mislabelled = _mislabelled(summary["algo"], algo_settings.get("loss") if isinstance(algo_settings, dict) else None)
         if mislabelled:
             return Run(folder, "damaged", rewards=rewards, problem=f"{folder / SUMMARY_FILE}: {mislabelled}")
-        identity = hashlib.sha256(json.dumps({key: summary.get(key) for key in ("algo", "er", "seed")} |
-                                             {"settings": settings}, sort_keys=True, default=str).encode()).hexdigest()
         size = (summary.get("population") or {}).get("size") or 1
         wall = summary.get("wall_time_s")
         if summary.get("resumed_at") and (wall is None or "wall_time_session_s" not in summary):
@@ -178,8 +175,7 @@ def read_run(folder: Path) -> Run:
                    wall / size if wall is not None else None, numerics_label(summary),
                    int(((settings.get("env") or {}).get("options") or {}).get("max_steps") or EPISODE_STEPS),
                    summary["cpu_time_s"] / size if summary.get("cpu_time_s") is not None else None,
-                   sealed=DIGEST_KEY in summary, budget=rundir.training_budget(summary),
-                   identity=identity)
+                   sealed=DIGEST_KEY in summary, budget=rundir.training_budget(summary))
     except (KeyError, TypeError, ValueError, AttributeError) as err:
         return Run(folder, "damaged", rewards=rewards, problem=f"{folder / SUMMARY_FILE}: a field is malformed ({err!r})")
 
@@ -193,16 +189,6 @@ def _mislabelled(name: str, learner: str | None) -> str | None:
         return None
     return (f"its name says {name} (conf/algo/{name}.yaml trains {declared}), but it recorded training {learner} "
             "(settings.algo.loss): give such a run a name of its own (algo.name=...)")
-
-
-def copies(runs: list[Run]) -> list[list[Run]]:
-    """Groups of two or more finished runs that are one run (the same recorded algorithm, replay mode, seed
-    and settings): a copy of a folder (a backup beside it) or the same run made twice; each would count again."""
-    groups: dict[str, list[Run]] = {}
-    for run in runs:
-        if run.status in ("completed", "diverged") and run.identity is not None:
-            groups.setdefault(run.identity, []).append(run)
-    return [group for group in groups.values() if len(group) > 1]
 
 
 def code_versions(runs: list[Run]) -> dict[str, list[Run]]:

@@ -78,11 +78,12 @@ def main(argv: list[str] | None = None) -> int:
     check_output_folder(parser, "--out", args.out)
     if args.scores:
         return _from_scores(args.scores, args.out)
-    from engine.rundir import find_runs, runs_numerics
+    from engine.rundir import runs_numerics
+    from engine.runset import read_runs
     from engine.outputs import RunFolderError
 
     try:
-        runs = find_runs(args.sweeps)
+        runs = read_runs(args.sweeps, say="leaderboard").runs  # each run once (links, copies)
         numerics.apply(_numerics(runs, runs_numerics))  # before torch loads
     except (RunFolderError, numerics.NumericsError) as err:
         print(f"leaderboard: {err}", file=sys.stderr)

@@ -235,21 +235,55 @@ def is_folder(path) -> bool:
         return False
 
 
+def walk(top, topdown: bool = True, onerror=None):
+    """``os.walk(top, followlinks=False)`` without recursion: (folder, its folders, its other names) for
+    every folder at or below ``top``, sorted, at any depth (``os.walk`` of Python 3.11 recurses and a chain of
+    1,500 folders ends it in a ``RecursionError``). A link is listed, never entered (a loop cannot hang it).
+    A folder that cannot be listed is passed to ``onerror`` (an ``OSError``) and skipped. ``topdown``: a
+    folder before those below it (its folder list may be pruned in place); else after them. The one walk
+    of the project: every walk over a user's folders is this one."""
+    stack: list = [(os.fspath(top), False)]
+    while stack:
+        here, done = stack.pop()
+        if done:
+            yield here[0], here[1], here[2]
+            continue
+        try:
+            with os.scandir(here) as entries:
+                folders, names = [], []
+                for entry in entries:
+                    try:
+                        is_dir = entry.is_dir(follow_symlinks=False)
+                    except OSError:
+                        is_dir = False
+                    (folders if is_dir else names).append(entry.name)
+        except OSError as err:
+            if onerror is not None:
+                onerror(err)
+            continue
+        folders.sort()
+        names.sort()
+        if topdown:
+            yield here, folders, names
+            stack.extend((os.path.join(here, name), False) for name in reversed(folders))
+        else:
+            stack.append(((here, folders, names), True))
+            stack.extend((os.path.join(here, name), False) for name in reversed(folders))
+
+
 def tree(root) -> list[Path]:
     """Every regular file at or below the folder ``root`` (sorted), links never followed."""
     found = []
-    for folder, folders, names in os.walk(root, followlinks=False):
-        folders.sort()
+    for folder, folders, names in walk(root):
         found += [Path(folder) / entry for entry in names if is_file(Path(folder) / entry)]
     return sorted(found)
 
 
-def find(root, name: str) -> list[Path]:
+def find(root, name: str, onerror=None) -> list[Path]:
     """Every file called ``name`` at or below the folder ``root`` (sorted), links never followed
-    (a link loop cannot hang it)."""
+    (a link loop cannot hang it), at any depth (``walk``)."""
     found = []
-    for folder, folders, names in os.walk(root, followlinks=False):
-        folders.sort()
+    for folder, folders, names in walk(root, onerror=onerror):
         if name in names:
             found.append(Path(folder) / name)
     return sorted(found)
@@ -365,7 +399,7 @@ def check_tree(top) -> None:
     if not os.path.lexists(top):
         return
     folder(top)
-    for here, folders, names in os.walk(top, followlinks=False):
+    for here, folders, names in walk(top):
         for entry in [*folders, *names]:
             path = Path(here) / entry
             info = os.lstat(path)
@@ -564,7 +598,7 @@ def remove_tree(top) -> None:
     if not os.path.lexists(top):
         return
     check_tree(top)
-    for here, folders, names in os.walk(top, topdown=False, followlinks=False):
+    for here, folders, names in walk(top, topdown=False):
         for entry in names:
             remove(Path(here) / entry)
         for entry in folders:

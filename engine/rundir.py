@@ -419,31 +419,6 @@ def files_read(paths) -> dict[str, str]:
     return found
 
 
-def distinct_runs(runs) -> list[Path]:
-    """``runs`` with each run once (by its resolved path: a run named twice, or through a link, counts once), under
-    the name it was first given, in order."""
-    out, seen = [], set()
-    for run in runs:
-        if Path(run).resolve() not in seen:
-            seen.add(Path(run).resolve())
-            out.append(Path(run))
-    return out
-
-
-def find_runs(paths: list[Path]) -> list[Path]:
-    """The run folders named by ``paths``: each one itself if it holds summary.json, else every
-    folder below it that holds one (sorted)."""
-    runs: list[Path] = []
-    for path in paths:
-        if not path.is_dir():
-            raise RunFolderError(f"{path} is not a folder")
-        found = [path] if os.path.lexists(path / "summary.json") else [p.parent for p in files.find(path, "summary.json")]
-        if not found:
-            raise RunFolderError(f"{path} holds no finished train.py run (no summary.json in it or below it)")
-        runs.extend(found)
-    return runs
-
-
 def runs_numerics(runs: list[Path], choose: str | None = None) -> str:
     """The numerics mode the finished runs were trained in (runs from before the modes: native;
     damaged runs are skipped later, with their reason). ``choose``: the tool's option that picks a mode

@@ -305,17 +305,19 @@ def main(argv: list[str] | None = None) -> int:
     from engine import numerics
     from engine.outputs import RunFolderError, read_summary
     from engine.processes import spawn_context
-    from engine.rundir import find_runs, runs_numerics
+    from engine.rundir import runs_numerics
+    from engine.runset import read_runs
 
     try:
-        numerics.apply(runs_numerics(find_runs(args.runs)))  # before torch loads: the runs' own numerics
+        runs = read_runs(args.runs, say="search").runs  # each run once (named twice, a link, a copy)
+        numerics.apply(runs_numerics(runs))  # before torch loads: the runs' own numerics
     except (RunFolderError, numerics.NumericsError) as err:
         print(f"search: {err}", file=sys.stderr)
         return 2
     from analysis.report import read_oracles
 
     tracks = {}
-    for run in args.runs:  # each track's result is one row and one policy-<track>.pt
+    for run in runs:  # each track's result is one row and one policy-<track>.pt
         try:
             summary = read_summary(run) or {}
         except RunFolderError:
@@ -327,10 +329,10 @@ def main(argv: list[str] | None = None) -> int:
         tracks[summary.get("seed")] = run
     try:
         if args.processes == 1:
-            results = [_search_run(run, settings) for run in args.runs]
+            results = [_search_run(run, settings) for run in runs]
         else:
             with ProcessPoolExecutor(args.processes, mp_context=spawn_context()) as pool:
-                results = list(pool.map(_one, [(run, settings, numerics.applied()) for run in args.runs]))
+                results = list(pool.map(_one, [(run, settings, numerics.applied()) for run in runs]))
     except (RunFolderError, ValueError) as err:
         print(f"search: {err}", file=sys.stderr)
         return 2

@@ -366,8 +366,8 @@ def try_record(trial: Trial, rng: random.Random, folder: Path) -> tuple[str, str
 
 def try_copy(trial: Trial, rng: random.Random, folder: Path) -> tuple[str, str]:
     """A finished run's folder copied beside it, or into another folder of the sweep (a backup): the report
-    counts it once, refusing the sweep with both folders named, not as two runs."""
-    from analysis.report import copies, find_runs
+    counts it once and names the copy in one line (engine.runset), not as two runs."""
+    from engine.runset import read_runs
 
     sweep = folder / "sweep"
     original = sweep / "spg" / "recent" / "seed2067791"
@@ -376,11 +376,10 @@ def try_copy(trial: Trial, rng: random.Random, folder: Path) -> tuple[str, str]:
     copy = original.parent / name
     shutil.copytree(trial.reference, copy, symlinks=True)
     label = f"copy {name}"
-    groups = copies(find_runs(sweep))
-    found = [{os.path.abspath(run.path) for run in group} for group in groups]
-    if found == [{os.path.abspath(original), os.path.abspath(copy)}]:
+    found = read_runs([sweep])
+    if len(found.runs) == 1 and len(found.notes) == 1 and "counted once" in found.notes[0]:
         return "refused", label
-    return "misreported", f"{label}: copies found {found}"
+    return "misreported", f"{label}: runs {found.runs}, notes {found.notes}"
 
 
 def flip(path: Path, rng: random.Random) -> str:

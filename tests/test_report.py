@@ -452,21 +452,20 @@ def test_no_verdict_on_fewer_than_four_tracks(tmp_path):
     assert "| +10.0 [+10.0, +10.0] higher |" in beyond_markdown(find_runs(tmp_path))
 
 
-def test_a_copied_run_is_refused_naming_both_folders(tmp_path, capsys):
+def test_a_copied_run_counts_once_and_is_named(tmp_path, capsys):
     """On 258b7c4 a finished run copied beside itself in a sweep (a backup) was counted again: "-18.3 ± 0.0
-    (n=3)". One run is one run, however many folders hold it: by what it recorded, never by its folder."""
+    (n=3)". One run is one run, however many folders hold it (engine.runset, tested hard in test_runset.py)."""
     import shutil
 
     original = fake_run(tmp_path, "spg", "recent", 1, 90.0)
     fake_run(tmp_path, "spg", "recent", 2, 100.0)
     backup = tmp_path / "backup" / "spg" / "recent" / "seed1"
     shutil.copytree(original, backup)
-    assert report.main([str(tmp_path), "--no-figures"]) == 2
-    err = capsys.readouterr().err
-    assert "1 run(s) in more than one folder" in err and str(original) in err and str(backup) in err
-    assert not (tmp_path / "report").exists()
-    shutil.rmtree(tmp_path / "backup")
     assert report.main([str(tmp_path), "--no-figures"]) == 0
+    err = capsys.readouterr().err
+    assert f"report: {original} holds the same run as {backup}" in err or \
+        f"report: {backup} holds the same run as {original}" in err, err
+    assert (tmp_path / "report" / "runs.csv").read_text().count("seed1") == 1
 
 
 def test_a_run_named_as_another_algorithm_stays_out_of_its_cell(tmp_path, capsys):
