@@ -17,20 +17,16 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import sys
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from engine import numerics
 from engine.outputs import RunFolderError
-from engine.processes import exit_with_parent, spawn_context
+from engine.pool import run_jobs
 from external.sb3 import ALGOS, BaselineError, run_folder, settings_of, train
 
 
-def _train(args: tuple, worker: bool = True) -> dict:
-    algo, seed, episodes, out, window, mode, random_tracks = args
-    if worker:
-        exit_with_parent()
-    return train(algo, seed, episodes, out, window, mode, random_tracks)
+def _train(args: tuple) -> dict:
+    return train(*args)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -65,11 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     work = [(algo, seed, args.episodes, args.out, args.final_window, args.numerics, args.random_tracks)
             for algo in args.algos for seed in args.tracks]
     try:
-        if args.jobs == 1:
-            summaries = [_train(item, worker=False) for item in work]
-        else:
-            with ProcessPoolExecutor(args.jobs, mp_context=spawn_context()) as pool:
-                summaries = list(pool.map(_train, work))
+        summaries = run_jobs(_train, work, args.jobs, args.numerics)
     except (BaselineError, RunFolderError) as err:  # a damaged or busy folder, a run of other settings
         print(f"Refusing to run: {err}", file=sys.stderr)
         return 2

@@ -23,7 +23,6 @@ actions can be fitted when nothing is hidden.
 from __future__ import annotations
 
 import argparse
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from engine import numerics
@@ -31,10 +30,6 @@ from engine import numerics
 
 def _one(args: tuple):
     track, settings = args
-    from engine.processes import exit_with_parent
-
-    exit_with_parent()
-    numerics.apply(numerics.DEFAULT)  # before torch loads; one thread
     from pupil.dagger import dagger
 
     return dagger(track, settings)
@@ -68,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     numerics.apply(numerics.DEFAULT)
     from analysis.report import read_oracles
     from pupil.dagger import DaggerSettings, mean
-    from engine.processes import spawn_context
+    from engine.pool import run_jobs
 
     try:
         settings = DaggerSettings(rounds=args.rounds, episodes=args.episodes, hidden=tuple(args.hidden),
@@ -78,11 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as err:
         parser.error(str(err))
     work = [(track, settings) for track in args.tracks]
-    if args.processes == 1:
-        results = [_one(item) for item in work]
-    else:
-        with ProcessPoolExecutor(min(args.processes, len(work)), mp_context=spawn_context()) as pool:
-            results = list(pool.map(_one, work))
+    results = run_jobs(_one, work, args.processes, numerics.DEFAULT)  # before torch loads; one thread
     oracle = read_oracles()
     missing = [t for t in args.tracks if t not in oracle]
     if missing:

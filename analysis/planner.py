@@ -402,13 +402,7 @@ def run_rows(run: Path, variants: list[str], episodes: int, seed: int) -> list[d
 
 
 def _one(args: tuple) -> list[dict]:
-    run, variants, episodes, seed, mode = args
-    from engine import numerics
-    from engine.processes import exit_with_parent
-
-    exit_with_parent()
-    numerics.apply(mode)
-    return run_rows(run, variants, episodes, seed)
+    return run_rows(*args)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -444,11 +438,9 @@ def main(argv: list[str] | None = None) -> int:
             parse_variant(text)
         except VariantError as err:
             parser.error(str(err))
-    from concurrent.futures import ProcessPoolExecutor
-
     from engine import numerics
     from engine.outputs import RunFolderError
-    from engine.processes import spawn_context
+    from engine.pool import run_jobs
     from engine.rundir import runs_numerics
     from engine.runset import read_runs
 
@@ -465,12 +457,8 @@ def main(argv: list[str] | None = None) -> int:
                 skipped += 1
         if not runs:
             return 2
-        jobs = [(run, args.variant, args.episodes, args.seed, numerics.applied()) for run in runs]
-        if args.processes == 1 or len(runs) == 1:
-            found = [run_rows(*job[:4]) for job in jobs]
-        else:
-            with ProcessPoolExecutor(min(args.processes, len(runs)), mp_context=spawn_context()) as pool:
-                found = list(pool.map(_one, jobs))
+        jobs = [(run, args.variant, args.episodes, args.seed) for run in runs]
+        found = run_jobs(_one, jobs, args.processes, numerics.applied())
     except (RunFolderError, VariantError, numerics.NumericsError) as err:
         print(f"planner: {err}", file=sys.stderr)
         return 2

@@ -87,7 +87,8 @@ def read_runs(paths, *, unfinished: bool = False, skip_named: str | None = None,
             raise RunFolderError(f"{path} is not a folder; give a run's folder or a sweep's")
         found = _folders(path, unfinished, skip_named, notes)
         if not found:
-            raise RunFolderError(f"{path} holds no train.py run (no {SUMMARY_FILE} in it or below it)")
+            raise RunFolderError(f"{path} holds no {'' if unfinished else 'finished '}train.py run (no "
+                                 f"{SUMMARY_FILE}{'' if not unfinished else ' or ' + METRICS_FILE} in it or below it)")
         for folder in found:
             real = os.path.realpath(folder)
             if real in seen_paths:

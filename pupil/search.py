@@ -215,13 +215,7 @@ def search(track: int, state: dict[str, torch.Tensor], gaussian: bool, settings:
 
 
 def _one(args: tuple) -> SearchResult:
-    folder, settings, mode = args
-    from engine import numerics
-    from engine.processes import exit_with_parent
-
-    exit_with_parent()
-    numerics.apply(mode)
-    return _search_run(folder, settings)
+    return _search_run(*args)
 
 
 def _search_run(folder: Path, settings: SearchSettings) -> SearchResult:
@@ -300,11 +294,9 @@ def main(argv: list[str] | None = None) -> int:
         settings = SearchSettings(**{k: getattr(args, k) for k in SearchSettings.__dataclass_fields__})
     except ValueError as err:
         parser.error(str(err))
-    from concurrent.futures import ProcessPoolExecutor
-
     from engine import numerics
     from engine.outputs import RunFolderError, read_summary
-    from engine.processes import spawn_context
+    from engine.pool import run_jobs
     from engine.rundir import runs_numerics
     from engine.runset import read_runs
 
@@ -328,11 +320,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         tracks[summary.get("seed")] = run
     try:
-        if args.processes == 1:
-            results = [_search_run(run, settings) for run in runs]
-        else:
-            with ProcessPoolExecutor(args.processes, mp_context=spawn_context()) as pool:
-                results = list(pool.map(_one, [(run, settings, numerics.applied()) for run in runs]))
+        results = run_jobs(_one, [(run, settings) for run in runs], args.processes, numerics.applied())
     except (RunFolderError, ValueError) as err:
         print(f"search: {err}", file=sys.stderr)
         return 2

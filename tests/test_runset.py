@@ -57,7 +57,7 @@ def test_a_chain_of_folders_deeper_than_pythons_recursion_limit(tmp_path):
     for _ in range(1500):
         here = here / "d"
         here.mkdir()  # os.makedirs recurses too
-    with pytest.raises(RunFolderError, match="holds no train.py run"):
+    with pytest.raises(RunFolderError, match="holds no finished train.py run"):
         read_runs([tmp_path])
     run = fake_run(here, "spg", "memory", 1, 1.0)
     assert read_runs([tmp_path]).runs == [run]
@@ -81,7 +81,7 @@ def test_what_is_not_a_run_set_is_one_line(tmp_path):
     (tmp_path / "file").write_text("x")
     with pytest.raises(RunFolderError, match="is not a folder"):
         read_runs([tmp_path / "file"])
-    with pytest.raises(RunFolderError, match="holds no train.py run"):
+    with pytest.raises(RunFolderError, match="holds no finished train.py run"):
         read_runs([tmp_path])
 
 

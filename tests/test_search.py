@@ -87,10 +87,10 @@ def test_the_documented_search_runs_small_and_refuses_what_it_cannot_search(tmp_
     assert "cars at once, above 100,000" in capsys.readouterr().err
     assert es.main([str(tmp_path / "nowhere")]) == 2
     assert "search:" in capsys.readouterr().err
-    assert es.main([str(folder), str(folder), "--generations", "1"]) == 2  # one run a track: one row, one file
-    assert "search one run a track" in capsys.readouterr().err
     relu = tmp_path / "relu"
     train(relu, "algo=sac", *TINY, "episodes=2", f"seed={A}", "network.activation=relu")
+    assert es.main([str(folder), str(relu), "--generations", "1"]) == 2  # one run a track: one row, one file
+    assert "search one run a track" in capsys.readouterr().err
     assert es.main([str(relu), "--generations", "1"]) == 2
     assert "tanh hidden units" in capsys.readouterr().err
     random_track = tmp_path / "random"
