@@ -44,6 +44,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--random-tracks", action="store_true",
                         help="a new random track every episode (the benchmark's training; --tracks then only seed the runs)")
     args = parser.parse_args(argv)
+    from engine.tool_output import check_output_folder
+
+    check_output_folder(parser, "--out", args.out)  # its runs' folders go there: never inside another run's
     if importlib.util.find_spec("stable_baselines3") is None:
         print("baseline.py needs Stable-Baselines3: pip install -c constraints/cpu.txt -e '.[baselines]'",
               file=sys.stderr)

@@ -71,7 +71,8 @@ def main(argv: list[str] | None = None) -> int:
     for option, path in (("--table", args.table), ("--video", args.video)):
         if path is not None and path.is_dir():
             parser.error(f"{option} {path} is a folder; give a file name (e.g. {path / ('evaluation.csv' if option == '--table' else 'agent.gif')})")
-    from engine.processes import check_outputs, check_start_seeds  # before any episode: not after the work
+    from engine.processes import check_start_seeds
+    from engine.tool_output import check_outputs  # before any episode: not after the work
 
     check_start_seeds(parser, args.seed, args.episodes)
 

@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--processes", type=int, default=1)
     parser.add_argument("--table", type=Path, default=None)
     args = parser.parse_args(argv)
-    from engine.processes import check_outputs
+    from engine.tool_output import check_outputs
 
     check_outputs(parser, table=args.table)
 

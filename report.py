@@ -59,6 +59,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--allow-mixed-numerics", action="store_true",
                         help="report runs made under different numerics (modes or kernels) together")
     args = parser.parse_args(argv)
+    from engine.tool_output import check_output_folder
+
+    check_output_folder(parser, "sweep_dir", args.sweep_dir / "report")  # its outputs: never inside a run's folder
     try:
         runs = find_runs(args.sweep_dir, say="report")  # each run once: a copy or link named, not counted
     except FileNotFoundError as err:

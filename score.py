@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         video_track = None
     else:
         video_track = _track(parser, args.video_track, args.track_scale, args.track_closed)
-    from engine.processes import check_outputs  # before any episode: not after the work
+    from engine.tool_output import check_outputs  # before any episode: not after the work
 
     reads = [*args.agents, *(path for path in (args.laps_on, args.video_track) if path)]
     check_outputs(parser, reads=reads, table=None if args.table is None or args.table.is_dir() else args.table,

@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     export.add_argument("--seed", type=int, required=True, help="the track seed")
     export.add_argument("--out", type=Path, default=None, help="default: track_<seed>.csv")
     args = parser.parse_args(argv)
-    from engine.processes import check_outputs
+    from engine.tool_output import check_outputs
 
     check_outputs(parser, out=getattr(args, "out", None))
     if args.command == "show":

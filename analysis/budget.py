@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--window", type=int, default=20, help="episodes averaged (the runs' final_window)")
     parser.add_argument("--table", type=Path, default=None, help="write the rows as CSV")
     args = parser.parse_args(argv)
-    from engine.processes import check_outputs
+    from engine.tool_output import check_outputs
 
     check_outputs(parser, reads=args.folders, table=args.table)
 

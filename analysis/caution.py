@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--last", type=int, default=5, help="evaluations averaged into S_end (default 5)")
     parser.add_argument("--table", type=Path, default=None, help="also write the per-run rows as CSV")
     args = parser.parse_args(argv)
-    from engine.processes import check_outputs
+    from engine.tool_output import check_outputs
 
     check_outputs(parser, reads=args.paths, table=args.table)
     if not 1 <= args.last <= 10_000:

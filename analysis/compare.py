@@ -128,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cells", nargs=2, metavar=("NEW", "OLD"),
                         help="pair cell NEW of the new report with cell OLD of the old one by track (algo/er each)")
     args = parser.parse_args(argv)
-    from engine.processes import check_outputs
+    from engine.tool_output import check_outputs
 
     check_outputs(parser, reads=[args.new, args.old], markdown=args.markdown)
 

@@ -101,7 +101,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--full-throttle-above", type=float, default=None, metavar="T",
                         help="also drive each policy with its throttles >= T made full (a diagnostic)")
     args = parser.parse_args(argv)
-    from engine.processes import check_outputs, check_start_seeds
+    from engine.processes import check_start_seeds
+    from engine.tool_output import check_outputs
 
     check_outputs(parser, reads=args.paths, table=args.table)
 

@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--table", type=Path, default=None, help="write the rows as CSV")
     parser.add_argument("--running", action="store_true", help="leave out configurations still running")
     args = parser.parse_args(argv)
-    from engine.processes import check_outputs
+    from engine.tool_output import check_outputs
 
     check_outputs(parser, reads=[args.sweep], markdown=args.markdown, table=args.table)
 

@@ -228,7 +228,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--delta", type=float, default=0.1, help="the throttle change of --compare slower/faster "
                                                                    "(default 0.1)")
     args = parser.parse_args(argv)
-    from engine.processes import check_outputs, check_start_seeds
+    from engine.processes import check_start_seeds
+    from engine.tool_output import check_outputs
 
     check_outputs(parser, reads=args.paths, table=args.table)
     if not 1 <= args.episodes <= 100:

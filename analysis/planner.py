@@ -419,7 +419,8 @@ def main(argv: list[str] | None = None) -> int:
                              "(default 1.0)")
     parser.add_argument("--summary", type=Path, default=None, help="also write the summary (per variant and group) as CSV")
     args = parser.parse_args(argv)
-    from engine.processes import check_outputs, check_start_seeds
+    from engine.processes import check_start_seeds
+    from engine.tool_output import check_outputs
 
     check_outputs(parser, reads=args.paths, table=args.table, summary=args.summary)
     if not 0 <= args.crashing <= 1_000_000:  # also refuses nan

@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if bool(args.sweeps) == bool(args.scores):
         parser.error("give sweep folders to score, or --scores with runs.csv files, not both")
-    from engine.processes import check_output_folder
+    from engine.tool_output import check_output_folder
 
     check_output_folder(parser, "--out", args.out)
     if args.scores:

@@ -30,6 +30,10 @@ Its rules, each tested once here for every caller (``tests/test_files.py``):
    descriptor whose bytes matched the SHA-256 recorded when it was built; a folder whose files
    another program loads as code (TorchInductor's cache) is ``private``: this user's, not a link,
    mode 0700.
+9. **A tool writes only where its outputs may go.** A command that is a tool (not a run's writer) sets a
+   guard (``guard_writes``, set by ``engine.processes.run_tool`` for every tool) that every write,
+   append, new folder and deletion asks first; while it is set, the files read are remembered
+   (``was_read``) so that the guard can refuse an output over one of them.
 
 Every refusal is ``FileRefused`` (a ``ValueError``), one sentence naming the path and the reason;
 a full disk is ``DiskFull``; a missing file stays ``FileNotFoundError``; any other error of the
@@ -125,8 +129,42 @@ def _refusal(path, err: OSError, verb: str, follow: bool = False) -> Exception:
     return FileRefused(f"cannot {verb} {path}: {reason}")
 
 
+_guard = None  # rule 9: callable(path, replaces: bool) -> why this process may not write there, or None
+_read: set[str] = set()  # the real paths of the files read while a guard is set
+
+
+def guard_writes(check) -> None:
+    """Rule 9: from now on every write, append, new folder or deletion asks ``check(path, replaces)`` (``replaces``:
+    the path's content is replaced or appended to, not deleted or made) and is refused with its answer if it gives
+    one; ``None`` lifts the guard."""
+    global _guard
+    _guard = check
+    _read.clear()
+
+
+def guarded() -> bool:
+    """Whether a guard is set (a tool's process)."""
+    return _guard is not None
+
+
+def was_read(path) -> bool:
+    """Whether the file at ``path`` (by its real path) was read by this process while a guard was set."""
+    return os.path.realpath(path) in _read
+
+
+def _ask(path, replaces: bool = True) -> None:
+    if _guard is not None:
+        problem = _guard(Path(path), replaces)
+        if problem:
+            raise FileRefused(problem)
+
+
 def _open(path, flags: int, verb: str, follow: bool = False, single_link: bool = False, mode: int = 0o644):
     """``(fd, stat)`` of a regular file opened with the door's flags (rule 1, and rule 2 if ``single_link``)."""
+    if flags & (os.O_WRONLY | os.O_RDWR | os.O_APPEND | os.O_CREAT):
+        _ask(path)
+    elif _guard is not None:
+        _read.add(os.path.realpath(path))
     try:
         fd = os.open(path, flags | _NONBLOCK | _CLOEXEC | (0 if follow else _NOFOLLOW), mode)
     except OSError as err:
@@ -314,6 +352,10 @@ def folder(path, root=None, create: bool = False) -> Path:
         raise FileRefused(f"{given} is not inside {root}") from None
     if create and not root.exists():
         try:
+            missing = root
+            while not os.path.lexists(missing.parent) and missing.parent != missing:
+                missing = missing.parent
+            _ask(missing, replaces=False)
             root.mkdir(parents=True, exist_ok=True)
         except OSError as err:
             raise _refusal(root, err, "make the folder") from None
@@ -325,6 +367,7 @@ def folder(path, root=None, create: bool = False) -> Path:
             if not create:
                 raise
             try:
+                _ask(step, replaces=False)
                 os.mkdir(step)
             except FileExistsError:  # made by another process meanwhile, or a dangling link
                 pass
@@ -420,6 +463,7 @@ def write_atomic(path, data, root=None) -> None:
     rule 5; the folders from ``root`` (default: the file's own folder) down are checked (rule 3).
     A full disk raises ``DiskFull`` and leaves no temporary file."""
     path = Path(path)
+    _ask(path)
     folder(path.parent, root if root is not None else path.parent)
     chunks = data if isinstance(data, list) else [data]
     size = sum(len(memoryview(chunk).cast("B")) for chunk in chunks)
@@ -513,6 +557,7 @@ def build(path):
     """A fresh temporary path beside ``path`` for a program to write (a compiler's output); on a clean
     exit of the block it replaces ``path`` (atomically), otherwise it is removed."""
     path = Path(path)
+    _ask(path)
     folder(path.parent)
     tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
     os.close(_open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, "write")[0])
@@ -534,6 +579,7 @@ def private_folder(parent, prefix: str) -> Path:
     """A new folder of this process's own inside ``parent`` (made exclusively, mode 0700)."""
     import tempfile
 
+    _ask(Path(parent) / prefix, replaces=False)
     folder(parent)
     try:
         return Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
@@ -544,6 +590,7 @@ def private_folder(parent, prefix: str) -> Path:
 def rename_folder(source, target) -> None:
     """Move the folder ``source`` (one of this process's own, ``private_folder``) to ``target``, which
     must not exist (``FileExistsError`` if another process's landed first)."""
+    _ask(target, replaces=False)
     folder(source)
     try:
         os.rename(source, target)
@@ -559,6 +606,7 @@ def extract_tar(data: bytes, into) -> None:
     import io
     import tarfile
 
+    _ask(into, replaces=False)
     folder(into)
     with tarfile.open(fileobj=io.BytesIO(data)) as archive:
         if not hasattr(tarfile, "data_filter"):  # Python before 3.10.12 / 3.11.4
@@ -574,6 +622,7 @@ def extract_tar(data: bytes, into) -> None:
 def remove(path, missing_ok: bool = True) -> bool:
     """Delete the one file or link named ``path`` (rule 6; a link is removed itself, never what it
     points to); a folder is refused. Returns whether something was removed."""
+    _ask(path, replaces=False)
     try:
         info = os.lstat(path)
     except FileNotFoundError:
@@ -597,6 +646,7 @@ def remove_tree(top) -> None:
     top = Path(top)
     if not os.path.lexists(top):
         return
+    _ask(top, replaces=False)
     check_tree(top)
     for here, folders, names in walk(top, topdown=False):
         for entry in names:

@@ -12,6 +12,7 @@ promises, whatever the jobs do:
   (``engine.processes.exit_with_parent``);
 - a worker ignores a terminal's Ctrl-C (sent to the whole process group): its parent decides, and
   stops it;
+- each worker writes only where the tool may (``engine.tool_output``'s guard, if the tool's process has it);
 - each worker applies the tool's numerics (``engine.numerics.apply``) before any job, so that a job
   computes the same bits in a worker as in the tool's own process;
 - a job's exception ends the pool the same way and is raised in the tool (its first, in job order).
@@ -35,10 +36,15 @@ _applied: list[str] = []  # the numerics this worker applied
 
 
 def _call(task: tuple):
-    function, mode, job = task
+    function, mode, guarded, job = task
+    from door import files
     from engine.processes import exit_with_parent
 
     exit_with_parent()  # once per process
+    if guarded and not files.guarded():  # a tool's worker writes where the tool may (engine.tool_output)
+        from engine import tool_output
+
+        tool_output.guard()
     if mode is not None and not _applied:
         from engine import numerics
 
@@ -58,7 +64,9 @@ def run_jobs(function, jobs, processes: int, numerics: str | None = None) -> lis
 
     pool = spawn_context().Pool(min(processes, len(jobs)), initializer=_start_worker)
     try:
-        results = pool.map(_call, [(function, numerics, job) for job in jobs], chunksize=1)
+        from door import files
+
+        results = pool.map(_call, [(function, numerics, files.guarded(), job) for job in jobs], chunksize=1)
         pool.close()
         return results
     except BaseException:

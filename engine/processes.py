@@ -30,10 +30,13 @@ def run_tool(name: str, main) -> int:
     written; baseline.py's interrupted run folder stays unfinished (no summary), as train.py's.
     A file the tool may not read or write (``door.files.FileRefused``: a FIFO, a link, a folder
     where a file goes, a read-only disk, a name too long) ends it with that one line and status 2
-    (1 for a full disk)."""
+    (1 for a full disk). Every write it makes asks the output writer first (``engine.tool_output.guard``: never
+    inside a run folder it does not write as that run's writer, never over a file it reads)."""
     from door.files import DiskFull, FileRefused
+    from engine import tool_output
 
     readable_output()
+    tool_output.guard()
 
     signal.signal(signal.SIGTERM, interrupt)
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # an ignored SIGINT stays ignored
@@ -128,50 +131,6 @@ def check_start_seeds(parser, seed: int, episodes: int) -> None:
     (in [0, 2**32)); ``episodes`` at least 1, checked before."""
     if not 0 <= seed <= 2**32 - episodes:
         parser.error(f"--seed must be in [0, 2**32 - --episodes] (episode k starts from seed + k), got {seed}")
-
-
-def check_outputs(parser, reads=(), **outputs) -> None:
-    """Before a tool's work: each output file its command line names (``table=args.table``, ...) can
-    be written (``door.files.check_target``) and lies outside every run folder (``engine.rundir.run_folder_of``:
-    a folder with a run's marks, finished, training or damaged, a population's top folder included, or below
-    one: those hold only the run's own files, and an output there would replace one of them or damage the
-    run), and is none of the files the tool reads (``reads``: its input paths; for a folder, the track file of
-    every run in it, ``engine.rundir.files_read``), else ``parser.error`` with one line."""
-    from door import files
-    from engine.rundir import files_read, run_folder_of
-
-    inputs = files_read(reads) if reads else {}
-    for option, path in outputs.items():
-        if path is None:
-            continue
-        name = f"--{option.replace('_', '-')}"
-        read = inputs.get(os.path.realpath(path))
-        if read is not None:
-            parser.error(f"{name} {path} is {read}, which this command reads; write the output elsewhere")
-        if os.path.isdir(path):
-            parser.error(f"{name} {path} is a folder; give a file name")
-        folder = run_folder_of(os.path.dirname(os.path.abspath(path)))
-        if folder is not None:
-            parser.error(f"{name} {path} is inside the run folder {folder}, which holds only the run's own "
-                         "files; write it elsewhere")
-        try:
-            files.check_target(path)
-        except files.FileRefused as err:
-            parser.error(f"{name}: {err}")
-
-
-def check_output_folder(parser, option: str, path) -> None:
-    """Before a tool's work: the folder its ``option`` names for its outputs is not a run's folder nor
-    inside one (``engine.rundir.run_folder_of``, as ``check_outputs`` for files), and not a file; else
-    ``parser.error`` with one line."""
-    from engine.rundir import run_folder_of
-
-    if os.path.lexists(path) and not os.path.isdir(path):
-        parser.error(f"{option} {path} is not a folder; give the folder the outputs go to")
-    folder = run_folder_of(os.path.abspath(path))
-    if folder is not None:
-        parser.error(f"{option} {path} is the run folder {folder} or inside it, which holds only the run's own "
-                     "files; write the outputs elsewhere")
 
 
 def readable_output() -> None:

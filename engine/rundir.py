@@ -300,6 +300,17 @@ def remove_temporaries(folder: Path) -> None:
 
 
 _held: dict[Path, list] = {}  # folder -> [file descriptor, depth]: a process may nest its own locks
+_writing: list[str] = []  # the run folders this process writes (``lock``'s, from before they are made), as real paths
+
+
+def written_here(path) -> Path | None:
+    """The run folder this process is the writer of (it holds, or is taking, its ``lock``) that ``path`` lies in
+    (None: none). A tool may write there, as its run's writer, and nowhere else inside a run folder."""
+    real = os.path.realpath(path)
+    for folder in _writing:
+        if real == folder or real.startswith(folder.rstrip(os.sep) + os.sep):
+            return Path(folder)
+    return None
 
 
 @contextlib.contextmanager
@@ -309,6 +320,8 @@ def lock(folders, root=None) -> None:
     (default: each folder itself) down to each folder is checked first (``door.files.folder``):
     a member's folder that is a link to another folder is refused, never written through."""
     taken: list[Path] = []
+    writing = [os.path.realpath(f) for f in folders]
+    _writing.extend(writing)
     try:
         for folder in folders:
             try:
@@ -322,6 +335,8 @@ def lock(folders, root=None) -> None:
     finally:
         for folder in reversed(taken):
             _release(folder)
+        for folder in writing:
+            _writing.remove(folder)
 
 
 def _acquire(folder: Path) -> None:

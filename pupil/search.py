@@ -283,7 +283,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--table", type=Path, default=None, help="also write the rows as CSV")
     parser.add_argument("--out", type=Path, default=None, help="a folder for each track's chosen weights")
     args = parser.parse_args(argv)
-    from engine.processes import check_output_folder, check_outputs
+    from engine.tool_output import check_output_folder, check_outputs
 
     check_outputs(parser, reads=args.runs, table=args.table)
     if args.out is not None:

@@ -404,7 +404,7 @@ def test_a_board_from_scores_reads_only_what_a_leaderboard_writes(tmp_path, caps
     train([*TINY], run)
     with pytest.raises(SystemExit):
         leaderboard.main(["--scores", str(good), "--out", str(run / "board")])
-    assert "is the run folder" in capsys.readouterr().err and not (run / "board").exists()
+    assert "is inside the run folder" in capsys.readouterr().err and not (run / "board").exists()
 
 
 def test_the_interval_of_many_runs_is_taken_in_pieces():
