@@ -24,6 +24,7 @@ def curvature(run: Path) -> dict[str, float]:
     import torch
 
     from engine.checkpoint import load_tensors
+    from engine.limits import weights_limit
     from engine.evaluation import load_policy
     from engine.outputs import RunFolderError
     from learners.networks import StackedCriticNet, load_member_state_dict, reset_parameters
@@ -48,7 +49,7 @@ def curvature(run: Path) -> dict[str, float]:
 
     trained = value_net()
     try:
-        state = load_tensors(run / "critic.pt", "critic")
+        state = load_tensors(run / "critic.pt", "critic", limit=weights_limit(network, "critic"))
     except ValueError as err:
         raise RunFolderError(str(err)) from None
     load_member_state_dict(trained, 0, {k.removeprefix("module."): v for k, v in state.items()})

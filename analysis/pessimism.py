@@ -132,6 +132,7 @@ def load_critics(run: Path, settings: dict):
     Q-network's solo weights in ``critic.pt`` are one row of the stack; ``RunFolderError`` for critics
     this analysis does not read."""
     from engine.checkpoint import load_tensors
+    from engine.limits import weights_limit
     from engine.outputs import RunFolderError
     from learners.networks import StackedCriticNet, load_member_state_dict
     from racing.config import RacingConfig
@@ -144,7 +145,8 @@ def load_critics(run: Path, settings: dict):
         raise RunFolderError(f"{run}: its critics read normalised observations (algo.td.observation_norm); this "
                              "analysis reads critics of the observation as the simulator gives it")
     try:
-        state = {k.removeprefix("module."): v for k, v in load_tensors(run / "critic.pt", "critic").items()}
+        limit = weights_limit(settings["network"], "critic")
+        state = {k.removeprefix("module."): v for k, v in load_tensors(run / "critic.pt", "critic", limit=limit).items()}
     except ValueError as err:
         raise RunFolderError(str(err)) from None
     layer = re.compile(r"net\.layers\.(\d+)\.(weight|bias)")

@@ -184,13 +184,17 @@ def _open(path, flags: int, verb: str, follow: bool = False, single_link: bool =
 
 # ---------------------------------------------------------------------------------------------- reading
 
+def _a(what: str) -> str:
+    return f"{'an' if what[:1].lower() in 'aeiou' else 'a'} {what}"
+
+
 def read(path, limit: int, what: str = "file", follow: bool = False) -> bytes:
     """The bytes of the regular file at ``path``, refused unread if larger than ``limit`` bytes."""
     fd, info = _open(path, os.O_RDONLY, "read", follow)
     with os.fdopen(fd, "rb") as f:
         if info.st_size > limit:
-            raise FileRefused(f"{path} is {info.st_size:,} bytes, more than a {what} holds (at most {limit:,}): "
-                              f"damaged, or not a {what}; it was not read")
+            raise FileRefused(f"{path} is {info.st_size:,} bytes, more than {_a(what)} holds (at most {limit:,}): "
+                              f"damaged, or not {_a(what)}; it was not read")
         chunks, total = [], 0
         try:  # in pieces: one read of the limit would reserve the whole limit at once (fails under ulimit -v)
             while total <= limit and (chunk := f.read(min(1 << 20, limit + 1 - total))):
@@ -200,7 +204,7 @@ def read(path, limit: int, what: str = "file", follow: bool = False) -> bytes:
             raise _refusal(path, err, "read") from None
         data = b"".join(chunks)
     if len(data) > limit:  # grew while read, or a file whose size the system does not report (/proc)
-        raise FileRefused(f"{path} holds more than {limit:,} bytes, more than a {what} holds: not read further")
+        raise FileRefused(f"{path} holds more than {limit:,} bytes, more than {_a(what)} holds: not read further")
     return data
 
 

@@ -105,10 +105,12 @@ def unsealed(path: Path, data: bytes) -> bytes:
     return data
 
 
-def load_tensors(path: Path, what: str = "file", sealed: bool = False):
+def load_tensors(path: Path, what: str = "file", sealed: bool = False, limit: int | None = None):
     """``torch.load(path, weights_only=True)``; ``ValueError`` with one clear sentence if the file is
-    empty, truncated, not torch's, or holds more than tensors and plain containers. ``sealed``: a
-    checkpoint, whose seal (``unsealed``) is checked first."""
+    empty, truncated, not torch's, holds more than tensors and plain containers, or is larger than
+    ``limit`` bytes (refused unread: weights pass ``engine.limits.weights_limit``, what their shapes may need;
+    a checkpoint, None, is bounded by half the memory available). ``sealed``: a checkpoint, whose seal
+    (``unsealed``) is checked first."""
     path = Path(path)
     try:
         if sealed:  # its first bytes first: a file that is no checkpoint is refused before it is read whole
@@ -117,7 +119,7 @@ def load_tensors(path: Path, what: str = "file", sealed: bool = False):
             if head and not head.startswith((SEAL, b"PK\x03\x04")):
                 raise ValueError(f"{path} is not a readable checkpoint (it starts with neither a checkpoint's seal "
                                  "line nor a torch zip: damaged, or another file)")
-        data = files.read(path, _load_limit(), what)
+        data = files.read(path, _load_limit() if limit is None else min(limit, _load_limit()), what)
     except files.FileRefused as err:
         raise ValueError(str(err)) from None
     except OSError as err:

@@ -76,6 +76,7 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
     that set no numerics mode (the tools set one first), the run's own is set (``engine.numerics.apply``:
     ``NumericsError`` with the remedy if torch loaded under another)."""
     from engine.checkpoint import load_tensors
+    from engine.limits import weights_limit
     from engine.rundir import state
 
     run_dir = Path(run_dir)
@@ -105,7 +106,7 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
     if problem:
         raise RunFolderError(f"{run_dir}: {problem}")
     try:
-        state_dict = load_tensors(actor_path, "actor")
+        state_dict = load_tensors(actor_path, "actor", limit=weights_limit(network, "actor"))
     except ValueError as err:
         raise RunFolderError(str(err)) from None
     problem = settings_problem(settings, state_dict)
@@ -114,7 +115,7 @@ def load_policy(run_dir: Path) -> tuple[Policy, dict]:
     critic, critic_path, plans = None, run_dir / "critic.pt", _plans(loss)
     if plans and critic_path.exists():  # its deterministic policy may read its Q-networks too
         try:
-            critic = load_tensors(critic_path, "critic")
+            critic = load_tensors(critic_path, "critic", limit=weights_limit(network, "critic"))
         except ValueError as err:
             raise RunFolderError(str(err)) from None
     try:

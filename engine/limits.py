@@ -138,3 +138,25 @@ def check_ram(cfg, available: int | None = None) -> None:
         raise ConfigError(f"this run needs about {_gb(total)} of RAM ({detail}) and the machine has "
                           f"{_gb(max(available, 0))} available; make it smaller (er.buffer_size, seeds, "
                           "env.options.max_steps, network sizes) or split it (processes, or several commands)")
+
+
+# A weights file's size, bounded by what its shapes may need before it is read (``weights_limit``): a file of
+# tensors is refused unread past it (a valid 4.8 GB tensors file given to algo.td.start_from was read whole,
+# 13.7 GB resident, before its shapes were checked). Generous by design: any learner's networks of those
+# hidden layers fit (an input of up to INPUT_BOUND values, up to OUTPUT_BOUND outputs, blocks up to WIDENING
+# times wider inside, float64, CRITIC_COPIES Q-networks), and a file that big is still checked shape by shape.
+INPUT_BOUND = 1024
+OUTPUT_BOUND = 64
+WIDENING = 8
+CRITIC_COPIES = 16
+FILE_SLACK = 1 << 20  # bytes: torch's zip headers, names and pickle
+
+
+def weights_limit(network, what: str) -> int:
+    """The most bytes an ``"actor"`` or ``"critic"`` weights file of networks with ``network``'s hidden layers
+    (a run's recorded ``settings.network``, or its config) may hold; past it, the file is refused unread."""
+    get = network.get if isinstance(network, dict) else lambda key, default=None: getattr(network, key, default)
+    hidden = [int(width) for width in (get(f"{what}_hidden") or ()) if isinstance(width, int) and width > 0]
+    widths = [INPUT_BOUND, *hidden, OUTPUT_BOUND]
+    parameters = sum((a + 1) * b for a, b in zip(widths, widths[1:]))
+    return 8 * WIDENING * parameters * (CRITIC_COPIES if what == "critic" else 1) + FILE_SLACK

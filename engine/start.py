@@ -54,13 +54,14 @@ def _finished_run(folder: Path, option: str) -> dict:
         raise ConfigError(f"{option}: {err}") from None
 
 
-def _tensors(path: Path, what: str, option: str) -> dict:
+def _tensors(path: Path, what: str, option: str, network) -> dict:
     import torch
 
     from engine.evaluation import saved_actor
+    from engine.limits import weights_limit
 
     try:
-        state = load_tensors(path, what)
+        state = load_tensors(path, what, limit=weights_limit(network, what))  # this run's shapes bound the file
     except (ValueError, OSError) as err:
         raise ConfigError(f"{option}: {err}") from None
     if not isinstance(state, dict) or not all(isinstance(k, str) and isinstance(v, torch.Tensor)
@@ -102,7 +103,7 @@ def start_actors(cfg: RunConfig, seeds: tuple[int, ...]) -> list[dict] | None:
             record = {"folder": str(source.resolve()), "algo": settings["algo"].get("name"),
                       "seed": summary.get("seed"), "episodes": summary.get("episodes")}
             path = source / "actor.pt"
-        state = _tensors(path, "actor", option)
+        state = _tensors(path, "actor", option, cfg.network)
         if any(k.startswith("norm.") for k in state):
             raise ConfigError(f"{option}: {path} acted on normalised observations (algo.td.observation_norm); "
                               "it cannot start an actor that reads them as they are")
@@ -111,7 +112,7 @@ def start_actors(cfg: RunConfig, seeds: tuple[int, ...]) -> list[dict] | None:
         if td.start_critics_from is not None:
             folder = start_source(Path(td.start_critics_from), seed, "algo.td.start_critics_from")
             _finished_run(folder, "algo.td.start_critics_from")
-            critic = _tensors(folder / "critic.pt", "critic", "algo.td.start_critics_from")
+            critic = _tensors(folder / "critic.pt", "critic", "algo.td.start_critics_from", cfg.network)
             record["critics"] = {"folder": str(folder.resolve()),
                                  "critic_sha256": file_digest(folder / "critic.pt")["sha256"]}
         starts.append({"state": state, "critic": critic, "record": record})

@@ -113,6 +113,14 @@ def load_model(path) -> tuple[object, str]:
     problem = _layers_problem(kwargs.get("net_arch"))
     if problem:
         raise ModelRefused(f"{path}: its net_arch {json.dumps(kwargs.get('net_arch'))[:120]} {problem}; nothing was built")
+    critics = kwargs.get("n_critics", 2)
+    if isinstance(critics, bool) or not isinstance(critics, int) or not 1 <= critics <= MAX_CRITICS:
+        raise ModelRefused(f"{path}: its n_critics {json.dumps(critics)[:40]} is not a count of 1 to {MAX_CRITICS} "
+                           "Q-networks; nothing was built")
+    needed = 4 * least_parameters(algo, kwargs.get("net_arch"), critics if algo != "PPO" else 0)
+    if needed > len(weights) + (1 << 16):  # the product that costs, bounded by the bytes that must hold it
+        raise ModelRefused(f"{path}: its policy settings build at least {needed:,} bytes of weights, more than its "
+                           f"policy.pth holds ({len(weights):,}); nothing was built")
     env = RacingEnv()
     for key, space in (("observation_space", env.observation_space), ("action_space", env.action_space)):
         saved = settings.get(key) if isinstance(settings.get(key), dict) else {}
@@ -141,6 +149,25 @@ def load_model(path) -> tuple[object, str]:
 
 
 MAX_LAYERS, MAX_UNITS = 16, 4096  # an SB3 policy's hidden layers and their units (its defaults: 2 of 64 or 256)
+MAX_CRITICS = 64  # an SB3 SAC/TD3 policy's Q-networks (its default: 2)
+OBS_SIZE, ACTION_SIZE = 6, 2  # the racing environment's (checked against the zip's spaces before anything is built)
+
+
+def least_parameters(algo: str, net_arch, critics: int) -> int:
+    """The fewest parameters an SB3 policy of these settings holds (its actor's layers, and each of its
+    ``critics`` Q-networks' once): what its weights file must at least hold, float32 (SB3's defaults when
+    ``net_arch`` is None: 256-256 for SAC/TD3, 64-64 for PPO)."""
+    default = [64, 64] if algo == "PPO" else [256, 256]
+    arch = net_arch if net_arch is not None else default
+    pi = arch.get("pi", default) if isinstance(arch, dict) else arch
+    qf = (arch.get("vf" if algo == "PPO" else "qf", default) if isinstance(arch, dict) else arch)
+
+    def mlp(inputs: int, widths, outputs: int) -> int:
+        sizes = [inputs, *widths, outputs]
+        return sum((a + 1) * b for a, b in zip(sizes, sizes[1:]))
+
+    return mlp(OBS_SIZE, pi, ACTION_SIZE) + max(critics, 1 if algo == "PPO" else 0) * mlp(
+        OBS_SIZE + (0 if algo == "PPO" else ACTION_SIZE), qf, 1)
 
 
 def _layers_problem(net_arch) -> str | None:

@@ -220,6 +220,7 @@ def _one(args: tuple) -> SearchResult:
 
 def _search_run(folder: Path, settings: SearchSettings) -> SearchResult:
     from engine.checkpoint import load_tensors
+    from engine.limits import weights_limit
     from engine.evaluation import load_policy, own_track, saved_actor
     from learners.registry import spec
 
@@ -233,7 +234,7 @@ def _search_run(folder: Path, settings: SearchSettings) -> SearchResult:
     if recorded["env"].get("past_steps", 0) or recorded["algo"].get("td", {}).get("observation_norm"):
         raise ValueError(f"{folder}: the search takes an actor that reads the observation as it is (no past steps, "
                          "no observation normalisation)")
-    state = saved_actor(load_tensors(folder / "actor.pt", "actor"))
+    state = saved_actor(load_tensors(folder / "actor.pt", "actor", limit=weights_limit(recorded["network"], "actor")))
     track = own_track(recorded)
     return search(track, state, spec(recorded["algo"]["loss"]).gaussian_actor, settings,
                   network=recorded["network"], env_options=recorded["env"].get("options") or {}, progress=_say)

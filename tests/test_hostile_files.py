@@ -482,9 +482,12 @@ def test_an_sb3_model_whose_sizes_would_exhaust_the_machine_is_refused_before_it
     with zipfile.ZipFile(path) as archive:
         entries = {name: archive.read(name) for name in archive.namelist()}
     for net_arch, words in (([2**40], "outside 1..4096"), ([-3], "outside 1..4096"), ([15000, 15000], "outside"),
-                            ([64] * 40, "at most 16"), ({"pi": [64], "evil": [1]}, "other than pi, vf and qf")):
+                            ([64] * 40, "at most 16"), ({"pi": [64], "evil": [1]}, "other than pi, vf and qf"),
+                            ((20_000, None), "not a count of 1 to 64"),  # 20,000 critics took 7-11 GB (35048d1)
+                            ((64, [4096] * 4), "more than its policy.pth holds")):  # caps kept, the product not
         data = json.loads(entries["data"])
-        data["policy_kwargs"] = {"net_arch": net_arch}
+        data["policy_kwargs"] = {"n_critics": net_arch[0], "net_arch": net_arch[1]} if isinstance(net_arch, tuple) \
+            else {"net_arch": net_arch}
         with zipfile.ZipFile(tmp_path / "bad.zip", "w") as archive:
             for name, content in {**entries, "data": json.dumps(data).encode()}.items():
                 archive.writestr(name, content)
