@@ -11,6 +11,7 @@ import numpy as np
 
 from analysis.aggregate import stratified_bootstrap_ci
 from analysis.report import ALGO_COLUMNS, COLUMN_TITLES, ER_ROWS, Run
+from engine.names import figure_label
 from racing.figures import import_pyplot, save_figure, tracks_figure
 
 
@@ -27,7 +28,7 @@ def _plot_band(ax, data: np.ndarray, label: str) -> None:
     mean = data.mean(axis=0)
     sem = data.std(axis=0, ddof=1) / np.sqrt(len(data)) if len(data) > 1 else np.zeros_like(mean)
     x = np.arange(len(mean))
-    ax.plot(x, mean, label=f"{label} (n={len(data)})", linewidth=1.2)
+    ax.plot(x, mean, label=figure_label(f"{label} (n={len(data)})"), linewidth=1.2)
     ax.fill_between(x, mean - sem, mean + sem, alpha=0.25)
 
 
@@ -116,7 +117,7 @@ def frontier_figure(runs: list[Run], oracle: dict[int, float], path: Path, smoot
     for ax, (title, lines, ceiling) in zip(axes[0], panels):
         for label, steps, mean, sem in lines:
             colour = colours[_cell_of(label)]
-            ax.plot(steps, mean, label=label, linewidth=1.2, color=colour)
+            ax.plot(steps, mean, label=figure_label(label), linewidth=1.2, color=colour)
             ax.fill_between(steps, mean - sem, mean + sem, alpha=0.2, color=colour)
         if ceiling is not None:
             ax.axhline(ceiling, color="black", linestyle="--", linewidth=1, label=f"oracle ({ceiling:.1f})")
@@ -154,7 +155,7 @@ def iqm_figure(rows: list[tuple[str, float, float, float, int]], path: Path) -> 
     for yi, (label, point, low, high, _) in zip(y, rows):
         ax.plot([low, high], [yi, yi], color="tab:blue", linewidth=3, alpha=0.5)
         ax.plot(point, yi, "o", color="tab:blue")
-    ax.set_yticks(y, [r[0] for r in rows], fontsize=8)
+    ax.set_yticks(y, [figure_label(r[0]) for r in rows], fontsize=8)
     ax.set(xlabel="IQM of the runs' final performance (95% bootstrap CI over runs)")
     return save_figure(fig, path, dpi=110)
 

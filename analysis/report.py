@@ -226,11 +226,14 @@ def _read_csv(path: Path, what: str) -> list[dict]:
 
 
 def _write_csv(path: Path, header: list[str], rows) -> None:
-    """A CSV table written whole (``door.files.write_atomic``)."""
+    """A CSV table written whole (``door.files.write_atomic``), no cell a spreadsheet runs as a formula
+    (``engine.names.csv_cell``)."""
+    from engine.names import csv_cell
+
     text = io.StringIO(newline="")
     writer = csv.writer(text)
     writer.writerow(header)
-    writer.writerows(rows)
+    writer.writerows([csv_cell(value) for value in row] for row in rows)
     files.write_text(path, text.getvalue())
 
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from analysis import aggregate
 from analysis.report import ALGO_COLUMNS, COLUMN_TITLES, ER_ROWS, Run, normalised
+from engine.names import figure_label, markdown_cell
 
 PRIORITISED = {"spg": "spg_p", "spg_multi": "spg_p_multi"}  # SPG and its prioritised twin (the paper's SPG-p)
 
@@ -120,7 +121,7 @@ def statistics_figures(runs: list[Run], oracle: dict[int, float], out: Path,
             ax.plot([low, high], [yi, yi], color="tab:blue", linewidth=3, alpha=0.5)
             ax.plot(point, yi, "o", color="tab:blue")
         ax.axvline(0.5, color="0.5", linewidth=0.8, linestyle="--")
-        ax.set_yticks(y, [f"{title(a)} > {title(b)}" for a, b, _ in pairs], fontsize=7)
+        ax.set_yticks(y, [figure_label(f"{title(a)} > {title(b)}") for a, b, _ in pairs], fontsize=7)
         ax.set(xlim=(0, 1), xlabel="P(X > Y): probability of improvement (95% interval)")
         written.append(save_figure(fig, out / "improvement.png", dpi=110))
     return written
@@ -136,7 +137,7 @@ def board_statistics(cells: dict[str, np.ndarray], reference: str | None,
              f"agent's runs on each of the ten tracks, the tracks as tasks, runs resampled within each track "
              f"({reps:,} times, stratified bootstrap), 95% percentile intervals; agents of one run (the reference "
              "drivers) have none. P(X > ref): the chance that a run of the agent beats a run of "
-             f"{reference or 'the reference'} on a track, averaged over tracks.", "",
+             f"{markdown_cell(reference) if reference else 'the reference'} on a track, averaged over tracks.", "",
              "| agent | runs | " + " | ".join(metrics) + (" | P(X > ref) [95% CI] |" if reference else " |"),
              "|---|---:|" + "---|" * (len(metrics) + bool(reference))]
     order = sorted(cells, key=lambda name: -aggregate.iqm(cells[name]))
@@ -152,7 +153,7 @@ def board_statistics(cells: dict[str, np.ndarray], reference: str | None,
             else:
                 point, low, high = aggregate.probability_of_improvement_ci(scores, cells[reference], reps=reps)
                 row.append(f"{point:.2f} [{low:.2f}, {high:.2f}]")
-        lines.append(f"| {name} | {len(scores)} | " + " | ".join(row) + " |")
+        lines.append(f"| {markdown_cell(name)} | {len(scores)} | " + " | ".join(row) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -194,13 +195,6 @@ def line_styles(ranked: list[str], is_reference=lambda name: False) -> dict[str,
     styles.update({name: {"color": "0.72", "linewidth": 0.8, "band": False, "zorder": 1,
                           "label": f"{len(rest)} other agents" if i == 0 else None} for i, name in enumerate(rest)})
     return styles
-
-
-def figure_label(name: str) -> str:
-    """A name as a legend shows it verbatim: matplotlib reads ``$...$`` as mathematics (an ill-formed one
-    fails the drawing) and hides labels that start with an underscore."""
-    name = name.replace("$", r"\$")
-    return " " + name if name.startswith("_") else name
 
 
 def _profile_line(ax, taus, profile, low, high, style: dict, band_alpha: float) -> None:

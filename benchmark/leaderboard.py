@@ -30,6 +30,7 @@ import numpy as np
 
 from engine import numerics
 from engine.config import algo_titles
+from engine.names import check_name, collision, csv_name, markdown_cell
 
 REFERENCE_CELL = "SPG-p, multiple epochs, memory"  # the paper's best cell: what P(X > ref) compares with
 NAMES = {**algo_titles(), "sb3_sac": "Stable-Baselines3 SAC", "sb3_ppo": "Stable-Baselines3 PPO"}  # conf/algo's, the baselines'
@@ -84,6 +85,8 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         runs = read_runs(args.sweeps, say="leaderboard").runs  # each run once (links, copies)
+        if len(runs) > MAX_BOARD_RUNS:
+            raise RunFolderError(f"{len(runs):,} runs; a board takes at most {MAX_BOARD_RUNS:,}")
         numerics.apply(_numerics(runs, runs_numerics))  # before torch loads
     except (RunFolderError, numerics.NumericsError) as err:
         print(f"leaderboard: {err}", file=sys.stderr)
@@ -130,6 +133,22 @@ def reference_scores() -> dict[str, tuple[str, dict[int, float]]]:
 
 
 MAX_RUNS = 1_000  # runs of one agent a board takes: its interval resamples them 10,000 times
+# What a board's statistics cost grows with its agents (each agent's intervals and its probability of improvement
+# over the reference, ~1.6 s an agent) and its runs (each resampled 10,000 times): both bounded before any is computed.
+MAX_AGENTS = 50
+MAX_BOARD_RUNS = 5_000
+
+
+def board_problem(agents, runs: int) -> str | None:
+    """Why a board of these agents (names) and ``runs`` in all cannot be made (None: it can): too many agents or
+    runs for its statistics (``MAX_AGENTS``, ``MAX_BOARD_RUNS``), or a name that looks like another agent's or a
+    reference driver's (``engine.names.collision``: a Cyrillic letter in "reference: ..." ranked as a reference)."""
+    agents = list(agents)
+    if len(agents) > MAX_AGENTS:
+        return f"{len(agents):,} agents; a board takes at most {MAX_AGENTS} (each agent's statistics cost seconds)"
+    if runs > MAX_BOARD_RUNS:
+        return f"{runs:,} runs; a board takes at most {MAX_BOARD_RUNS:,}"
+    return collision(agents, reserved=[*REFERENCES, "reference: oracle"])
 
 
 def _from_scores(paths: list[Path], out: Path) -> int:
@@ -165,7 +184,7 @@ def _from_scores(paths: list[Path], out: Path) -> int:
                 return refuse(f"{path} is not a leaderboard's runs.csv (columns agent, run, track, mean_reward)")
             if not re.fullmatch(r"[0-9]{1,10}", track or "") or not re.fullmatch(NUMBER, value or ""):
                 return refuse(f"{where}: track {str(track)[:20]!r} or mean_reward {str(value)[:20]!r} is not a number")
-            track, value = int(track), float(value)
+            track, value, agent, run = int(track), float(value), csv_name(agent), csv_name(run)
             problem = check_name(agent, "agent") or check_name(run, "run") or check_score(value, track)
             episodes = row.get("episodes") or ""
             if not problem and episodes and not re.fullmatch(r"[0-9]{1,9}", episodes):
@@ -183,6 +202,9 @@ def _from_scores(paths: list[Path], out: Path) -> int:
             runs[track] = (value, where)
             if episodes:  # boards written before the column: budget unknown
                 budgets.setdefault(agent, set()).add(int(episodes))
+    problem = board_problem(cells, sum(len(runs) for runs in cells.values()))
+    if problem:
+        return refuse(f"{', '.join(map(str, paths))}: {problem}")
     board, rows = {}, []
     for agent, runs in cells.items():
         missing = [run for run, tracks in runs.items() if set(tracks) != set(TRACKS)]
@@ -219,37 +241,15 @@ def budget_note(budgets: dict[str, set[int]]) -> list[str]:
                 "with another's only at one budget."]
 
 
-NAME_LENGTH = 200  # an agent's or a run's name in a scores file: longer is not a name
-
-
-def check_name(text: str, what: str) -> str | None:
-    """Why ``text`` cannot stand as an agent's or run's name in a table (None: it can): empty or blank,
-    control characters (a line break splits a table's row) or more than ``NAME_LENGTH`` characters."""
-    if not text.strip():
-        return f"the {what} name is empty"
-    if len(text) > NAME_LENGTH:
-        return f"the {what} name is {len(text):,} characters long; a name is at most {NAME_LENGTH}"
-    if not text.isprintable():
-        return f"the {what} name {text[:60]!r} holds control characters; a name is printable text"
-    return None
-
-
-MARKDOWN = set("\\`*_[]!|$~")  # what Markdown (and GitHub's maths) reads as markup inside a table cell
-
-
-def markdown_cell(text: str) -> str:
-    """``text`` as one cell of a Markdown table, shown as written: every character Markdown may read as
-    markup escaped with a backslash, ``<`` and ``&`` as entities, so that a name cannot add a column,
-    link, embed, format or typeset anything."""
-    text = text.replace("&", "&amp;").replace("<", "&lt;")
-    return "".join("\\" + c if c in MARKDOWN else c for c in text)
-
-
 def _write_board(cells: dict[str, list[list[float]]], rows: list[dict], out: Path, skipped: list[str],
                  runs: int, budgets: dict[str, set[int]]) -> int:
     from benchmark.protocol import TRACKS, read_oracle
 
     oracle = read_oracle()
+    problem = board_problem([c for c in cells if c not in REFERENCES], runs)
+    if problem:
+        print(f"leaderboard: {problem}", file=sys.stderr)
+        return 2
     cells["reference: oracle"] = [[oracle[t] for t in TRACKS]]
     board = []
     for cell, scores in cells.items():

@@ -208,8 +208,12 @@ def make_torchrl_logger(kind: str, out_dir: Path, scalars: list[str] = ()):
 
 def write_table(path: Path, rows: list[dict]) -> None:
     """Rows (dicts) as a CSV file, its header every key in the order first seen (a row without a key
-    leaves its cell empty); prints where."""
+    leaves its cell empty), no cell a spreadsheet runs as a formula (``engine.names.csv_cell``: a name read back
+    with ``csv_name``); prints where."""
+    from engine.names import csv_cell
+
     path = Path(path)
+    rows = [{key: csv_cell(value) for key, value in row.items()} for row in rows]
     if not rows:
         print(f"no rows to write: {path} was not written")
         return

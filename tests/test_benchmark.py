@@ -366,6 +366,13 @@ def test_a_board_from_scores_reads_only_what_a_leaderboard_writes(tmp_path, caps
         return err[0]
 
     assert "takes a reference driver's name" in refused(_scores_file(tmp_path / "o.csv", {"reference: oracle": 100.0}))
+    assert "looks like a reserved name, 'reference: ray follower'" in refused(  # a Cyrillic е (engine.names)
+        _scores_file(tmp_path / "cy.csv", {"r\u0435ference: ray follower": 150.0}))
+    assert "a board takes at most 50" in refused(_scores_file(tmp_path / "many.csv", {f"a{i}": 100.0 for i in range(51)}))
+    formula = _scores_file(tmp_path / "formula.csv", {"=HYPERLINK(1)": 100.0})
+    assert result(formula)[0] == 0 and "'=HYPERLINK(1)" in (tmp_path / "board" / "runs.csv").read_text()
+    assert result(tmp_path / "board" / "runs.csv", out=tmp_path / "again")[0] == 0  # reads back as written
+    assert "| =HYPERLINK(1) |" in (tmp_path / "again" / "leaderboard.md").read_text()
     fake = _scores_file(tmp_path / "rf.csv", {"reference: ray follower": 150.0})
     fake.write_text(fake.read_text().replace("runs/reference: ray follower", "ray_follower"))
     assert "where the protocol gives it" in refused(fake)
