@@ -255,7 +255,27 @@ class _HydraErrors:
         return getattr(self.stream, name)
 
 
-CODE_FROM_DATA = ("--experimental-rerun",)  # Hydra's flags that unpickle a file
+CODE_FROM_DATA = {"experimental_rerun": "--experimental-rerun"}  # Hydra's options that unpickle a file: {dest: flag}
+
+
+def pickle_flag(argv: list[str]) -> str | None:
+    """The flag among ``argv`` that would make Hydra unpickle a file (None: none), found as Hydra's own argument
+    parser reads the command line, so any spelling it accepts counts (``--exp evil.pickle``: argparse takes any
+    unique prefix of ``--experimental-rerun``; ``--experimental-rerun=...``), not a spelling of ours."""
+    import argparse
+    import contextlib
+    import io
+
+    from hydra._internal.utils import get_args_parser
+
+    parser = get_args_parser()
+    parser.exit_on_error = False
+    try:
+        with contextlib.redirect_stderr(io.StringIO()):  # a command line Hydra refuses: Hydra says why, later
+            found, _ = parser.parse_known_args(argv)
+    except (argparse.ArgumentError, SystemExit):
+        return None
+    return next((flag for dest, flag in CODE_FROM_DATA.items() if getattr(found, dest, None) is not None), None)
 
 
 def run(main) -> None:
@@ -267,10 +287,10 @@ def run(main) -> None:
     from engine.processes import readable_output
 
     readable_output()  # a folder name that is not UTF-8 is printed escaped
-    for flag in CODE_FROM_DATA:  # Hydra's own flags that load pickles: code would run from a file
-        if any(arg == flag or arg.startswith(f"{flag}=") for arg in sys.argv[1:]):
-            end(f"{flag} loads a pickled configuration, which can run code from a file; rerun a run with "
-                "its command instead (its .hydra/overrides.yaml lists it)", 2)
+    flag = pickle_flag(sys.argv[1:])  # Hydra's own flags that load pickles: code would run from a file
+    if flag is not None:
+        end(f"{flag} loads a pickled configuration, which can run code from a file; rerun a run with "
+            "its command instead (its .hydra/overrides.yaml lists it)", 2)
     stderr = sys.stderr
     sys.stderr = errors = _HydraErrors(stderr)
     try:

@@ -56,12 +56,16 @@ def unavailable_reason(device: str = "cpu") -> str | None:
 def inductor_cache() -> str:
     """The folder TorchInductor caches its generated code in (set for this process): the user's
     ``$TORCHINDUCTOR_CACHE_DIR``, or ``inductor`` beside the project's kernel cache, made private
-    (mode 0700), checked to be this user's and not a link. ``RuntimeError`` saying why otherwise."""
+    (mode 0700), checked to be this user's and not a link. ``RuntimeError`` saying why otherwise.
+    The variable at torch's own default (``<tmp>/torchinductor_<user>``) is no choice of the user's:
+    ``import torch._inductor.config`` sets it so itself, a folder under the shared temporary one."""
+    from torch._inductor.runtime.cache_dir_utils import default_cache_dir
+
     from learners.kernels import cache_dir
     from door import files
 
     chosen = os.environ.get("TORCHINDUCTOR_CACHE_DIR")
-    if chosen:
+    if chosen and os.path.abspath(chosen) != os.path.abspath(default_cache_dir()):
         return chosen
     folder = cache_dir().parent / "inductor"
     try:

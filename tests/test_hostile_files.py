@@ -222,10 +222,18 @@ def test_hydras_rerun_flag_never_unpickles_a_file(tmp_path):
 
     payload = tmp_path / "config.pickle"
     payload.write_bytes(pickle.dumps(Payload()))
-    for form in (["--experimental-rerun", str(payload)], [f"--experimental-rerun={payload}"]):
-        result = run("train.py", *form)
-        assert result.returncode == 2 and "--experimental-rerun loads a pickled" in one_line(result), result.stderr
-        assert not marker.exists()
+    result = run("train.py", "--exp", str(payload))  # 35048d1: any unique prefix, which Hydra's argparse accepts, ran it
+    assert result.returncode == 2 and "--experimental-rerun loads a pickled" in one_line(result), result.stderr
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize("form", [["--experimental-rerun", "x"], ["--experimental-rerun=x"], ["--exp", "x"], ["--e=x"],
+                                  ["algo=sac", "--experimental", "x", "seed=2"]])
+def test_every_spelling_hydras_parser_takes_for_its_rerun_flag_is_found(form):
+    from engine.command import pickle_flag
+
+    assert pickle_flag(form) == "--experimental-rerun"
+    assert pickle_flag([a for a in form if "x" not in a and "exp" not in a and a != "--e=x"]) is None
 
 
 def test_a_seed_that_is_a_path_makes_no_folder_anywhere(tmp_path):
@@ -454,6 +462,13 @@ def test_compiled_code_is_cached_in_a_folder_of_this_users_own(tmp_path, monkeyp
     monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
     with pytest.raises(RuntimeError, match="cannot be used: .*symbolic link"):
         compiling.inductor_cache()
+    (tmp_path / "cache" / "inductor").unlink()
+    from torch._inductor.runtime.cache_dir_utils import default_cache_dir
+
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", default_cache_dir())  # as importing torch._inductor.config sets it
+    assert compiling.inductor_cache() == str(tmp_path / "cache" / "inductor")  # torch's default is no choice
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "mine"))
+    assert compiling.inductor_cache() == str(tmp_path / "mine")  # the user's own choice stands
 
 
 @pytest.mark.parametrize("override", ["hydra.output_subdir=.hydra", "hydra/job_logging=default"])
