@@ -19,6 +19,7 @@ import importlib.util
 import sys
 from pathlib import Path
 
+from engine.budget import EPISODES, PROCESSES, SEED
 from engine import numerics
 from engine.outputs import RunFolderError
 from engine.pool import run_jobs
@@ -32,10 +33,10 @@ def _train(args: tuple) -> dict:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--algos", nargs="+", default=list(ALGOS), help=f"of {', '.join(ALGOS)}")
-    parser.add_argument("--tracks", type=int, nargs="+", required=True, help="track seeds, one run each")
-    parser.add_argument("--episodes", type=int, default=201)
-    parser.add_argument("--final-window", type=int, default=20)
-    parser.add_argument("--jobs", type=int, default=1, help="runs at once, one process each")
+    parser.add_argument("--tracks", type=SEED, nargs="+", required=True, help="track seeds, one run each")
+    parser.add_argument("--episodes", type=EPISODES, default=201)
+    parser.add_argument("--final-window", type=EPISODES, default=20)
+    parser.add_argument("--jobs", type=PROCESSES, default=1, help="runs at once, one process each")
     # Stable-Baselines3's networks are torch's own layers: their products are MKL's, never the
     # project's kernels, so numerics=fma would misname what runs; portable is its exact equivalent.
     parser.add_argument("--numerics", choices=[m for m in numerics.MODES if m != "fma"], default="portable",

@@ -19,6 +19,7 @@ import numpy as np
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # draw without a screen
 
 from door import files  # noqa: E402
+from engine.budget import SEED
 from racing import PAPER_TRACK_SEEDS, RacingEnv  # noqa: E402
 from racing.driver import ray_follower  # noqa: E402
 from racing.figures import tracks_figure  # noqa: E402
@@ -27,8 +28,8 @@ from racing.render import import_pygame, track_view  # noqa: E402
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--track-seed", type=int, default=PAPER_TRACK_SEEDS[0])
-    parser.add_argument("--seed", type=int, default=0, help="seed of the start state")
+    parser.add_argument("--track-seed", type=SEED, default=PAPER_TRACK_SEEDS[0])
+    parser.add_argument("--seed", type=SEED, default=0, help="seed of the start state")
     parser.add_argument("--out", type=Path, default=Path("outputs/demo"))
     args = parser.parse_args()
     files.folder(args.out, args.out, create=True)

@@ -32,6 +32,7 @@ import math
 import sys
 from pathlib import Path
 
+from engine.budget import EPISODES, SEED, check_items, check_work, count
 from engine import numerics
 from engine.outputs import RunFolderError
 from engine.rundir import runs_numerics
@@ -42,10 +43,10 @@ from racing.track_file import add_track_options
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", type=Path, nargs="*", metavar="RUN_OR_SWEEP_DIR")
-    parser.add_argument("--tracks", type=int, nargs="+", default=[],
+    parser.add_argument("--tracks", type=SEED, nargs="+", default=[],
                         help="track seeds to evaluate on, besides each run's own track")
-    parser.add_argument("--episodes", type=int, default=5, help="episodes per track (start states vary)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the first start state")
+    parser.add_argument("--episodes", type=EPISODES, default=5, help="episodes per track (start states vary)")
+    parser.add_argument("--seed", type=SEED, default=0, help="seed of the first start state")
     parser.add_argument("--table", type=Path, default=None, help="write the table to this CSV file")
     parser.add_argument("--video", type=Path, default=None, help="film the first run on its own track (.gif/.mp4)")
     parser.add_argument("--track-file", default=None,
@@ -55,17 +56,14 @@ def main(argv: list[str] | None = None) -> int:
                         help="the numerics mode to evaluate in (default: the one the runs were trained in)")
     oracle = parser.add_argument_group("the oracle (a planning controller with the true state)")
     oracle.add_argument("--oracle", action="store_true", help="score the oracle on --tracks instead of runs")
-    oracle.add_argument("--candidates", type=int, default=None, help="action sequences per planning round")
-    oracle.add_argument("--horizon", type=int, default=None, help="steps planned ahead")
-    oracle.add_argument("--iterations", type=int, default=None, help="cross-entropy rounds per step")
+    oracle.add_argument("--candidates", type=count(1, 100_000), default=None, help="action sequences per planning round")
+    oracle.add_argument("--horizon", type=count(1, 1000), default=None, help="steps planned ahead")
+    oracle.add_argument("--iterations", type=count(1, 1000), default=None, help="cross-entropy rounds per step")
     args = parser.parse_args(argv)
-    if args.episodes < 1:
-        parser.error(f"--episodes must be >= 1, got {args.episodes}")
-    bad = [t for t in args.tracks if not 0 <= t < 2**32]
-    if bad:
-        parser.error(f"--tracks must be track seeds in [0, 2**32), got {bad}")
-    if not 0 <= args.seed < 2**32:
-        parser.error(f"--seed must be in [0, 2**32) (the first start state's seed), got {args.seed}")
+    check_items(parser, "--tracks", args.tracks, 10_000)
+    check_work(parser, 1_000_000, "episodes", episodes=args.episodes, tracks=max(len(args.tracks), 1))
+    check_work(parser, 10_000_000, "simulated steps a decision", candidates=args.candidates or 1,
+               horizon=args.horizon or 1, iterations=args.iterations or 1)
     if args.video is not None and args.video.suffix.lower() not in (".gif", ".mp4"):
         parser.error(f"--video must name a .gif or .mp4 file, got {str(args.video)!r}")
     for option, path in (("--table", args.table), ("--video", args.video)):

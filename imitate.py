@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from engine.budget import PROCESSES, SEED, count
 from engine import numerics
 
 
@@ -37,29 +38,25 @@ def _one(args: tuple):
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--tracks", type=int, nargs="+", required=True)
-    parser.add_argument("--hidden", type=int, nargs="+", default=[100], help="hidden layer sizes (the paper's: 100)")
-    parser.add_argument("--rounds", type=int, default=4, help="DAgger rounds after the oracle's own episodes")
-    parser.add_argument("--episodes", type=int, default=5, help="data episodes per round and track")
-    parser.add_argument("--epochs", type=int, default=300, help="passes over the data per refit")
+    parser.add_argument("--tracks", type=SEED, nargs="+", required=True)
+    parser.add_argument("--hidden", type=count(1, 4096), nargs="+", default=[100], help="hidden layer sizes (the paper's: 100)")
+    parser.add_argument("--rounds", type=count(0, 100), default=4, help="DAgger rounds after the oracle's own episodes")
+    parser.add_argument("--episodes", type=count(1, 1000), default=5, help="data episodes per round and track")
+    parser.add_argument("--epochs", type=count(1, 100_000), default=300, help="passes over the data per refit")
     parser.add_argument("--labels", choices=["best", "mean"], default="best",
                         help="the oracle's action (best: its best plan's first step) or its last elite mean's")
     parser.add_argument("--features", choices=["observation", "state"], default="observation",
                         help="the pupil's input; state: also the car's true state (a privileged pupil, no policy)")
-    parser.add_argument("--noise-states", type=int, default=0,
+    parser.add_argument("--noise-states", type=count(0, 100_000), default=0,
                         help="after the last round, label this many of its states again (--noise-labels times each)")
-    parser.add_argument("--noise-labels", type=int, default=8, help="labels per state for --noise-states")
-    parser.add_argument("--processes", type=int, default=1)
+    parser.add_argument("--noise-labels", type=count(1, 1000), default=8, help="labels per state for --noise-states")
+    parser.add_argument("--processes", type=PROCESSES, default=1)
     parser.add_argument("--table", type=Path, default=None)
     args = parser.parse_args(argv)
     from engine.tool_output import check_outputs
 
     check_outputs(parser, table=args.table)
 
-    if any(not 0 <= t < 2**32 for t in args.tracks):
-        parser.error(f"--tracks must be track seeds in [0, 2**32), got {args.tracks}")
-    if args.processes < 1:
-        parser.error(f"--processes must be at least 1, got {args.processes}")
     numerics.apply(numerics.DEFAULT)
     from analysis.report import read_oracles
     from pupil.dagger import DaggerSettings, mean

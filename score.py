@@ -30,6 +30,7 @@ import math
 import sys
 from pathlib import Path
 
+from engine.budget import SEED, STEPS, count
 from engine import numerics
 from racing.track_file import add_track_options
 
@@ -37,8 +38,8 @@ from racing.track_file import add_track_options
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("agents", nargs="+", metavar="AGENT")
-    parser.add_argument("--episodes", type=int, default=None, help="episodes per track (the protocol: 5)")
-    parser.add_argument("--tracks", type=int, nargs="+", default=None,
+    parser.add_argument("--episodes", type=count(1, 100_000), default=None, help="episodes per track (the protocol: 5)")
+    parser.add_argument("--tracks", type=SEED, nargs="+", default=None,
                         help="other track seeds (not the protocol: no oracle-normalised score unless shipped)")
     parser.add_argument("--table", type=Path, default=None, help="write per-track scores to this CSV file")
     parser.add_argument("--video", type=Path, default=None,
@@ -46,21 +47,17 @@ def main(argv: list[str] | None = None) -> int:
                              "file; several: <stem>-<n><suffix>)")
     parser.add_argument("--video-track", default=None,
                         help="the track to film on: a seed or a track file (default: the first benchmark track)")
-    parser.add_argument("--max-steps", type=int, default=None,
+    parser.add_argument("--max-steps", type=STEPS, default=None,
                         help="the film's episode length (default 200); with --laps-on, the step cap")
     parser.add_argument("--laps-on", default=None, metavar="FILE",
                         help="time laps on this circuit (a track file) instead of scoring")
-    parser.add_argument("--laps", type=int, default=None,
+    parser.add_argument("--laps", type=count(1, 1000), default=None,
                         help="with --laps-on: laps per agent (default 3); with --video on a circuit: the film ends "
                              "after this many laps")
     add_track_options(parser)
     parser.add_argument("--numerics", choices=numerics.MODES, default=None,
                         help="the numerics to run run folders' policies in (default: the one they were trained in)")
     args = parser.parse_args(argv)
-    if args.episodes is not None and args.episodes < 1:
-        parser.error(f"--episodes must be >= 1, got {args.episodes}")
-    if args.tracks is not None and any(not 0 <= t < 2**32 for t in args.tracks):
-        parser.error(f"--tracks must be track seeds in [0, 2**32), got {args.tracks}")
     if args.video is not None and args.video.suffix.lower() not in (".gif", ".mp4"):
         parser.error(f"--video must name a .gif or .mp4 file, got {str(args.video)!r}")
     if (args.laps is not None and args.laps < 1) or (args.max_steps is not None and args.max_steps < 1):

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from engine.budget import SEED, count
 from racing.config import MAX_STEPS, RacingConfig
 from racing.track import track_from_seed
 from racing.track_file import (MAX_ROWS, TrackFileError, WallsCross, add_track_options, load_track, make_circuit,
@@ -115,10 +116,10 @@ def main(argv: list[str] | None = None) -> int:
         if name == "show":
             command.add_argument("--out", type=Path, default=None, help="the figure (default: FILE with .png)")
     circuit = commands.add_parser("circuit", help="write a circuit in a downloaded TUM file's layout")
-    circuit.add_argument("--points", type=int, default=1200, help=f"centre-line points, 5 m apart (3 to {MAX_ROWS:,})")
+    circuit.add_argument("--points", type=count(3, MAX_ROWS), default=1200, help=f"centre-line points, 5 m apart (3 to {MAX_ROWS:,})")
     circuit.add_argument("--out", type=Path, default=Path("circuit.csv"))
     export = commands.add_parser("export", help="write a generated track as a file")
-    export.add_argument("--seed", type=int, required=True, help="the track seed")
+    export.add_argument("--seed", type=SEED, required=True, help="the track seed")
     export.add_argument("--out", type=Path, default=None, help="default: track_<seed>.csv")
     args = parser.parse_args(argv)
     from engine.tool_output import check_outputs
@@ -131,8 +132,6 @@ def main(argv: list[str] | None = None) -> int:
         if out.resolve() == args.file.resolve():
             parser.error(f"--out {out} is the track file itself; give the figure another name")
     if args.command == "export":
-        if not 0 <= args.seed < 2**32:
-            parser.error(f"--seed must be in [0, 2**32), got {args.seed}")
         path = save_track(track_from_seed(args.seed, RacingConfig()), args.out or Path(f"track_{args.seed}.csv"))
         try:
             track = load_track(path)
@@ -145,8 +144,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wrote {path}: {describe(track)}")
         return 0
     if args.command == "circuit":
-        if not 3 <= args.points <= MAX_ROWS:
-            parser.error(f"--points must be in [3, {MAX_ROWS:,}], got {args.points}")
         if args.out.is_dir():
             parser.error(f"--out {args.out} is a folder; give a file name (e.g. {args.out / 'circuit.csv'})")
         path = write_rows(args.out, make_circuit(args.points))

@@ -21,6 +21,7 @@ import argparse
 import math
 import statistics
 import sys
+from engine.budget import count
 from pathlib import Path
 
 from analysis.report import Run, find_runs, read_oracles
@@ -54,8 +55,8 @@ def budget_rows(runs: list[Run], budgets: list[int], window: int, oracle: dict[i
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("folders", type=Path, nargs="+", help="run folders or sweep folders")
-    parser.add_argument("--budgets", type=int, nargs="+", default=[201, 603, 2010])
-    parser.add_argument("--window", type=int, default=20, help="episodes averaged (the runs' final_window)")
+    parser.add_argument("--budgets", type=count(1, 1_000_000), nargs="+", default=[201, 603, 2010])
+    parser.add_argument("--window", type=count(1, 100_000), default=20, help="episodes averaged (the runs' final_window)")
     parser.add_argument("--table", type=Path, default=None, help="write the rows as CSV")
     args = parser.parse_args(argv)
     from engine.tool_output import check_outputs

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from engine.budget import count
 from pathlib import Path
 
 CAUTION, HOLDS = -0.010, -0.005  # the README's thresholds, in fractions of the oracle
@@ -88,14 +89,12 @@ def summary_rows(rows: list[dict]) -> list[dict]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", type=Path, nargs="+", help="run folders, or sweep folders holding them")
-    parser.add_argument("--last", type=int, default=5, help="evaluations averaged into S_end (default 5)")
+    parser.add_argument("--last", type=count(1, 10_000), default=5, help="evaluations averaged into S_end (default 5)")
     parser.add_argument("--table", type=Path, default=None, help="also write the per-run rows as CSV")
     args = parser.parse_args(argv)
     from engine.tool_output import check_outputs
 
     check_outputs(parser, reads=args.paths, table=args.table)
-    if not 1 <= args.last <= 10_000:
-        parser.error(f"--last must be in [1, 10,000], got {args.last}")
     from analysis.report import read_oracles
     from engine.outputs import RunFolderError
     from engine.runset import read_runs

@@ -20,6 +20,7 @@ import argparse
 import math
 import sys
 from collections import defaultdict
+from engine.budget import real
 from pathlib import Path
 
 
@@ -123,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("new", type=Path, help="the new report's runs.csv")
     parser.add_argument("old", type=Path, help="the old report's runs.csv")
-    parser.add_argument("--collapse", type=float, default=20.0)
+    parser.add_argument("--collapse", type=real(-1e6, 1e6), default=20.0)
     parser.add_argument("--markdown", type=Path, help="also write the comparison to this file")
     parser.add_argument("--cells", nargs=2, metavar=("NEW", "OLD"),
                         help="pair cell NEW of the new report with cell OLD of the old one by track (algo/er each)")

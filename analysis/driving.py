@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from engine.budget import SEED, count, real
 from pathlib import Path
 
 COLUMNS = ("driver", "track", "episodes", "mean_reward", "crashes_per_episode", "mean_speed", "full_throttle",
@@ -94,11 +95,11 @@ def driving_rows(runs: list[Path], episodes: int, seed: int = 0, oracle: bool = 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", type=Path, nargs="+", help="run folders, or sweep folders holding them")
-    parser.add_argument("--episodes", type=int, default=5, help="episodes per driver and track (default 5)")
-    parser.add_argument("--seed", type=int, default=0, help="the first start state's seed (default 0)")
+    parser.add_argument("--episodes", type=count(1, 1000), default=5, help="episodes per driver and track (default 5)")
+    parser.add_argument("--seed", type=SEED, default=0, help="the first start state's seed (default 0)")
     parser.add_argument("--no-oracle", action="store_true", help="leave the oracle out (it plans: ~3 s an episode)")
     parser.add_argument("--table", type=Path, default=None, help="also write the rows as CSV")
-    parser.add_argument("--full-throttle-above", type=float, default=None, metavar="T",
+    parser.add_argument("--full-throttle-above", type=real(-1, 1), default=None, metavar="T",
                         help="also drive each policy with its throttles >= T made full (a diagnostic)")
     args = parser.parse_args(argv)
     from engine.processes import check_start_seeds
@@ -106,10 +107,6 @@ def main(argv: list[str] | None = None) -> int:
 
     check_outputs(parser, reads=args.paths, table=args.table)
 
-    if args.full_throttle_above is not None and not -1 <= args.full_throttle_above <= 1:
-        parser.error(f"--full-throttle-above must be a throttle in [-1, 1], got {args.full_throttle_above}")
-    if not 1 <= args.episodes <= 1000:
-        parser.error(f"--episodes must be in [1, 1000], got {args.episodes}")
     check_start_seeds(parser, args.seed, args.episodes)
     if args.table is not None and args.table.is_dir():  # refused before the driving, not after it
         parser.error(f"--table {args.table} is a folder; give a file name (e.g. {args.table / 'driving.csv'})")

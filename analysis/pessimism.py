@@ -40,6 +40,7 @@ import argparse
 import math
 import re
 import sys
+from engine.budget import SEED, count, real
 from pathlib import Path
 
 COLUMNS = ("run", "loss", "track", "states", "critic_gap_min", "critic_gap_mean", "true_gap", "spread_oracle",
@@ -217,9 +218,9 @@ def measure(run: Path, episodes: int, seed: int, horizon: int, line_of: str = "o
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", type=Path, nargs="+", help="run folders, or sweep folders holding them")
-    parser.add_argument("--episodes", type=int, default=2, help="oracle episodes per run (default 2; ~5 s each)")
-    parser.add_argument("--seed", type=int, default=0, help="the first start state's seed (default 0)")
-    parser.add_argument("--horizon", type=int, default=60,
+    parser.add_argument("--episodes", type=count(1, 100), default=2, help="oracle episodes per run (default 2; ~5 s each)")
+    parser.add_argument("--seed", type=SEED, default=0, help="the first start state's seed (default 0)")
+    parser.add_argument("--horizon", type=count(1, 199), default=60,
                         help="steps of each true return (default 60: gamma 0.9 leaves 0.2%% of the value beyond)")
     parser.add_argument("--table", type=Path, default=None, help="also write the rows as CSV")
     parser.add_argument("--line", choices=("oracle", "policy"), default="oracle",
@@ -227,18 +228,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--compare", choices=("oracle", "slower", "faster"), default="oracle",
                         help="the action scored against the policy's own: the oracle's (default), or the policy's with "
                              "its throttle lowered or raised by --delta")
-    parser.add_argument("--delta", type=float, default=0.1, help="the throttle change of --compare slower/faster "
+    parser.add_argument("--delta", type=real(0, 2), default=0.1, help="the throttle change of --compare slower/faster "
                                                                    "(default 0.1)")
     args = parser.parse_args(argv)
     from engine.processes import check_start_seeds
     from engine.tool_output import check_outputs
 
     check_outputs(parser, reads=args.paths, table=args.table)
-    if not 1 <= args.episodes <= 100:
-        parser.error(f"--episodes must be in [1, 100], got {args.episodes}")
     check_start_seeds(parser, args.seed, args.episodes)
-    if not 1 <= args.horizon < 200:
-        parser.error(f"--horizon must be in [1, 200) steps, got {args.horizon}")
     if args.line == "policy" and args.compare == "oracle":
         parser.error("--line policy scores the policy's own actions; compare them with --compare slower or faster")
     if not 0 < args.delta <= 2:  # also refuses nan

@@ -44,6 +44,7 @@ import argparse
 import math
 import sys
 from dataclasses import dataclass, field, replace
+from engine.budget import PROCESSES, SEED, count, real
 from pathlib import Path
 
 COLUMNS = ("run", "track", "variant", "episodes", "mean_reward", "crashes_per_episode", "crashes", "foreseen_0",
@@ -408,13 +409,13 @@ def _one(args: tuple) -> list[dict]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", type=Path, nargs="+", help="planning runs' folders, or sweep folders holding them")
-    parser.add_argument("--episodes", type=int, default=5, help="episodes per run and variant (default 5)")
-    parser.add_argument("--seed", type=int, default=0, help="the first start state's seed (default 0)")
+    parser.add_argument("--episodes", type=count(1, 1000), default=5, help="episodes per run and variant (default 5)")
+    parser.add_argument("--seed", type=SEED, default=0, help="the first start state's seed (default 0)")
     parser.add_argument("--variant", action="append", default=[], metavar="KEY=VALUE[,...]|prior",
                         help="also drive with these planner settings (repeatable), or 'prior': the prior without planning")
-    parser.add_argument("--processes", type=int, default=1, help="runs driven at once, one process each")
+    parser.add_argument("--processes", type=PROCESSES, default=1, help="runs driven at once, one process each")
     parser.add_argument("--table", type=Path, default=None, help="also write the rows as CSV")
-    parser.add_argument("--crashing", type=float, default=1.0,
+    parser.add_argument("--crashing", type=real(0, 1_000_000), default=1.0,
                         help="the summary's crashing runs leave the track at least this often an episode as trained "
                              "(default 1.0)")
     parser.add_argument("--summary", type=Path, default=None, help="also write the summary (per variant and group) as CSV")
@@ -423,13 +424,7 @@ def main(argv: list[str] | None = None) -> int:
     from engine.tool_output import check_outputs
 
     check_outputs(parser, reads=args.paths, table=args.table, summary=args.summary)
-    if not 0 <= args.crashing <= 1_000_000:  # also refuses nan
-        parser.error(f"--crashing must be crashes an episode in [0, 1000000], got {args.crashing}")
-    if not 1 <= args.episodes <= 1000:
-        parser.error(f"--episodes must be in [1, 1000], got {args.episodes}")
     check_start_seeds(parser, args.seed, args.episodes)
-    if not 1 <= args.processes <= 64:
-        parser.error(f"--processes must be in [1, 64], got {args.processes}")
     if args.table is not None and args.summary is not None and args.table.resolve() == args.summary.resolve():
         parser.error(f"--table and --summary name one file ({args.table}); give two")
     if len({v.strip() for v in args.variant}) < len(args.variant):

@@ -27,6 +27,7 @@ import argparse
 import math
 import sys
 from dataclasses import dataclass, field
+from engine.budget import PROCESSES
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -280,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
                        ("choose_every", int), ("choice", int), ("protocol", int), ("score", int), ("seed", int)):
         parser.add_argument(f"--{name.replace('_', '-')}", type=kind, default=getattr(defaults, name),
                             help=f"default {getattr(defaults, name)}")
-    parser.add_argument("--processes", type=int, default=1, help="runs searched at once, one process each")
+    parser.add_argument("--processes", type=PROCESSES, default=1, help="runs searched at once, one process each")
     parser.add_argument("--table", type=Path, default=None, help="also write the rows as CSV")
     parser.add_argument("--out", type=Path, default=None, help="a folder for each track's chosen weights")
     args = parser.parse_args(argv)
@@ -289,8 +290,6 @@ def main(argv: list[str] | None = None) -> int:
     check_outputs(parser, reads=args.runs, table=args.table)
     if args.out is not None:
         check_output_folder(parser, "--out", args.out)
-    if not 1 <= args.processes <= 64:
-        parser.error(f"--processes must be in [1, 64], got {args.processes}")
     try:
         settings = SearchSettings(**{k: getattr(args, k) for k in SearchSettings.__dataclass_fields__})
     except ValueError as err:

@@ -20,6 +20,7 @@ import numpy as np
 
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
 
+from engine.budget import count, real
 from engine import numerics  # noqa: E402
 
 numerics.apply(numerics.DEFAULT)  # before torch loads (engine/numerics.py)
@@ -116,8 +117,8 @@ def torchrl_tensors(n: int, seconds: float) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=2.0, help="time per row")
-    parser.add_argument("--max-cars", type=int, default=4096, help="leave out the rows of more cars than this")
+    parser.add_argument("--seconds", type=real(0.01, 3600), default=2.0, help="time per row")
+    parser.add_argument("--max-cars", type=count(1, 1_000_000), default=4096, help="leave out the rows of more cars than this")
     args = parser.parse_args()
 
     first = scalar(False, args.seconds)

@@ -12,6 +12,7 @@ two-core machine) and takes their mean. Every tool runs on one thread (``engine.
 
 from __future__ import annotations
 
+from engine.budget import STEPS, count
 import argparse
 import json
 import os
@@ -63,8 +64,8 @@ def measure(run: str, threads: int, steps: int, copies: int) -> tuple[float, int
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("runs", nargs="+", metavar="RUN", help="run folders (train.py's)")
-    parser.add_argument("--steps", type=int, default=200, help="steps timed per measurement")
-    parser.add_argument("--rounds", type=int, default=3, help="measurements per thread count, alternated")
+    parser.add_argument("--steps", type=STEPS, default=200, help="steps timed per measurement")
+    parser.add_argument("--rounds", type=count(1, 1000), default=3, help="measurements per thread count, alternated")
     parser.add_argument("--side-by-side", action="store_true", help="two copies of each measurement at once")
     args = parser.parse_args(argv)
     if args.steps < 1 or args.rounds < 1:

@@ -21,6 +21,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+from engine.budget import EPISODES, count
 from pathlib import Path
 
 LEARNERS = ("sac", "tqc", "crossq", "td3", "spg_p_multi", "ppo")
@@ -53,9 +54,9 @@ def one_run(learner: str, fused: bool, episodes: int, members: int, folder: str)
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m speed.fast_path_savings", description=__doc__.split("\n\n")[0])
     parser.add_argument("--learners", nargs="+", default=list(LEARNERS))
-    parser.add_argument("--episodes", type=int, default=12)
-    parser.add_argument("--members", type=int, default=5)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--episodes", type=EPISODES, default=12)
+    parser.add_argument("--members", type=count(1, 1000), default=5)
+    parser.add_argument("--repeats", type=count(1, 1000), default=3)
     parser.add_argument("--one", nargs=2, metavar=("LEARNER", "PATH"), help=argparse.SUPPRESS)
     parser.add_argument("--out", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)

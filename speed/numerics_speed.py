@@ -27,6 +27,7 @@ import os
 import subprocess
 import sys
 import tempfile
+from engine.budget import EPISODES, count
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -174,11 +175,11 @@ def shape_table(args) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--episodes", type=int, default=20)
-    parser.add_argument("--members", type=int, nargs="+", default=[1, 5, 25])
+    parser.add_argument("--episodes", type=EPISODES, default=20)
+    parser.add_argument("--members", type=count(1, 1000), nargs="+", default=[1, 5, 25])
     parser.add_argument("--cells", nargs="+", default=CELLS)
     parser.add_argument("--modes", nargs="+", default=MODES, choices=MODES)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=count(1, 1000), default=3)
     parser.add_argument("--no-cells", action="store_true", help="skip the training table")
     parser.add_argument("--no-shapes", action="store_true", help="skip the products table")
     parser.add_argument("--child", nargs=4, metavar=("MODE", "CELL", "MEMBERS", "EPISODES"), help=argparse.SUPPRESS)

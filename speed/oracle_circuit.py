@@ -13,6 +13,7 @@ measured in the same run.
 
 from __future__ import annotations
 
+from engine.budget import STEPS, count
 import argparse
 import json
 import subprocess
@@ -54,8 +55,8 @@ def measure(track: str, steps: int) -> dict:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("files", nargs="*", metavar="FILE", help="more track files to measure")
-    parser.add_argument("--points", type=int, default=1200, help="checkpoints of the made circuit")
-    parser.add_argument("--steps", type=int, default=100, help="oracle steps timed per track")
+    parser.add_argument("--points", type=count(3, 100_000), default=1200, help="checkpoints of the made circuit")
+    parser.add_argument("--steps", type=STEPS, default=100, help="oracle steps timed per track")
     args = parser.parse_args(argv)
     if args.steps < 1 or not 3 <= args.points <= 5000:
         parser.error("--steps must be >= 1 and --points in [3, 5000]")

@@ -21,6 +21,7 @@ import time
 import numpy as np
 
 import racing
+from engine.budget import EPISODES, SEED, count
 from racing.oracle import Oracle, OracleSettings, drive
 
 
@@ -44,12 +45,12 @@ def scores(settings: OracleSettings, tracks: list[int], episodes: int) -> tuple[
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--tracks", type=int, nargs="+", default=[1001, 1002, 1003])
-    parser.add_argument("--episodes", type=int, default=2)
-    parser.add_argument("--candidates", type=int, default=None, help="the base setting (default: OracleSettings())")
-    parser.add_argument("--horizon", type=int, default=None)
-    parser.add_argument("--iterations", type=int, default=None)
-    parser.add_argument("--ladder", type=int, default=None, help="run only the first N rungs (tests)")
+    parser.add_argument("--tracks", type=SEED, nargs="+", default=[1001, 1002, 1003])
+    parser.add_argument("--episodes", type=EPISODES, default=2)
+    parser.add_argument("--candidates", type=count(1, 100_000), default=None, help="the base setting (default: OracleSettings())")
+    parser.add_argument("--horizon", type=count(1, 1000), default=None)
+    parser.add_argument("--iterations", type=count(1, 1000), default=None)
+    parser.add_argument("--ladder", type=count(1, 1000), default=None, help="run only the first N rungs (tests)")
     args = parser.parse_args(argv)
     base = dataclasses.replace(OracleSettings(), **{k: getattr(args, k) for k in ("candidates", "horizon", "iterations")
                                                      if getattr(args, k) is not None})

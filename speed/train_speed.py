@@ -25,6 +25,7 @@ from pathlib import Path
 
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
 
+from engine.budget import EPISODES, count
 from engine import numerics  # noqa: E402
 
 # Before torch loads (engine/numerics.py). Imported by a benchmark that loaded torch in its own mode: that one.
@@ -174,10 +175,10 @@ def run_table(cells: list[str], episodes: int, pairs: int) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--episodes", type=int, default=201, help="episodes per full run (paper: 201)")
+    parser.add_argument("--episodes", type=EPISODES, default=201, help="episodes per full run (paper: 201)")
     parser.add_argument("--cells", nargs="*", default=DEFAULT_CELLS, help="algo/er pairs to time")
     parser.add_argument("--pairs", type=at_most(100), default=2, help="alternated pairs of whole runs per cell")
-    parser.add_argument("--repeats", type=int, default=20, help="repeats of the micro-benchmarks")
+    parser.add_argument("--repeats", type=count(1, 1000), default=20, help="repeats of the micro-benchmarks")
     args = parser.parse_args()
     tanh_table(args.repeats)
     collector_table(max(2, args.repeats // 2))

@@ -53,8 +53,8 @@ def test_the_full_throttle_diagnostic_changes_only_the_throttles_it_names(run):
     assert rows[1]["mean_throttle"] == 1.0 and rows[1]["braking"] == 0.0
 
 
-@pytest.mark.parametrize("args, message", [(["--episodes", "0"], "--episodes must be in [1, 1000]"),
-                                           (["--full-throttle-above", "2"], "must be a throttle in [-1, 1]")])
+@pytest.mark.parametrize("args, message", [(["--episodes", "0"], "argument --episodes: must be in [1, 1,000], got 0"),
+                                           (["--full-throttle-above", "2"], "argument --full-throttle-above: must be a finite number in [-1, 1], got 2")])
 def test_bad_arguments_are_refused(run, args, message, capsys):
     with pytest.raises(SystemExit):
         driving.main([str(run), *args])
