@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from engine.names import markdown_cell
 from pathlib import Path
 
 from engine import numerics
@@ -146,7 +147,7 @@ def write_figures(runs, out: Path, oracle: dict[int, float] | None = None) -> No
     rows = figures.iqm_rows(runs)
     lines = ["IQM of the runs' final performances per cell; 95% interval from resampling runs (tracks).", "",
              "| cell | IQM | 95% CI | runs |", "|---|---:|---|---:|"]
-    lines += [f"| {label} | {point:.1f} | " + (f"[{low:.1f}, {high:.1f}]" if n > 1 else "n/a (one run)") + f" | {n} |"
+    lines += [f"| {markdown_cell(label)} | {point:.1f} | " + (f"[{low:.1f}, {high:.1f}]" if n > 1 else "n/a (one run)") + f" | {n} |"
               for label, point, low, high, n in rows]
     files.write_text(out / "iqm.md", "\n".join(lines) + "\n")
     written = figures.learning_curve_figures(runs, out)

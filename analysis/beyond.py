@@ -19,6 +19,7 @@ import math
 
 import numpy as np
 
+from engine.names import markdown_cell
 from analysis.aggregate import iqm, stratified_bootstrap_ci
 from analysis.report import (ALGO_COLUMNS, ALGO_TITLES, COLLAPSE_BELOW, MIN_VERDICT_TRACKS, PAPER_SEEDS, Run,
                              _mean_difference, paired_bootstrap, paired_sign)
@@ -47,7 +48,7 @@ def parity_markdown(runs: list[Run]) -> str:
         shared = sorted(set(a) & set(b))
         per_track = ", ".join(f"{t}: {a[t] - b[t]:+.1f}" for t in shared)
         interval = f" [{low:+.1f}, {high:+.1f}]" if not math.isnan(low) else ""
-        lines.append(f"| {label(*ours)} | {label(*theirs)} | {tracks} | {value:+.1f}{interval} | {verdict} | "
+        lines.append(f"| {markdown_cell(label(*ours))} | {markdown_cell(label(*theirs))} | {tracks} | {value:+.1f}{interval} | {verdict} | "
                      f"{per_track} |")
     if not lines:
         return ""
@@ -172,7 +173,7 @@ def beyond_markdown(runs: list[Run]) -> str:
                   else f"{row['iqm']:.1f}")
             spent = row["compute_s"]
             compute = "" if spent is None else f"{spent / 60:.1f} min" + ("" if row["compute_is_cpu"] else " wall")
-            parts.append(f"| {row['cell']} | {row['runs']} | {row['mean_se']} | {ci} | {_diff_text(row)} | "
+            parts.append(f"| {markdown_cell(row['cell'])} | {row['runs']} | {row['mean_se']} | {ci} | {_diff_text(row)} | "
                          f"{row['collapsed']} | {row['diverged']} | {compute} |")
         parts.append("")
     parity = parity_markdown(runs)
@@ -217,7 +218,7 @@ def generalisation_markdown(runs: list[Run]) -> str:
                   "| cell | training tracks | runs | own track | unseen tracks (mean) | gap |",
                   "|---|---|---:|---:|---:|---:|"]
         for row in rows:
-            lines.append(f"| {row['cell']} | {row['train_tracks']} | {row['runs']} | {row['own']} | "
+            lines.append(f"| {markdown_cell(row['cell'])} | {row['train_tracks']} | {row['runs']} | {row['own']} | "
                          f"{row['unseen']} ({row['unseen_tracks']} tracks x {row['episodes']} episodes) | {row['gap']} |")
         lines.append("")
     return "\n".join(lines)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from engine.names import markdown_cell
 from collections import defaultdict
 from engine.budget import real
 from pathlib import Path
@@ -115,7 +116,7 @@ def compare(new: dict, old: dict, collapse: float = 20.0) -> str:
         diff = sum(a) / len(a) - sum(b) / len(b)
         combined = math.hypot(_sem(a), _sem(b))
         ratio = f"{diff / combined:+.2f}" if combined > 0 else ""
-        lines.append(f"| {algo}/{er} | {len(members)} | {sum(a) / len(a):.1f} | {sum(b) / len(b):.1f} | "
+        lines.append(f"| {markdown_cell(f'{algo}/{er}')} | {len(members)} | {sum(a) / len(a):.1f} | {sum(b) / len(b):.1f} | "
                      f"{diff:+.1f} | {ratio} |")
     return "\n".join(lines) + "\n"
 

@@ -20,6 +20,7 @@ import argparse
 import math
 import statistics
 import sys
+from engine.names import markdown_cell
 from pathlib import Path
 
 from analysis.report import find_runs, read_oracles
@@ -117,7 +118,7 @@ def markdown(rows: list[dict]) -> str:
     for row in rows:
         def cell(k):
             if k != "vs base":
-                return str(row[k])
+                return markdown_cell(str(row[k]))
             if row[k] == "":
                 return "(base)" if row is rows[0] else ""
             if math.isnan(row["95% low"]):  # one track: no interval

@@ -12,6 +12,7 @@ import csv
 import io
 import math
 import statistics
+from engine.names import markdown_cell
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -570,7 +571,7 @@ def normalised_markdown(runs: list[Run], oracle: dict[int, float]) -> str:
         mean = statistics.fmean(values)
         spread = (f"± {statistics.stdev(values) / math.sqrt(len(values)):.3f}" if len(values) > 1
                   else "(n/a: one run)")  # a standard error needs two runs
-        lines.append(f"| {er} / {ALGO_TITLES.get(algo, algo)} | {len(values)} | {mean:.3f} {spread} | "
+        lines.append(f"| {markdown_cell(er)} / {markdown_cell(ALGO_TITLES.get(algo, algo))} | {len(values)} | {mean:.3f} {spread} | "
                      f"{statistics.median(values):.3f} | {values[0]:.3f} | {values[-1]:.3f} |")
     tracks = sorted({r.seed for r in scored})
     lines += ["", f"Oracle scores used ({len(tracks)} tracks): "
