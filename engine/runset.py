@@ -43,13 +43,13 @@ class RunSet:
 
 def identity(folder: Path) -> str | None:
     """What the run in ``folder`` is, as it recorded it (its summary's algo, er, seed and settings), as a
-    digest: two folders with one identity hold one run. None: no summary to read (a partial or damaged run
-    is only ever the same run as itself)."""
+    digest: two folders with one identity hold one run. None: no summary to read, or one that records no
+    settings (a partial or damaged run, or one whose settings are unknown, is only ever the same run as itself)."""
     try:
         summary = read_summary(folder)
     except RunFolderError:
         return None
-    if not summary:
+    if not summary or not isinstance(summary.get("settings"), dict) or not summary["settings"]:
         return None
     record = {key: summary.get(key) for key in ("algo", "er", "seed")} | {"settings": summary.get("settings")}
     return hashlib.sha256(json.dumps(record, sort_keys=True, default=str).encode()).hexdigest()

@@ -37,7 +37,7 @@ from pathlib import Path
 
 os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")
 
-from engine.budget import EPISODES, PROCESSES, count
+from engine.budget import EPISODES, PROCESSES, count as whole
 from engine import numerics  # noqa: E402
 
 # Before torch loads (engine/numerics.py); --numerics is read here, before the argument parser.
@@ -140,13 +140,13 @@ def before_solo(commit: str, cell: str, episodes: int) -> dict:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--episodes", type=EPISODES, default=20)
-    parser.add_argument("--sizes", type=count(1, 1000), nargs="+", default=[1, 5, 25, 100])
+    parser.add_argument("--sizes", type=whole(1, 1000), nargs="+", default=[1, 5, 25, 100])
     parser.add_argument("--cells", nargs="+", default=CELLS)
     parser.add_argument("--numerics", choices=numerics.MODES, default=numerics.DEFAULT,
                         help="the numerics of every run and of the matmul peak (engine/numerics.py)")
     parser.add_argument("--modes", nargs="+", default=["eager"], choices=["eager", "compiled"],
                         help="eager and/or compiled update steps (compile=true)")
-    parser.add_argument("--collectors", type=count(1, 1000), nargs="*", default=[25],
+    parser.add_argument("--collectors", type=whole(1, 1000), nargs="*", default=[25],
                         help="population sizes at which to compare the two collectors")
     parser.add_argument("--before", default=None, help="a commit whose solo runs are the baseline")
     parser.add_argument("--processes", type=PROCESSES, nargs="*", default=[],

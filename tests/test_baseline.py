@@ -65,8 +65,8 @@ def test_the_documented_command_writes_runs_the_report_reads_and_reruns_identica
 
 @pytest.mark.parametrize("args, message", [
     (["--algos", "td3", "--tracks", "1"], "algo must be one of sac, ppo"),
-    (["--tracks", "1", "--episodes", "0"], "episodes and final_window must be at least 1"),
-    (["--tracks", "-1"], "track seeds are in [0, 2**32)"),
+    (["--tracks", "1", "--episodes", "0"], "argument --episodes: must be in [1, 100,000], got 0"),
+    (["--tracks", "-1"], "argument --tracks: must be in [0, 4,294,967,295], got -1"),
 ])
 def test_bad_arguments_are_refused_with_a_reason(tmp_path, args, message):
     result = baseline(*args, "--out", str(tmp_path))

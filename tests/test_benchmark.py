@@ -87,7 +87,7 @@ def test_score_py_prints_raw_and_normalised_scores_with_intervals(tmp_path, caps
     assert f"score {summary['mean']:.1f}" in lines[1]
     with pytest.raises(SystemExit) as refused:
         score_py.main(["ray_follower", "--tracks", "-1"])
-    assert refused.value.code == 2 and "--tracks must be track seeds" in capsys.readouterr().err
+    assert refused.value.code == 2 and "argument --tracks: must be in [0, 4,294,967,295]" in capsys.readouterr().err
 
 
 @pytest.mark.slow

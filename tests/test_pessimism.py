@@ -175,7 +175,7 @@ def test_the_table_holds_a_row_per_run_and_bad_input_is_one_line(run, tmp_path, 
     assert "--horizon must be below the episode's 30 steps" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         pessimism.main([str(run), "--episodes", "0"])
-    assert "--episodes must be in [1, 100]" in capsys.readouterr().err
+    assert "argument --episodes: must be in [1, 100], got" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         pessimism.main([str(run), "--line", "policy"])  # its own actions against themselves: nothing to compare
     assert "--line policy scores the policy's own actions; compare them with --compare slower or faster" in \
@@ -183,10 +183,11 @@ def test_the_table_holds_a_row_per_run_and_bad_input_is_one_line(run, tmp_path, 
     with pytest.raises(SystemExit):
         pessimism.main([str(run), "--episodes", "2", "--seed", str(2**32 - 1)])
     assert "--seed must be in [0, 2**32 - --episodes]" in capsys.readouterr().err
-    for bad in ("0", "nan", "3"):
+    for bad, said in (("0", "--delta must be a throttle change in (0, 2]"), ("nan", "argument --delta: must be a finite"),
+                      ("3", "argument --delta: must be a finite number in [0, 2], got 3")):
         with pytest.raises(SystemExit):
             pessimism.main([str(run), "--compare", "slower", "--delta", bad])
-        assert "--delta must be a throttle change in (0, 2]" in capsys.readouterr().err
+        assert said in capsys.readouterr().err
     assert pessimism.main([str(run), "--episodes", "1", "--horizon", "10", "--line", "policy", "--compare", "slower",
                            "--table", str(tmp_path / "s.csv")]) == 0
     with open(tmp_path / "s.csv", newline="") as f:

@@ -36,7 +36,7 @@ def fake_run(root, algo, er, seed, final=None, status="completed", summary=True,
             "algo": algo, "er": er, "seed": seed, "final_mean": final, "status": status, "episodes": episodes,
             "code": code, **({"numerics": numerics} if numerics else {"software": {"cpu": "AVX2"}}),
             **({"compile": {"requested": compiled, "enabled": compiled, "reason": None}} if compiled is not None
-               else {}), "settings": {}})
+               else {}), "settings": {"env": {"track": "fixed"}}})
     elif summary:
         (folder / "summary.json").write_text(summary)
     return folder

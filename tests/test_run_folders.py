@@ -318,8 +318,8 @@ def test_command_line_options_and_their_errors(capsys):
     load("episodes=7", "final_window=9")
     assert "Note: final_window=9 is larger than episodes=7: the final performance is the mean of all 7" in \
         capsys.readouterr().err
-    for args, message in ((["--tracks", "-1"], "--tracks must be track seeds in [0, 2**32), got [-1]"),
-                          (["--seed", "-1"], "--seed must be in [0, 2**32)"),
+    for args, message in ((["--tracks", "-1"], "argument --tracks: must be in [0, 4,294,967,295], got -1"),
+                          (["--seed", "-1"], "argument --seed: must be in [0, 4,294,967,295], got -1"),
                           (["--video", "agent.avi"], "--video must name a .gif or .mp4 file, got 'agent.avi'"),
                           (["--table", str(ROOT)], f"--table {ROOT} is a folder; give a file name")):
         with pytest.raises(SystemExit) as exited:
