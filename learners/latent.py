@@ -16,10 +16,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from tensordict.nn import NormalParamExtractor
 from torch import nn
 
-from learners.networks import StackedCriticNet
+from learners.networks import MemberNormalParamExtractor, StackedCriticNet
 from learners.td.learner import OffPolicySampler
 from losses.functional import per_member
 from losses.tdmpc2 import Support, prior_action
@@ -52,7 +51,7 @@ class LatentModel(nn.Module):
         self.dynamics = mlp(latent + action_dim, latent)
         self.reward = mlp(latent + action_dim, bins)
         self.pi = nn.Sequential(mlp(latent, 2 * action_dim),
-                                NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4))
+                                MemberNormalParamExtractor(scale_lb=1e-4))
 
     def encode(self, observation: torch.Tensor) -> torch.Tensor:
         return simnorm(self.encoder(observation), self.group)

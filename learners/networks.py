@@ -40,9 +40,11 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from tensordict.nn import NormalParamExtractor
+
 from learners import kernels
 from learners.kernels import ops as kernel_ops
-from losses.functional import ALIGN, per_member
+from losses.functional import ALIGN, as_alone, per_member
 
 
 class StackedLinear(nn.Module):
@@ -184,6 +186,23 @@ class StackedMLP(nn.Module):
             if not (self.linear_output and i == last):
                 x = per_member(self.activation, x)
         return x
+
+
+class MemberNormalParamExtractor(NormalParamExtractor):
+    """tensordict's ``NormalParamExtractor`` (``biased_softplus_1.0`` scale, ``scale_lb``) for stacked members:
+    the softplus computed ``as_alone`` (``losses.functional``), so that a member's scale is its solo run's
+    whatever the population's size (an acting step's ``[R, 1, 2]`` took ATen's scalar softplus alone and its
+    vector one from eight members on, which round differently)."""
+
+    def __init__(self, scale_lb: float = 1e-4):
+        super().__init__(scale_mapping="biased_softplus_1.0", scale_lb=scale_lb)
+
+    def forward(self, *tensors: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        tensor, *others = tensors
+        loc, scale = tensor.chunk(2, -1)
+        mapping = self.scale_mapping
+        scale = (as_alone(nn.functional.softplus, scale + mapping.bias) + mapping.min_val).clamp_min(self.scale_lb)
+        return (loc, scale, *others)
 
 
 def _pad_rows(x: torch.Tensor, multiple: int) -> tuple[torch.Tensor, torch.Size]:

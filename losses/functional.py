@@ -36,6 +36,49 @@ def per_member(fn, values: torch.Tensor) -> torch.Tensor:
     return fn(flat)[:, :n].reshape(values.shape)
 
 
+_LOOP_BYTES: int | None = None
+
+
+def loop_bytes() -> int:
+    """The bytes one iteration of ATen's vector loop takes (two vectors): 128 with its AVX-512 kernels,
+    64 with its AVX2 (or generic) ones. Elements before the last whole iteration take the vector code,
+    the rest (the tail) the scalar code, which rounds some functions (softplus) differently."""
+    global _LOOP_BYTES
+    if _LOOP_BYTES is None:
+        _LOOP_BYTES = 128 if "512" in torch.backends.cpu.get_cpu_capability() else 64
+    return _LOOP_BYTES
+
+
+def as_alone(fn, values: torch.Tensor) -> torch.Tensor:
+    """``fn(values)`` for an element-wise ``fn``, each member's results (first dimension) computed as a solo
+    run computes them on that member's tensor alone, however many members share it.
+
+    Alone, a member's first elements fall in ATen's vector loop and its last ``n % step`` elements (its
+    tail; all of them when it holds fewer than ``step``) in its scalar code (``loop_bytes``). Stacked, its
+    elements would fall in one or the other by their place among the other members' (an acting step's
+    softplus on ``[R, 2]``: scalar alone, vector from eight members on). Here every member's vector part
+    is computed in one contiguous call (a multiple of the step each: all vector) and every tail in one
+    strided call (never vectorised: scalar), which is what a solo run does. ``per_member`` instead makes
+    every element take the vector code, alone or not (where the solo run goes through it too). ``fn`` must be
+    one ATen element-wise kernel (softplus, tanh): a composite would make its own contiguous temporaries."""
+    members = values.shape[0]
+    n = values[0].numel() if members else 0
+    step = loop_bytes() // values.element_size()
+    head = n - n % step
+    if not n or values.device.type != "cpu":
+        return fn(values)
+    flat = values.reshape(members, n)
+    if head == n:
+        return fn(flat.contiguous()).reshape(values.shape)
+    parts = []
+    if head:
+        parts.append(fn(flat[:, :head].contiguous()))
+    tail = torch.empty(members, n - head, 2, dtype=values.dtype, device=values.device)
+    tail[..., 0] = flat[:, head:]
+    parts.append(fn(tail[..., 0]))  # a strided input: ATen's scalar loop for every element
+    return torch.cat(parts, 1).reshape(values.shape) if head else parts[0].reshape(values.shape)
+
+
 def per_dimension_or_joint(terms: torch.Tensor, joint: bool) -> torch.Tensor:
     """Log-probabilities or entropies of shape [B, D], summed to [B, 1] if ``joint``."""
     return terms.sum(-1, keepdim=True) if joint else terms

@@ -32,7 +32,10 @@ from tensordict import TensorDictBase
 from torch import nn
 from torch.distributions.utils import _sum_rightmost
 from torchrl.modules import TanhNormal
+from torchrl.modules.distributions.continuous import SafeTanhTransform
 from torchrl.objectives.value.functional import td0_return_estimate
+
+from losses.functional import as_alone
 
 ACTION_NOISE_KEY = "action_noise"  # SAC: N(0, I) behind the reparameterised action (root: the actor
 #                                    loss's, under "next": the target's)
@@ -60,9 +63,17 @@ class DrawnTanhNormal(TanhNormal):
         preimage = normal.loc + self.noise * normal.scale  # what Normal.rsample computes from its own draw
         transform = self.transforms[0]
         sample = transform(preimage)
-        log_prob = self.base_dist.log_prob(preimage) - _sum_rightmost(
-            transform.log_abs_det_jacobian(preimage, sample), len(self.event_shape))
+        log_prob = self.base_dist.log_prob(preimage) - _sum_rightmost(  # in this order: autograd sums preimage's
+            _log_abs_det_jacobian(transform, preimage, sample), len(self.event_shape))  # gradients in it
         return sample, log_prob
+
+
+def _log_abs_det_jacobian(transform, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """``transform.log_abs_det_jacobian(x, y)``; for TorchRL's tanh, its formula with the softplus computed for each
+    member as alone (``losses.functional.as_alone``: a minibatch whose rows per member are not a multiple of 8)."""
+    if type(transform) is not SafeTanhTransform:
+        return transform.log_abs_det_jacobian(x, y)
+    return 2.0 * (math.log(2.0) - x - as_alone(torch.nn.functional.softplus, -2.0 * x))
 
 
 class MemberTemperature:

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import NormalParamExtractor, TensorDictModule
+from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.data import Bounded
 from torchrl.modules import ProbabilisticActor
@@ -37,12 +37,13 @@ from torchrl.objectives import SoftUpdate
 from collectors import ReplayMemory, sample_minibatch
 from learners import fast_paths
 from learners.base import Learner, MetricTotals, Optimisers, diverged_members, freeze_member, prioritised_minibatch
-from learners.networks import (BlockSampler, NormalisedActor, ObservationNorm, StackedCriticNet,
+from learners.networks import (BlockSampler, MemberNormalParamExtractor, NormalisedActor, ObservationNorm, StackedCriticNet,
                                StackedMLP, StackedResidualCriticNet, reset_parameters)
 from learners.optim import MemberAdam
 from learners.registry import spec as learner_spec
 from learners.td import linear_schedule
 from losses.td import ACTION_NOISE_KEY, CRITIC_EXTRAS, DrawnTanhNormal, member_means
+from losses.functional import as_alone
 
 FUSED = True  # the eager steps of SAC (DroQ, BRO), TQC, CrossQ and TD3 on plain tensors (losses.<name>.fused_*: the
 #               same bits as TorchRL's loss modules, faster); False: through the loss modules (speed.floor
@@ -81,7 +82,7 @@ class Networks:
 
 class _Tanh(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.tanh(x)
+        return as_alone(torch.tanh, x)  # each member's as alone (losses.functional.as_alone)
 
 
 def make_actor_net(learner, members: int, obs_dim: int, action_dim: int, network, algo=None) -> nn.Module:
@@ -96,7 +97,7 @@ def make_actor_net(learner, members: int, obs_dim: int, action_dim: int, network
     hidden, activation = _setting(network, "actor_hidden"), _setting(network, "activation")
     if learner.gaussian_actor:
         body = StackedMLP(members, [obs_dim, *hidden, 2 * action_dim], activation, linear_output=True)
-        return nn.Sequential(body, NormalParamExtractor(scale_mapping="biased_softplus_1.0", scale_lb=1e-4))
+        return nn.Sequential(body, MemberNormalParamExtractor(scale_lb=1e-4))
     body = StackedMLP(members, [obs_dim, *hidden, action_dim], activation, linear_output=True)
     return nn.Sequential(body, _Tanh())
 
@@ -209,7 +210,7 @@ class OffPolicySampler(BlockSampler):
 
     def deterministic(self, observation: torch.Tensor) -> torch.Tensor:
         out = self.net(self.norm(observation) if self.norm is not None else observation)
-        return torch.tanh(out[0]) if isinstance(out, tuple) else out
+        return as_alone(torch.tanh, out[0]) if isinstance(out, tuple) else out
 
     @torch.no_grad()
     def __call__(self, observation: torch.Tensor) -> torch.Tensor:
@@ -241,7 +242,7 @@ class OffPolicySampler(BlockSampler):
         draw = self._draws[:, step]
         if self.noise is None:  # SAC: a sample of the tanh-squashed Gaussian
             loc, scale = self.net(observation)
-            return torch.tanh(loc + scale * draw)
+            return as_alone(torch.tanh, loc + scale * draw)
         return (self.net(observation) + self.noise * draw).clamp_(-1.0, 1.0)
 
     def state_dict(self) -> dict:
