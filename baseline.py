@@ -19,7 +19,7 @@ import importlib.util
 import sys
 from pathlib import Path
 
-from engine.budget import EPISODES, PROCESSES, SEED
+from engine.budget import EPISODES, PROCESSES, SEED, check_items
 from engine import numerics
 from engine.outputs import RunFolderError
 from engine.pool import run_jobs
@@ -45,6 +45,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--random-tracks", action="store_true",
                         help="a new random track every episode (the benchmark's training; --tracks then only seed the runs)")
     args = parser.parse_args(argv)
+    check_items(parser, "--tracks", args.tracks, 1_000, unique=True)  # one folder a track: two jobs would share it
+    check_items(parser, "--algos", args.algos, len(ALGOS), unique=True)
     from engine.tool_output import check_output_folder
 
     check_output_folder(parser, "--out", args.out)  # its runs' folders go there: never inside another run's

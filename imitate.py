@@ -25,7 +25,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from engine.budget import PROCESSES, SEED, count
+from engine.budget import PROCESSES, SEED, check_items, check_work, count
 from engine import numerics
 
 
@@ -53,6 +53,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--processes", type=PROCESSES, default=1)
     parser.add_argument("--table", type=Path, default=None)
     args = parser.parse_args(argv)
+    check_items(parser, "--hidden", args.hidden, 16)
+    check_items(parser, "--tracks", args.tracks, 1_000, unique=True)
+    widths = [6, *args.hidden, 2]
+    check_work(parser, 50_000_000, "weights", network=sum(a * b for a, b in zip(widths, widths[1:])))
+    check_work(parser, 1_000_000, "oracle-labelled episodes", tracks=len(args.tracks), rounds=args.rounds + 1,
+               episodes=args.episodes)
     from engine.tool_output import check_outputs
 
     check_outputs(parser, table=args.table)

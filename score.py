@@ -27,10 +27,11 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 from pathlib import Path
 
-from engine.budget import SEED, STEPS, count
+from engine.budget import SEED, STEPS, check_items, check_work, count
 from engine import numerics
 from racing.track_file import add_track_options
 
@@ -58,6 +59,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--numerics", choices=numerics.MODES, default=None,
                         help="the numerics to run run folders' policies in (default: the one they were trained in)")
     args = parser.parse_args(argv)
+    check_items(parser, "AGENT", args.agents, 1_000)
+    check_items(parser, "--tracks", args.tracks, 10_000)
+    check_work(parser, 1_000_000, "episodes", agents=len(args.agents), tracks=len(args.tracks or [0] * 10),
+               episodes=args.episodes or 5)
     if args.video is not None and args.video.suffix.lower() not in (".gif", ".mp4"):
         parser.error(f"--video must name a .gif or .mp4 file, got {str(args.video)!r}")
     if (args.laps is not None and args.laps < 1) or (args.max_steps is not None and args.max_steps < 1):
@@ -78,6 +83,24 @@ def main(argv: list[str] | None = None) -> int:
                   video=args.video)
     if args.table is not None and args.table.is_dir():
         parser.error(f"--table {args.table} is a folder; give a file name (e.g. {args.table / 'scores.csv'})")
+    runs = [a for a in args.agents if os.path.lexists(Path(a) / "summary.json")]
+    if runs:  # a run named twice, through a link, or copied is one agent (engine.runset), said in one line
+        from engine.outputs import RunFolderError
+        from engine.runset import read_runs
+
+        try:
+            distinct = read_runs(runs, say="score").runs
+        except RunFolderError as err:
+            print(f"score: {err}", file=sys.stderr)
+            return 2
+        standing, taken, kept = {os.path.realpath(p) for p in distinct}, set(), []
+        for spec in args.agents:
+            real = os.path.realpath(spec)
+            if spec in runs and (real not in standing or real in taken):
+                continue
+            taken.add(real)
+            kept.append(spec)
+        args.agents = kept
     folders = [Path(a) for a in args.agents if Path(a).is_dir()]
     try:
         mode = args.numerics or (_runs_numerics(folders) if folders else numerics.DEFAULT)

@@ -63,13 +63,11 @@ def main(argv: list[str] | None = None) -> int:
 
     check_outputs(parser, reads=args.folders, table=args.table)
 
-    if min(args.budgets) < 1 or args.window < 1:
-        parser.error("--budgets and --window must be positive")
-    runs = []
-    for folder in args.folders:
-        if not folder.is_dir():
-            parser.error(f"{folder} is not a folder")
-        runs += [r for r in find_runs(folder) if r.rewards and r.seed is not None]  # finished runs
+    try:
+        runs = [r for r in find_runs(args.folders, say="budget") if r.rewards and r.seed is not None]  # each run once
+    except FileNotFoundError as err:
+        print(f"budget: {err}", file=sys.stderr)
+        return 2
     if not runs:
         print(f"no runs with metrics under {', '.join(map(str, args.folders))}", file=sys.stderr)
         return 1

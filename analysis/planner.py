@@ -44,7 +44,7 @@ import argparse
 import math
 import sys
 from dataclasses import dataclass, field, replace
-from engine.budget import PROCESSES, SEED, count, real
+from engine.budget import PROCESSES, SEED, check_items, check_work, count, real
 from pathlib import Path
 
 COLUMNS = ("run", "track", "variant", "episodes", "mean_reward", "crashes_per_episode", "crashes", "foreseen_0",
@@ -427,6 +427,8 @@ def main(argv: list[str] | None = None) -> int:
     check_start_seeds(parser, args.seed, args.episodes)
     if args.table is not None and args.summary is not None and args.table.resolve() == args.summary.resolve():
         parser.error(f"--table and --summary name one file ({args.table}); give two")
+    check_items(parser, "--variant", args.variant, 64)
+    check_work(parser, 100_000, "episodes a run", variants=len(args.variant) + 1, episodes=args.episodes)
     if len({v.strip() for v in args.variant}) < len(args.variant):
         parser.error("a --variant is given twice")
     for text in args.variant:

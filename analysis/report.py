@@ -126,20 +126,21 @@ def _finished_by(runs: list[Run], key) -> dict[str, list[Run]]:
     return groups
 
 
-def find_runs(sweep_dir: Path, say: str | None = None) -> list[Run]:
-    """Every run folder under ``sweep_dir`` (any depth), finished or not, each run once
-    (``engine.runset.read_runs``: links and copies counted once; ``say``: the tool that names them)."""
+def find_runs(sweep_dir, say: str | None = None) -> list[Run]:
+    """Every run folder under ``sweep_dir`` (a folder, or a list of them; any depth), finished or not, each run
+    once (``engine.runset.read_runs``: links and copies counted once; ``say``: the tool that names them)."""
     from engine.runset import read_runs
 
-    sweep_dir = Path(sweep_dir)
-    if not sweep_dir.is_dir():
-        raise FileNotFoundError(f"{sweep_dir} is not a folder; give the sweep's output folder "
-                                "(e.g. outputs/sweeps/paper_grid)")
+    folders = [Path(p) for p in sweep_dir] if isinstance(sweep_dir, (list, tuple)) else [Path(sweep_dir)]
+    for folder in folders:
+        if not folder.is_dir():
+            raise FileNotFoundError(f"{folder} is not a folder; give the sweep's output folder "
+                                    "(e.g. outputs/sweeps/paper_grid)")
     try:
-        found = read_runs([sweep_dir], unfinished=True, skip_named="report", say=say)
+        found = read_runs(folders, unfinished=True, skip_named="report", say=say)
     except RunFolderError:
-        raise FileNotFoundError(f"no runs under {sweep_dir}: expected folders with {SUMMARY_FILE} and "
-                                f"{METRICS_FILE}, as train.py writes them") from None
+        raise FileNotFoundError(f"no runs under {', '.join(map(str, folders))}: expected folders with {SUMMARY_FILE} "
+                                f"and {METRICS_FILE}, as train.py writes them") from None
     return [read_run(folder) for folder in found.runs]
 
 

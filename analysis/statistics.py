@@ -75,7 +75,7 @@ def statistics_markdown(runs: list[Run], oracle: dict[int, float], reps: int = a
             point, low, high = aggregate.stratified_bootstrap_ci(scores, aggregate.ESTIMATORS[name], reps=reps)
             row.append(f"{point:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]" if len(scores) > 1
                        else f"{point:.{digits}f} (n/a: one run)")
-        lines.append(f"| {title(key)} | {len(scores)} | " + " | ".join(row) + " |")
+        lines.append(f"| {markdown_cell(title(key))} | {len(scores)} | " + " | ".join(row) + " |")
     pairs = comparisons(cells)
     if pairs:
         lines += ["", f"Probability of improvement P(X > Y): the chance that a run of X scores above a run of Y (ties "
@@ -84,7 +84,7 @@ def statistics_markdown(runs: list[Run], oracle: dict[int, float], reps: int = a
                   "| X | Y | compares | P(X > Y) [95% CI] |", "|---|---|---|---|"]
         for x, y, why in pairs:
             point, low, high = aggregate.probability_of_improvement_ci(cells[x], cells[y], reps=reps)
-            lines.append(f"| {title(x)} | {title(y)} | {why} | {point:.2f} [{low:.2f}, {high:.2f}] |")
+            lines.append(f"| {markdown_cell(title(x))} | {markdown_cell(title(y))} | {why} | {point:.2f} [{low:.2f}, {high:.2f}] |")
     return "\n".join(lines) + "\n"
 
 

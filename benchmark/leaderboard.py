@@ -148,7 +148,7 @@ def board_problem(agents, runs: int) -> str | None:
         return f"{len(agents):,} agents; a board takes at most {MAX_AGENTS} (each agent's statistics cost seconds)"
     if runs > MAX_BOARD_RUNS:
         return f"{runs:,} runs; a board takes at most {MAX_BOARD_RUNS:,}"
-    return collision(agents, reserved=[*REFERENCES, "reference: oracle"])
+    return collision(agents, reserved=[*REFERENCES, "reference: oracle"], reserved_start="reference")
 
 
 def _from_scores(paths: list[Path], out: Path) -> int:

@@ -130,7 +130,7 @@ def _refusal(path, err: OSError, verb: str, follow: bool = False) -> Exception:
 
 
 _guard = None  # rule 9: callable(path, replaces: bool) -> why this process may not write there, or None
-_read: set[str] = set()  # the real paths of the files read while a guard is set
+_read: set = set()  # the real paths and (device, inode) of the files read while a guard is set
 
 
 def guard_writes(check) -> None:
@@ -148,8 +148,15 @@ def guarded() -> bool:
 
 
 def was_read(path) -> bool:
-    """Whether the file at ``path`` (by its real path) was read by this process while a guard was set."""
-    return os.path.realpath(path) in _read
+    """Whether the file at ``path`` (by its real path, or as another name of the same file: a hard link) was read
+    by this process while a guard was set."""
+    if os.path.realpath(path) in _read:
+        return True
+    try:
+        info = os.stat(path)
+    except OSError:
+        return False
+    return (info.st_dev, info.st_ino) in _read
 
 
 def _ask(path, replaces: bool = True) -> None:
@@ -165,6 +172,11 @@ def _open(path, flags: int, verb: str, follow: bool = False, single_link: bool =
         _ask(path)
     elif _guard is not None:
         _read.add(os.path.realpath(path))
+        try:
+            info = os.stat(path)
+            _read.add((info.st_dev, info.st_ino))
+        except OSError:
+            pass
     try:
         fd = os.open(path, flags | _NONBLOCK | _CLOEXEC | (0 if follow else _NOFOLLOW), mode)
     except OSError as err:

@@ -58,10 +58,16 @@ PROCESSES = count(1, 64)
 STEPS = count(1, 1_000_000)
 
 
-def check_items(parser, option: str, values, most: int) -> None:
-    """``parser.error`` in one line if the list ``option`` holds more than ``most`` values."""
-    if values is not None and len(values) > most:
+def check_items(parser, option: str, values, most: int, unique: bool = False) -> None:
+    """``parser.error`` in one line if the list ``option`` holds more than ``most`` values (or, ``unique``, one
+    value twice: two jobs of one value would share their folder or their row)."""
+    if values is None:
+        return
+    if len(values) > most:
         parser.error(f"{option} holds {len(values):,} values; it takes at most {most:,}")
+    if unique and len(set(values)) < len(values):
+        twice = next(v for v in values if values.count(v) > 1)
+        parser.error(f"{option} names {twice} twice; name each once")
 
 
 def check_work(parser, limit: int, what: str, **factors) -> None:

@@ -15,6 +15,7 @@ written once for every table, page and figure (torch-free).
 
 from __future__ import annotations
 
+import re
 import unicodedata
 
 NAME_LENGTH = 200  # an agent's or a run's name: longer is not a name
@@ -45,22 +46,44 @@ def check_name(text, what: str) -> str | None:
     return None
 
 
+_NAMED = {"ALPHA": "a", "SCRIPT G": "g", "DOTLESS I": "i", "DOTLESS J": "j", "LONG S": "s", "IOTA": "i",
+          "OPEN O": "o", "TURNED A": "a", "SCRIPT A": "a", "SMALL CAPITAL": ""}
+
+
+def _latin(c: str) -> str:
+    """The Latin letter a character of a Latin-like name shows (``ʀ``, LATIN LETTER SMALL CAPITAL R: ``r``), or the
+    character itself."""
+    if c.isascii():
+        return c
+    name = unicodedata.name(c, "")
+    letter = re.search(r"(?:SMALL CAPITAL|CAPITAL LETTER|SMALL LETTER|LETTER) ([A-Z])(?: |$)", name)
+    if letter:
+        return letter.group(1).lower()
+    return next((latin for word, latin in _NAMED.items() if word and word in name), c)
+
+
 def key(text: str) -> str:
-    """What a reader sees of ``text``, as one string: NFKC, casefolded, lookalike letters as the Latin ones, combining
-    marks, invisible characters, spaces, ``_`` and ``-`` dropped. Two names with one key are one name to a reader."""
+    """What a reader sees of ``text``, as one string: NFKC, casefolded, lookalike letters as the Latin ones (other
+    scripts' by ``LOOKALIKES``, Latin variants by their Unicode names), and only letters and digits kept (spaces,
+    punctuation, symbols, marks and invisible characters dropped: ``reference˸ oracle`` is ``reference: oracle``).
+    Two names with one key are one name to a reader."""
     folded = unicodedata.normalize("NFKC", text).casefold().translate(LOOKALIKES)
     decomposed = unicodedata.normalize("NFKD", folded)
-    return "".join(c for c in decomposed if unicodedata.category(c)[0] not in "MZC" and c not in "_-")
+    return "".join(_latin(c) for c in decomposed if c.isalnum()).casefold()
 
 
-def collision(names, reserved=()) -> str | None:
+def collision(names, reserved=(), reserved_start: str | None = None) -> str | None:
     """Why the distinct ``names`` cannot stand side by side (None: they can): one looks like another (the same
-    ``key``), or like a ``reserved`` name it is not."""
+    ``key``), or like a ``reserved`` name it is not, or begins as ``reserved_start`` does (by key) without being
+    a reserved name."""
     seen: dict[str, str] = {key(name): name for name in reserved}
     kept = set(reserved)
     for name in names:
         if name in kept:
             continue
+        if reserved_start is not None and key(name).startswith(key(reserved_start)):
+            return (f"the name {name!r} begins as the board's own {reserved_start!r} names do; give it a name "
+                    "of its own")
         other = seen.get(key(name))
         if other is not None:
             owner = "a reserved name" if other in reserved else "another name"
@@ -72,9 +95,13 @@ def collision(names, reserved=()) -> str | None:
 
 def markdown_cell(text: str) -> str:
     """``text`` as one cell of a Markdown table, shown as written: every character Markdown may read as
-    markup escaped with a backslash, ``<`` and ``&`` as entities, so that a name cannot add a column,
-    link, embed, format or typeset anything."""
-    text = str(text).replace("&", "&amp;").replace("<", "&lt;")
+    markup escaped with a backslash, ``<`` and ``&`` as entities, control characters (a line break ends a
+    table's row) as their escapes, and the starts of links GitHub makes of bare text (``://``, ``www.``)
+    broken by an entity, so that a name cannot add a row, column, link, embed, format or typeset anything."""
+    text = "".join(c.encode("unicode_escape").decode() if unicodedata.category(c)[0] == "C" else c
+                   for c in str(text))
+    text = text.replace("&", "&amp;").replace("<", "&lt;")
+    text = re.sub(r"(?i)(www)\.", r"\1&#46;", text.replace("://", "&#58;//"))
     return "".join("\\" + c if c in MARKDOWN else c for c in text)
 
 

@@ -8,8 +8,10 @@ Every tool that reads runs (report.py, evaluate.py, the leaderboard, the analyse
   any depth below it (``door.files.walk``: no recursion, links never entered);
 - the same folder named twice, or reached through a link, is one run, under the name first given;
 - two folders holding *one run* (the same recorded algorithm, replay mode, seed and settings: a copy of a
-  folder, a backup beside it, the same run made twice) are one run: the first in order is read, the
-  others are named in one line each and not counted (a copy would otherwise count as a second sample);
+  folder, a backup beside it, the same run made twice) are one run: the first in order is read (the first
+  intact one, if the first is damaged), the others are named in one line each and not counted (a copy would
+  otherwise count as a second sample);
+- a path with ``..`` is read as the system resolves it (after a link, ``..`` is not the folder its text names);
 - a folder that cannot be listed is named in one line and skipped.
 
 ``RunSet.notes`` holds those lines; ``read_runs(..., say=name)`` prints them, prefixed with the tool's
@@ -82,11 +84,20 @@ def read_runs(paths, *, unfinished: bool = False, skip_named: str | None = None,
     notes: list[str] = []
     seen_paths: dict[str, Path] = {}
     seen_runs: dict[str, Path] = {}
+
+    def say_notes() -> None:
+        for note in notes if say else ():
+            print(f"{say}: {note}", file=sys.stderr)
+
     for path in map(Path, paths):
+        if ".." in path.parts:  # read as the system resolves it (a link before "..": not the folder the text names)
+            path = Path(os.path.realpath(path))
         if not path.is_dir():
+            say_notes()
             raise RunFolderError(f"{path} is not a folder; give a run's folder or a sweep's")
         found = _folders(path, unfinished, skip_named, notes)
         if not found:
+            say_notes()
             raise RunFolderError(f"{path} holds no {'' if unfinished else 'finished '}train.py run (no "
                                  f"{SUMMARY_FILE}{'' if not unfinished else ' or ' + METRICS_FILE} in it or below it)")
         for folder in found:
@@ -98,14 +109,22 @@ def read_runs(paths, *, unfinished: bool = False, skip_named: str | None = None,
             seen_paths[real] = folder
             key = identity(folder) if copies else None
             if key is not None and key in seen_runs:
-                notes.append(f"{folder} holds the same run as {seen_runs[key]} (the same recorded algorithm, replay "
+                kept = seen_runs[key]
+                if _intact(folder) and not _intact(kept):  # the intact one of the two stands for the run
+                    runs[runs.index(kept)] = seen_runs[key] = folder
+                    folder, kept = kept, folder
+                notes.append(f"{folder} holds the same run as {kept} (the same recorded algorithm, replay "
                              "mode, seed and settings: a copy, or the run made twice): counted once")
                 continue
             if key is not None:
                 seen_runs[key] = folder
             runs.append(folder)
-    found = RunSet(runs, notes)
-    if say:
-        for note in notes:
-            print(f"{say}: {note}", file=sys.stderr)
-    return found
+    say_notes()
+    return RunSet(runs, notes)
+
+
+def _intact(folder: Path) -> bool:
+    """Whether ``folder`` holds a finished run whose files are as its summary records (``engine.rundir.state``)."""
+    from engine.rundir import state
+
+    return state(folder).kind == "finished"

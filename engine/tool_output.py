@@ -29,7 +29,15 @@ def output_problem(path, replaces: bool = True) -> str | None:
     file the tool read may not be); else it is made or deleted."""
     from engine.rundir import run_folder_of, written_here
 
-    path = Path(os.path.abspath(path))
+    given = os.fspath(path)
+    path = Path(os.path.abspath(given))
+    # where the system writes it: the folder resolved (a link before ".." is not the folder the text names), the
+    # name itself not (a link there is replaced, never followed)
+    real = Path(os.path.realpath(os.path.dirname(given) or ".")) / os.path.basename(given)
+    if real != path:
+        problem = output_problem(real, replaces)
+        if problem is not None:
+            return problem
     own = written_here(path)
     if own is not None:  # a run this process writes: its own files, if the run is not inside another run
         outer = run_folder_of(own.parent)
@@ -57,11 +65,22 @@ def check_outputs(parser, reads=(), **outputs) -> None:
     from engine.rundir import files_read
 
     inputs = files_read(reads) if reads else {}
+    for real, what in list(inputs.items()):  # another name of an input (a hard link) is the input too
+        try:
+            info = os.stat(real)
+            inputs[(info.st_dev, info.st_ino)] = what
+        except OSError:
+            pass
     for option, path in outputs.items():
         if path is None:
             continue
         name = f"--{option.replace('_', '-')}"
         read = inputs.get(os.path.realpath(path))
+        try:
+            info = os.stat(path)
+            read = read or inputs.get((info.st_dev, info.st_ino))
+        except OSError:
+            pass
         if read is not None:
             parser.error(f"{name} {path} is {read}, which this command reads; write the output elsewhere")
         if os.path.isdir(path):

@@ -366,7 +366,7 @@ def test_a_board_from_scores_reads_only_what_a_leaderboard_writes(tmp_path, caps
         return err[0]
 
     assert "takes a reference driver's name" in refused(_scores_file(tmp_path / "o.csv", {"reference: oracle": 100.0}))
-    assert "looks like a reserved name, 'reference: ray follower'" in refused(  # a Cyrillic е (engine.names)
+    assert "begins as the board's own 'reference' names do" in refused(  # a Cyrillic е (engine.names)
         _scores_file(tmp_path / "cy.csv", {"r\u0435ference: ray follower": 150.0}))
     assert "a board takes at most 50" in refused(_scores_file(tmp_path / "many.csv", {f"a{i}": 100.0 for i in range(51)}))
     formula = _scores_file(tmp_path / "formula.csv", {"=HYPERLINK(1)": 100.0})
@@ -403,7 +403,7 @@ def test_a_board_from_scores_reads_only_what_a_leaderboard_writes(tmp_path, caps
     assert code == 0
     board = (tmp_path / "board" / "leaderboard.md").read_text()
     assert "| #1 agent | 1 | 120.0" in board  # not a comment
-    assert "| \\*\\*b\\*\\* \\[x\\](http://e) \\!\\[i\\](http://e/i.png) | 1 |" in board
+    assert "| \\*\\*b\\*\\* \\[x\\](http&#58;//e) \\!\\[i\\](http&#58;//e/i.png) | 1 |" in board
     written = (tmp_path / "board" / "runs.csv").read_text().splitlines()
     assert written[0] == "agent,run,track,mean_reward,normalised" and len(written) == 1 + 20
 

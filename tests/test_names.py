@@ -13,11 +13,20 @@ from engine import names
 
 @pytest.mark.parametrize("lookalike", ["rеference: ray follower",  # a Cyrillic е
                                        "Reference: Ray Follower", "reference:ray_follower", "reference: ray\u00a0follower",
-                                       "reference: rαy follower", "ｒｅｆｅｒｅｎｃｅ: ray follower", "réference: ray follower"])
+                                       "reference: rαy follower", "ｒｅｆｅｒｅｎｃｅ: ray follower", "réference: ray follower",
+                                       "reference˸ ray follower", "ʀeference: ray follower", "reference: rɑy follower",
+                                       "reference∶ ray follower"])  # the last four: a hostile trial's, of 35048d1's fix
 def test_a_lookalike_of_a_reserved_name_is_refused(lookalike):
     assert names.key(lookalike) == names.key("reference: ray follower")
     problem = names.collision(["SAC", lookalike], reserved=["reference: ray follower"])
     assert "looks like a reserved name, 'reference: ray follower'" in problem
+
+
+def test_a_name_that_begins_as_the_reserved_ones_do_is_refused():
+    assert "begins as the board's own 'reference' names do" in names.collision(
+        ["Reference X"], reserved=["reference: oracle"], reserved_start="reference")
+    assert names.collision(["reference: oracle", "my referee"], reserved=["reference: oracle"],
+                           reserved_start="reference") is None
 
 
 def test_distinct_names_stand_and_two_that_look_alike_do_not():
@@ -35,6 +44,8 @@ def test_what_cannot_be_a_name(text, said):
 def test_a_markdown_cell_adds_no_markup():
     cell = names.markdown_cell("| x | ![i](http://e/i.png) **b** <img> $x$ & `c`")
     assert "|" not in cell.replace("\\|", "") and "<" not in cell and "\\!\\[i\\]" in cell and "\\$x\\$" in cell
+    cell = names.markdown_cell("sac\n| new row | https://evil.example www.evil.example")
+    assert "\n" not in cell and "://" not in cell and "www." not in cell
 
 
 @pytest.mark.parametrize("text", ["=HYPERLINK(\"http://e\")", "+1+1", "-2+3", "@SUM(A1)", "\tx", "\r=1", "'=1"])

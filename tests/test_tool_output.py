@@ -49,6 +49,28 @@ def test_no_output_over_a_file_the_tool_read(tmp_path, guarded):
     files.remove(tmp_path / "link.csv")  # deleting is not replacing
 
 
+def test_a_link_before_dotdot_and_a_hard_link_are_seen_as_the_system_sees_them(tmp_path, guarded):
+    """35048d1's hostile trial: ``--table <link into a run's .hydra>/../summary.json`` replaced the run's summary
+    (the path was judged as text); ``--markdown <a hard link to the input>`` replaced the input's other name."""
+    run = fake_run(tmp_path, "spg", "memory", 1, 1.0)
+    (tmp_path / "s").mkdir()
+    (run / "logs").mkdir()
+    os.symlink(run / "logs", tmp_path / "s" / "V")  # as text, s/V/.. is s; to the system, the run
+    before = (run / "summary.json").read_bytes()
+    with pytest.raises(files.FileRefused, match=f"inside the run folder {run}"):
+        files.write_text(tmp_path / "s" / "V" / ".." / "summary.json", "x")
+    assert (run / "summary.json").read_bytes() == before
+    table = tmp_path / "in.csv"
+    table.write_text("a\n")
+    os.link(table, tmp_path / "other_name.csv")
+    files.read_text(table, 100)
+    with pytest.raises(files.FileRefused, match="is a file this command reads"):
+        files.write_text(tmp_path / "other_name.csv", "b\n")
+    parser = argparse.ArgumentParser(prog="tool")
+    with pytest.raises(SystemExit):
+        tool_output.check_outputs(parser, reads=[table], markdown=tmp_path / "other_name.csv")
+
+
 def test_a_run_this_tool_writes_may_be_written_unless_inside_another_run(tmp_path, guarded):
     """``baseline.py --out <a finished run>`` wrote a nested run inside it (35048d1)."""
     mine = tmp_path / "out" / "sb3_sac" / "default" / "seed1"
