@@ -121,6 +121,16 @@ class RunContext:
         if phases.code_refusal:
             print(f"Note: the fused update steps are off because {phases.code_refusal}: the loss module computes "
                   "this run's updates, at its own speed (summary.json's paths records it)", file=sys.stderr)
+        elif "loss module" in (phases.path.get("critic"), phases.path.get("actor")):
+            from learners import fast_paths
+
+            unrun = fast_paths.own_edits(getattr(phases, "fast_path_code", ()))
+            if unrun:  # an edit to a fast path's own code, in a run that takes the loss module's path: it does not run
+                self.paths[-1]["edits_not_run"] = unrun
+                print(f"Note: {', '.join(unrun[:3])}{f' and {len(unrun) - 3} more' if len(unrun) > 3 else ''} changed, "
+                      f"but this run's updates are the loss module's ({phases.path.get('why') or phases.path.get('actor_why')}):"
+                      " that edit does not run here; edit the loss module (its class, or the TorchRL loss it inherits) "
+                      "for this mode", file=sys.stderr)
         if payload is not None:
             self._continue(payload)
         self.earlier_compile = self.timing.pop("compile_s", 0.0)

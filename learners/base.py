@@ -40,6 +40,7 @@ class UpdatePhase(Protocol):
     # numbers; "loss module") and, when not fused, why: summary.json's "paths"
     path: dict
     code_refusal: str | None  # the loss's own code or settings keep the fused steps off: said in one line
+    fast_path_code: tuple[str, ...] = ()  # the qualified-name prefixes of its fast path's own code (learners.fast_paths)
 
     def run(self, data: TensorDictBase, minibatch_size: int, totals: "MetricTotals",
             episode: int = 0) -> dict[int, str]:

@@ -52,7 +52,7 @@ RECORDED_MODULES = (
     "learners.base", "learners.networks", "learners.kernels.ops", "learners.td.learner", "collectors.replay",
     "torchrl.objectives.common", "torchrl.objectives.sac", "torchrl.objectives.tqc", "torchrl.objectives.td3",
     "torchrl.objectives.crossq",
-    "torchrl.objectives.value.advantages",
+    "torchrl.objectives.value.advantages", "learners.monte_carlo.fused",
 )
 
 
@@ -223,19 +223,46 @@ def refusal(loss, extra=()) -> str | None:
             f"{'it' if len(edited) == 1 else 'them'} (learners/fast_paths.json)")
 
 
+def own_edits(prefixes) -> list[str]:
+    """The fast paths' own code (recorded functions and class members whose qualified names start with one of
+    ``prefixes``: ``losses.td3.fused_``, ``learners.monte_carlo.fused.``) that is not as recorded: an edit a run
+    whose updates are the loss module's (``compile=true``, a setting the fast path does not compute) does not run,
+    and says so (``engine.run_context``)."""
+    prefixes = tuple(prefixes)
+    if not prefixes:
+        return []
+    record = recorded()
+    now = {}
+    for name in {key.rsplit(".", 1)[0] for key in record if key.startswith(prefixes)} | {
+            p.rstrip("._") for p in prefixes}:
+        module = name
+        while module and module not in RECORDED_MODULES:
+            module = module.rpartition(".")[0]
+        if module:
+            now.update({key: digest for key, digest in _module_digests(module).items() if key.startswith(prefixes)})
+    names = sorted(set(now) | {key for key in record if key.startswith(prefixes)})
+    return [name for name in names if now.get(name) is None or record.get(name) != now.get(name)]
+
+
+def _module_digests(name: str) -> dict[str, str | None]:
+    module = importlib.import_module(name)
+    found = {}
+    for value in vars(module).values():
+        if getattr(value, "__module__", None) != name:
+            continue
+        if inspect.isclass(value):
+            found.update({key: digest for key, digest in class_digests(value).items()
+                          if key.startswith(f"{name}.{value.__qualname__}.")})
+        elif inspect.isfunction(value):
+            found[f"{name}.{value.__qualname__}"] = function_digest(value)
+    return found
+
+
 def record_now() -> dict[str, str]:
     """Every class member and function of ``RECORDED_MODULES`` as its code is now."""
     found = {}
     for name in RECORDED_MODULES:
-        module = importlib.import_module(name)
-        for value in vars(module).values():
-            if getattr(value, "__module__", None) != name:
-                continue
-            if inspect.isclass(value):
-                found.update({key: digest for key, digest in class_digests(value).items()
-                              if key.startswith(f"{name}.{value.__qualname__}.")})
-            elif inspect.isfunction(value):
-                found[f"{name}.{value.__qualname__}"] = function_digest(value)
+        found.update(_module_digests(name))
     return dict(sorted(found.items()))
 
 

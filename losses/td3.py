@@ -88,7 +88,12 @@ def fused_td3_actor_losses(loss: MemberTD3Loss, actor_net: nn.Module, batch: Ten
     """TD3's actor loss per member (``member_means`` of ``loss.actor_loss(batch)[0]``): ``-Q_0(s, mu(s))``
     with the Q-networks detached, on plain tensors (tested bit for bit). TorchRL scores the action with
     every Q-network and keeps the first; only the first is computed here (the others' gradient is
-    zero), unless the Q-networks draw dropout masks, whose draws must stay as TorchRL's."""
+    zero), unless the Q-networks draw dropout masks, whose draws must stay as TorchRL's.
+
+    This copy runs on the fused path only. Off it (``compile=true``, a setting it does not compute) the actor's
+    loss is TorchRL's ``TD3Loss.actor_loss``, which ``MemberTD3Loss`` inherits: to change TD3's actor loss in every
+    mode, override ``actor_loss`` in ``MemberTD3Loss`` (the fused step then steps aside until mirrored and
+    re-recorded, ``learners.fast_paths``). An edit made here alone is named by a run off the fused path."""
     check_no_masks(batch)
     weights = loss._maybe_get_priority_weight(batch)
     observation = batch.get("observation")

@@ -307,3 +307,33 @@ def test_an_edited_loss_in_a_copy_of_the_code_runs_and_a_docstring_does_not_matt
         assert done.returncode != 0 and error.replace("'", "") in done.stderr.replace("'", ""), done.stderr
         (note,) = [line for line in done.stderr.splitlines() if "fused update steps are off" in line]
         assert "changed since the fast path was checked against" in note, note
+
+
+@pytest.mark.parametrize("prefix, name", [("losses.td3.fused_", "losses.td3.fused_td3_actor_losses"),
+                                          ("learners.monte_carlo.fused.", "learners.monte_carlo.fused.copied_functions")])
+def test_an_edit_to_a_fast_paths_own_code_is_found(monkeypatch, prefix, name):
+    """On 35048d1 ``raise RuntimeError`` in losses/td3.py's fused_td3_actor_losses stopped a default TD3 run, but a
+    compile=true run (TorchRL's TD3Loss.actor_loss) completed and said nothing: such an edit is now found and named."""
+    assert fast_paths.own_edits((prefix,)) == []
+    record = dict(fast_paths.recorded())
+    assert name in record
+    record[name] = "edited"
+    monkeypatch.setattr(fast_paths, "_RECORD", record)
+    assert fast_paths.own_edits((prefix,)) == [name]
+
+
+def test_a_run_off_the_fast_path_names_an_edit_it_does_not_run(monkeypatch, capsys, tmp_path):
+    """Every mode that takes the loss module's path (compile=true, a setting the fast path does not compute, the
+    fast paths switched off) says in one line which path it took and why, and which edit does not run."""
+    from engine.runner import train
+    from learners.td import learner as td_learner
+
+    record = dict(fast_paths.recorded())
+    record["losses.td3.fused_td3_actor_losses"] = "edited"
+    monkeypatch.setattr(fast_paths, "_RECORD", record)
+    monkeypatch.setattr(td_learner, "FUSED", False)
+    summary = train(load("algo=td3", "episodes=1", "progress=false", "logger=none", "seed=1"), tmp_path)
+    err = capsys.readouterr().err
+    assert ("Note: losses.td3.fused_td3_actor_losses changed, but this run's updates are the loss module's "
+            "(learners.td.learner.FUSED is off): that edit does not run here") in err, err
+    assert summary["paths"][0]["edits_not_run"] == ["losses.td3.fused_td3_actor_losses"]

@@ -142,6 +142,7 @@ class PhaseRunner:
                 self._actor_in_keys = list(dict.fromkeys(keys))
         if why is None or why != self.code_refusal:
             self.code_refusal = None  # said only where it is what keeps the fused steps off
+        self.fast_path_code = ("learners.monte_carlo.fused.",)  # its fused phases' own code (learners.fast_paths)
         # summary.json's record of the update path (engine.runner): which computes each phase's steps and why
         self.path = {"critic": "fused" if self.fused_critic is not None else "loss module",
                      "actor": "fused" if self.fused_actor is not None else "loss module",

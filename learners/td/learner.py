@@ -388,6 +388,7 @@ class TDPhaseRunner:
             self.code_refusal = None  # said only where it is what keeps the fused step off
         self.fused = why is None
         # summary.json's record of the update path (engine.runner)
+        self.fast_path_code = (f"losses.{name}.fused_",)  # its fused step's own functions (learners.fast_paths)
         path = "fused" if self.fused else "loss module"
         self.path = {"critic": path, "actor": path, **({"why": why} if why else {})}
         steps.prepare(self)  # its compiled objectives and any check of what was built
