@@ -26,10 +26,14 @@ from __future__ import annotations
 import signal
 
 
+_STOPS = {signal.SIGINT, signal.SIGTERM}
+
+
 def _start_worker() -> None:
     """Cannot fail (a pool whose initializer raises starts workers for ever): signals only."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides (a terminal's Ctrl-C reaches the group)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOPS)  # held while the parent started it (run_jobs)
 
 
 _applied: list[str] = []  # the numerics this worker applied
@@ -62,7 +66,13 @@ def run_jobs(function, jobs, processes: int, numerics: str | None = None) -> lis
         return [function(job) for job in jobs]
     from engine.processes import spawn_context
 
-    pool = spawn_context().Pool(min(processes, len(jobs)), initializer=_start_worker)
+    # a stop while the workers are being started would cut the data each reads at its start (a worker's EOFError
+    # traceback after the tool's one line): held until they all are, then delivered here
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, _STOPS)
+    try:
+        pool = spawn_context().Pool(min(processes, len(jobs)), initializer=_start_worker)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
     try:
         from door import files
 
