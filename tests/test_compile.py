@@ -103,13 +103,22 @@ def test_compile_is_validated():
 @pytest.mark.slow
 @needs_compiler
 @pytest.mark.parametrize("algo", ["sac", "td3"])
-def test_sac_and_td3_train_compiled(tmp_path, algo):
+def test_sac_and_td3_train_compiled(tmp_path, algo, monkeypatch, capsys):
     """TorchRL's losses compile as one graph each (vmap over the Q-networks; no recompiles), and an
     SAC member trains the same in compiled populations of two and three, in any order (a compiled
-    population of one rounds SAC otherwise, so ``processes`` never makes a part of one)."""
+    population of one rounds SAC otherwise, so ``processes`` never makes a part of one). An edit to the
+    fused step's own code, which a compiled run does not run, is named (35048d1: TD3's ran silently)."""
+    from learners import fast_paths
+
+    edited = f"losses.{algo}.fused_{algo}_{'actor_losses' if algo == 'td3' else 'losses'}"
+    monkeypatch.setattr(fast_paths, "_RECORD", {**fast_paths.recorded(), edited: "edited"})
     run = [f"algo={algo}", "er=memory", "episodes=2", "algo.td.warmup_episodes=1", "progress=false",
            "logger=none", "compile=true"]
     summary = train_population(load(*run, f"seeds=[{A},{B}]"), tmp_path / "ab")[0]
+    assert (f"Note: {edited} changed, but this run's updates are the loss module's (compile=true compiles the loss "
+            "module's step): that edit does not run here") in capsys.readouterr().err
+    assert summary["paths"][0]["edits_not_run"] == [edited]
+    monkeypatch.undo()
     assert summary["status"] == "completed" and summary["compile"]["enabled"]
     assert 0 < summary["time/compile_s"] <= summary["time/train_s"]
     assert all(math.isfinite(float(r["critic/loss_qvalue"])) for r in rows(tmp_path / "ab" / f"seed{A}")[1:])
