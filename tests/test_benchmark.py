@@ -239,6 +239,7 @@ def test_the_end_screen_stays_until_the_window_is_closed(monkeypatch):
     assert time.perf_counter() - start >= 0.5
 
 
+@pytest.mark.slow
 def test_the_documented_board_from_committed_scores(tmp_path):
     """docs/benchmark.md's ``--scores`` line: the committed boards' scores in one board, with the agents as
     rliable reports them; every row of the committed leaderboard comes out the same from its scores."""

@@ -70,6 +70,7 @@ def test_numerics_speed_benchmark_prints_its_table():
     assert "| hidden 100x100, minibatch 200 | 2 | weight grad |" in result.stdout
 
 
+@pytest.mark.slow
 def test_oracle_convergence_benchmark_prints_its_table():
     result = zygote.run(["-m", "speed.oracle_convergence", "--tracks", "1001", "--episodes",
                          "1", "--horizon", "5", "--iterations", "1", "--candidates", "16", "--ladder", "1"],
@@ -79,6 +80,7 @@ def test_oracle_convergence_benchmark_prints_its_table():
     assert len(rows) == 1 + 2 and rows[1].startswith("| base |") and rows[2].startswith("| candidates=4 |")
 
 
+@pytest.mark.slow
 def test_oracle_circuit_benchmark_prints_its_table():
     result = zygote.run(["-m", "speed.oracle_circuit", "--points", "100", "--steps", "2"],
                         cwd=ROOT, env=dict(os.environ), timeout=300)

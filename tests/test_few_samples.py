@@ -141,6 +141,7 @@ def test_an_interrupted_droq_run_resumes_exactly(tmp_path):
                 == (tmp_path / "reference" / f"seed{seed}" / "metrics.csv").read_bytes())
 
 
+@pytest.mark.slow
 def test_the_options_change_the_run_and_their_defaults_do_not(tmp_path):
     run = ["algo=sac", "er=memory", *FAST, "algo.td.updates_per_step=0.1", f"seed={A}"]
     train_population(load(*run), tmp_path / "plain")
@@ -227,6 +228,7 @@ def test_a_reset_sets_every_target_network_to_its_new_online_network(algo):
     assert t.optimisers.actor.steps == t.optimisers.critic.steps == 0
 
 
+@pytest.mark.slow
 def test_a_reset_changes_a_run_from_its_episode_on(tmp_path):
     run = [*BRO, "er=memory", *FAST, "episodes=6", "algo.td.updates_per_step=0.1", f"seed={A}"]
     train_population(load(*run), tmp_path / "plain")

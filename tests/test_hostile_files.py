@@ -94,6 +94,7 @@ def test_a_downloaded_sb3_model_never_runs_its_code_when_scored_or_filmed(tmp_pa
     assert not marker.exists()
 
 
+@pytest.mark.slow
 def test_a_damaged_sb3_run_folder_is_not_scored(tmp_path):
     """Class: results that lie. rundir calls it damaged; on 6b09ff3 score.py scored it all the same."""
     pytest.importorskip("stable_baselines3")
@@ -116,6 +117,7 @@ def test_a_damaged_sb3_run_folder_is_not_scored(tmp_path):
 
 # ------------------------------------------------------------------ writes outside the run folder
 
+@pytest.mark.slow
 def test_a_lock_that_is_a_hard_link_is_refused_and_its_other_file_untouched(tmp_path):
     outside = tmp_path / "thesis.tex"
     outside.write_text("chapter one\n")
@@ -328,6 +330,7 @@ def test_a_resume_under_other_numerics_is_refused_or_recorded_as_mixed(tmp_path,
     assert summary["numerics"]["segments"][1]["products"].startswith("fma-")
 
 
+@pytest.mark.slow
 def test_the_fallback_to_portable_products_is_one_plain_line(tmp_path):
     """On 258b7c4 a machine without a C++ compiler saw the fallback as a Python warning with its source line
     under it (``engine/command.py:94: RuntimeWarning: ...`` then ``numerics.apply(...)``)."""
@@ -425,6 +428,7 @@ def test_a_path_too_long_and_a_bad_kernel_variable_end_in_one_line_before_anythi
     assert not sweep.exists()
 
 
+@pytest.mark.slow
 def test_a_shared_kernel_cache_is_refused_and_left_as_it_is(tmp_path):
     """On 258b7c4 RACING_KERNEL_CACHE pointed at an existing shared folder (mode 2775 or 1777) changed its mode
     (to 2755, 1755): as root with /tmp that would break the system. Now the run says so in one line, computes
@@ -564,6 +568,7 @@ def test_a_folder_name_that_is_not_utf8_is_reported_escaped(tmp_path, finished):
 
 # ------------------------------------------------------------------ the second hostile trial's findings
 
+@pytest.mark.slow
 def test_a_cached_kernel_library_without_the_kernels_falls_back_in_one_line(tmp_path):
     """A library whose record matches but that is not the kernels (a planted one) ended in an
     AttributeError traceback; one of another user's is rebuilt, never loaded."""
@@ -629,6 +634,7 @@ def test_the_slurm_launcher_stops_waiting_when_squeue_cannot_answer(monkeypatch)
         slurm.wait_for([job], poll_s=0.01, grace_s=0.01, patience_s=0.05)
 
 
+@pytest.mark.slow
 def test_drive_without_a_display_ends_with_its_line(tmp_path):
     """With SDL's offscreen driver (no display, SDL_VIDEODRIVER unset) drive.py waited for a window
     no one could close (found by a hostile trial)."""

@@ -559,6 +559,7 @@ def test_rays_and_checkpoints_by_the_thousand_are_bounded_before_work():
         check_ram(cfg, available=4 * 2**30)
 
 
+@pytest.mark.slow
 def test_hydras_own_errors_are_one_line_with_status_2(tmp_path):
     """algo=nope gave 22 lines (options, config search path) and exit status 1."""
     from tests.test_train import run_train

@@ -140,6 +140,7 @@ def test_clean_sweep_runs_an_export_of_the_commit(tmp_path):
     assert again.returncode == 2 and "holds an export of another commit" in again.stderr
 
 
+@pytest.mark.slow
 def test_sweeps_started_together_export_the_same_commit_once(tmp_path):
     """Two sweeps of one commit launched at the same moment both get the export (no crash on a
     half-unpacked folder), and no partial copy is left behind."""

@@ -179,6 +179,7 @@ def test_naf_target_network_follows_by_tau_and_a_frozen_member_stays_zero():
     assert critic["module.net.layers.0.weight"].shape == online["module", "net", "layers", "0", "weight"].shape[1:]
 
 
+@pytest.mark.slow
 def test_a_naf_member_equals_its_solo_run_resumes_exactly_and_its_policy_loads(tmp_path):
     run = ["algo=naf", "er=prioritised", *FAST, "algo.td.updates_per_step=0.1", "episodes=5", "checkpoint_every=2"]
     train_population(load(*run, f"seed={B}"), tmp_path / "solo")

@@ -145,6 +145,7 @@ def test_members_equal_their_solo_runs_in_every_mode_on_both_cpus(machines_runs,
         assert runs[member] == runs[solo], f"{mode} numerics on {machine}: {member} differs from its solo run"
 
 
+@pytest.mark.slow
 def test_the_portable_variables_are_set_before_torch_loads():
     code = ("from engine import numerics; numerics.apply('portable'); import json, torch; "
             "print(json.dumps(numerics.in_effect()))")

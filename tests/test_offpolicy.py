@@ -709,6 +709,7 @@ def test_the_generalisation_preset_shares_its_fixed_runs_with_beyond_paper_and_r
     assert "| TD3, memory | random | 1 |" in (tmp_path / "report" / "generalisation.md").read_text()
 
 
+@pytest.mark.slow
 def test_spg_p_with_prioritised_replay_weights_its_critic_and_updates_priorities(tmp_path):
     """The paper's conjecture, testable: SPG-p on a prioritised memory. Priorities move away from
     their initial value, and a run is reproducible and resumable like any other."""

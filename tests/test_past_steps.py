@@ -165,6 +165,7 @@ def test_members_equal_their_solo_runs_and_resume_exactly_with_past_steps(tmp_pa
                                                  "algo.td.critic_history=1"])
 
 
+@pytest.mark.slow
 def test_the_default_leaves_a_run_and_its_settings_alone(tmp_path):
     run = ["algo=sac", "er=memory", *FAST, "algo.td.updates_per_step=0.1", f"seed={A}"]
     train_population(load(*run), tmp_path / "plain")

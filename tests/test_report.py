@@ -59,6 +59,7 @@ def test_cell_statistics_by_hand(tmp_path):
     assert cell.z == pytest.approx((120.0 - 141.1) / math.hypot(sem, 5.7))
 
 
+@pytest.mark.slow
 def test_the_table_states_each_budget_and_compares_only_the_paper_s(tmp_path, capsys):
     """Runs of 20 episodes are not set against the paper's 201-episode values; a cell mixing budgets
     says so instead of averaging silently; one run has no spread (n/a, not nan); the conclusions

@@ -126,6 +126,7 @@ def handlers_installed(pid: int, timeout: float = 120.0) -> None:
     raise AssertionError(f"process {pid} installed no SIGTERM handler in {timeout} s")
 
 
+@pytest.mark.slow
 def test_a_signal_before_training_starts_is_one_line(tmp_path):
     """SIGINT in a run's first seconds gave a 78-line KeyboardInterrupt traceback. Sent as soon as the
     run answers signals (a readiness signal, not a fixed delay: under load a fixed 0.3 s once landed before

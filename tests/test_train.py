@@ -153,6 +153,7 @@ def test_a_command_forked_from_the_test_zygote_is_a_new_process_run(tmp_path):
             == (tmp_path / "real" / "metrics.csv").read_bytes())
 
 
+@pytest.mark.slow
 def test_tests_that_differ_only_in_pytest_s_name_of_the_test_share_a_zygote(tmp_path):
     """pytest names the running test in PYTEST_CURRENT_TEST: a zygote per name would start one per test.
     One zygote serves them, and each child sees the environment it was given."""

@@ -221,6 +221,7 @@ def test_the_divergence_reads_the_newest_episodes_of_the_ring_in_the_order_they_
 
 
 # ------------------------------------------------------------------------- the learner
+@pytest.mark.slow
 def test_a_trust_pcl_member_equals_its_solo_run_resumes_exactly_and_its_policy_loads(tmp_path):
     run = ["algo=trust_pcl", *FAST, "algo.td.updates_per_step=0.1", "episodes=5", "checkpoint_every=2",
            "algo.trust_pcl.rollout=4"]
