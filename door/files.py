@@ -639,6 +639,11 @@ def remove(path, missing_ok: bool = True) -> bool:
     """Delete the one file or link named ``path`` (rule 6; a link is removed itself, never what it
     points to); a folder is refused. Returns whether something was removed."""
     _ask(path, replaces=False)
+    return _remove(path, missing_ok)
+
+
+def _remove(path, missing_ok: bool = True) -> bool:
+    """``remove`` once the guard (rule 9) has answered for it or for the folder it lies in."""
     try:
         info = os.lstat(path)
     except FileNotFoundError:
@@ -665,8 +670,9 @@ def remove_tree(top) -> None:
     _ask(top, replaces=False)
     check_tree(top)
     for here, folders, names in walk(top, topdown=False):
+        _ask(here, replaces=False)  # once a folder: a deletion's answer is its folder's (rule 9)
         for entry in names:
-            remove(Path(here) / entry)
+            _remove(Path(here) / entry)
         for entry in folders:
             try:
                 os.rmdir(Path(here) / entry)

@@ -30,6 +30,7 @@ def test_nothing_is_written_made_or_deleted_inside_a_run_folder(tmp_path, guarde
                     lambda: files.folder(run / "report", run, create=True),
                     lambda: files.folder(run / "a" / "b", create=True),
                     lambda: files.remove(run / "metrics.csv"), lambda: files.remove_tree(run),
+                    lambda: files.remove_tree(tmp_path / "spg"),  # a tree with a run below it
                     lambda: os.close(files.open_append(run / "metrics.csv"))):
         with pytest.raises(files.FileRefused, match=f"inside the run folder {run}|is the run folder {run}"):
             attempt()
